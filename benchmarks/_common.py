@@ -1,0 +1,51 @@
+"""Shared pieces of the benchmark scripts: timing, environment record, JSON output."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from importlib import metadata
+
+import jax
+
+
+def environment() -> dict:
+    """Versions and device of this run."""
+    versions = {}
+    for package in ("jax", "jaxlib", "numpy", "optimistix", "jaxopt", "elastic-jax"):
+        try:
+            versions[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            versions[package] = None
+    device = jax.devices()[0]
+    return {
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "device": {
+            "platform": device.platform,
+            "kind": device.device_kind,
+            "count": jax.device_count(),
+        },
+        "versions": versions,
+    }
+
+
+def time_calls(fn: Callable[[], object], repeats: int) -> dict:
+    """Wall-clock seconds of ``repeats`` calls (each blocked until ready): min, median, all."""
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return {"min_s": min(times), "median_s": statistics.median(times), "repeats": repeats}
+
+
+def emit(record: dict) -> None:
+    """Print one JSON record per line (machine-readable)."""
+    print(json.dumps(record, sort_keys=True), flush=True)

@@ -1,0 +1,89 @@
+"""Value and gradient of the path energy with respect to the interior path points.
+
+Settings (issue 2): 50 x 99 grid, N = 13 time points, metric (1, 1, 0.1, 0), float64 and
+float32; the straight line between the shared cats when ../shared/data is present, else
+between two built-in synthetic surfaces. Prints one JSON record per dtype: compile time
+(ahead of time, separately) and the min and median of repeated calls.
+Target on a 2-core CPU: float64 median at most 10 ms.
+
+Run: python benchmarks/bench_energy.py [--repeats 50] [--m 50 --n 99 --n-times 13]
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)  # a script, not the library: float64 must be available
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from _common import emit, environment, time_calls  # noqa: E402
+
+import elastic_jax as ej  # noqa: E402
+from elastic_jax import shapes  # noqa: E402
+
+DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def end_surfaces(m: int, n: int) -> tuple[np.ndarray, np.ndarray, str]:
+    cat1, cat2 = DATA / "cat1_50x99.npz", DATA / "cat2_50x99.npz"
+    if (m, n) == (50, 99) and cat1.exists() and cat2.exists():
+        return np.load(cat1)["f"], np.load(cat2)["f"], "cat1 -> cat2"
+    f1 = np.asarray(shapes.sample(shapes.bumpy, m, n))
+    f2 = np.asarray(shapes.sample(shapes.bent_cylinder, m, n))
+    return f1, f2, "bumpy -> bent_cylinder (synthetic)"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--m", type=int, default=50)
+    parser.add_argument("--n", type=int, default=99)
+    parser.add_argument("--n-times", type=int, default=13)
+    parser.add_argument("--repeats", type=int, default=50)
+    args = parser.parse_args()
+
+    f1, f2, pair = end_surfaces(args.m, args.n)
+    metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+    env = environment()
+    for dtype in (jnp.float64, jnp.float32):
+        path = ej.straight_path(jnp.asarray(f1, dtype), jnp.asarray(f2, dtype), args.n_times)
+        start, end, interior = path[:1], path[-1:], path[1:-1]
+
+        def energy(x, start=start, end=end):
+            return ej.path_energy(metric, jnp.concatenate([start, x, end]))
+
+        t0 = time.perf_counter()
+        compiled = jax.jit(jax.value_and_grad(energy)).lower(interior).compile()
+        compile_s = time.perf_counter() - t0
+        value, grad = jax.block_until_ready(compiled(interior))
+        timing = time_calls(
+            lambda compiled=compiled, interior=interior: compiled(interior), args.repeats
+        )
+        emit(
+            {
+                "benchmark": "path_energy_value_and_grad",
+                "settings": {
+                    "m": args.m,
+                    "n": args.n,
+                    "n_times": args.n_times,
+                    "metric": [1.0, 1.0, 0.1, 0.0],
+                    "dtype": jnp.dtype(dtype).name,
+                    "pair": pair,
+                    "variables": int(interior.size),
+                },
+                "compile_s": compile_s,
+                **timing,
+                "energy": float(value),
+                "grad_norm": float(jnp.linalg.norm(grad)),
+                "target_median_s": 0.010 if dtype == jnp.float64 else None,
+                "environment": env,
+            }
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,122 @@
+"""Analytic test surfaces, evaluated at any point of the parameter sphere.
+
+Each shape is a function ``F(x, **params)`` from unit vectors ``x (3, ...)`` to points
+``(3, ...)`` of R^3 (component axis first, as in the package's ``(3, m, n)`` layout), smooth
+on all of S^2. :func:`sample` evaluates one on the grid, optionally composed with a
+rotation h of the parameter sphere: ``sample(F, m, n, rotation=R)`` is f o h with
+h(x) = R x sampled exactly, so reparametrization tests need no interpolation.
+
+Example:
+    >>> from elastic_jax import shapes
+    >>> f = shapes.sample(shapes.bumpy, 25, 49)
+    >>> f.shape
+    (3, 25, 49)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._grid import sphere_points
+
+__all__ = ["sphere", "ellipsoid", "bumpy", "bent_cylinder", "sample", "random_rotation"]
+
+
+def sphere(x: Float[Array, "3 ..."], radius: float = 1.0) -> Float[Array, "3 ..."]:
+    """The round sphere of the given radius about the origin: F(x) = radius x."""
+    return radius * x
+
+
+def ellipsoid(
+    x: Float[Array, "3 ..."], axes: tuple[float, float, float] = (1.0, 0.75, 0.5)
+) -> Float[Array, "3 ..."]:
+    """The ellipsoid with semi-axes ``axes``: F(x) = diag(axes) x."""
+    return jnp.stack([ax * xi for ax, xi in zip(axes, x, strict=True)])
+
+
+# Bump directions, amplitudes and concentrations chosen with no common symmetry axis.
+_BUMPS = (
+    ((0.36, 0.48, 0.80), 0.35, 6.0),
+    ((-0.70, 0.10, -0.20), 0.25, 4.0),
+    ((0.15, -0.90, 0.30), 0.20, 8.0),
+    ((-0.20, -0.35, -0.90), 0.15, 3.0),
+)
+
+
+def bumpy(x: Float[Array, "3 ..."], scale: float = 1.0) -> Float[Array, "3 ..."]:
+    """A star-shaped surface with four unequal bumps and no symmetry: F(x) = r(x) diag(1, .9, .8) x.
+
+    r(x) = scale (1 + sum_i A_i exp(kappa_i (<x, c_i> - 1))): von Mises bumps, smooth on S^2.
+    """
+    r = 1.0
+    for c, amp, kappa in _BUMPS:
+        c = np.asarray(c) / np.linalg.norm(c)
+        r = r + amp * jnp.exp(kappa * (c[0] * x[0] + c[1] * x[1] + c[2] * x[2] - 1.0))
+    return scale * r[None] * jnp.stack([x[0], 0.9 * x[1], 0.8 * x[2]])
+
+
+def bent_cylinder(
+    x: Float[Array, "3 ..."],
+    half_length: float = 1.5,
+    radius: float = 0.5,
+    curvature: float = 0.4,
+    sharpness: float = 6.0,
+) -> Float[Array, "3 ..."]:
+    """A cylinder with round caps, bent along a circular arc (the paper's Figure 1 kind).
+
+    The unit sphere is first stretched along its axis, z -> z + half_length tanh(sharpness z),
+    a diffeomorphism of R^3 that turns the equatorial band into a straight tube with
+    hemispherical-looking caps; then scaled by ``radius`` across the axis and bent so that
+    the axis becomes an arc of the given curvature in the x-z plane (curvature 0: straight).
+    Needs curvature * radius < 1.
+    """
+    z = x[2] + half_length * jnp.tanh(sharpness * x[2])
+    u, v = radius * x[0], radius * x[1]
+    beta = curvature * z
+    # sin(beta)/curvature and (1 - cos beta)/curvature written to stay exact at curvature 0.
+    along = z * jnp.sinc(beta / np.pi)
+    sideways = z * jnp.sin(0.5 * beta) * jnp.sinc(beta / (2.0 * np.pi))
+    return jnp.stack([u * jnp.cos(beta) + sideways, v, along - u * jnp.sin(beta)])
+
+
+def sample(
+    shape: Callable[..., Array],
+    m: int,
+    n: int,
+    rotation: Float[Array, "3 3"] | None = None,
+    dtype=None,
+    **params,
+) -> Float[Array, "3 m n"]:
+    """Sample ``shape`` on the m x n grid, composed with the rotation h(x) = R x if given.
+
+    Args:
+        shape: one of this module's surfaces (or any F: S^2 -> R^3 with the same layout).
+        m, n: grid size (MATH.md 1).
+        rotation: optional ``(3, 3)`` rotation R; the result is F(R e1(phi_i, theta_j)).
+        dtype: floating dtype of the result.
+        **params: passed to ``shape``.
+
+    Returns:
+        ``(3, m, n)`` with exactly constant pole rows and an exact seam column.
+    """
+    x = sphere_points(m, n, dtype=dtype)
+    if rotation is not None:
+        x = jnp.einsum("ij,jmn->imn", jnp.asarray(rotation, dtype=x.dtype), x)
+    f = shape(x, **params)
+    # Rotated grids reach the pole rows by different rounding in each column.
+    f = f.at[:, 0, :].set(f[:, 0, :1]).at[:, -1, :].set(f[:, -1, :1])
+    return f.at[:, :, -1].set(f[:, :, 0])
+
+
+def random_rotation(seed: int) -> np.ndarray:
+    """A rotation matrix drawn uniformly from SO(3) (QR of a Gaussian matrix), ``(3, 3)``."""
+    rng = np.random.default_rng(seed)
+    q, r = np.linalg.qr(rng.standard_normal((3, 3)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q

@@ -1,0 +1,167 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+import elastic_jax as ej
+from elastic_jax import shapes
+from elastic_jax._energy import _path_energy
+
+from .conftest import load_shape, relerr
+
+# MATH.md 2: exact discretization, straight line cat1 -> cat2, N = 13, 50 x 99.
+CAT_REFERENCE = [
+    ((1.0, 1.0, 0.1, 0.0), 9.9263523348, 3.1433333512),
+    ((0.0, 0.5, 1.0, 0.0), 2.6979328566, 1.6251290345),
+    ((1.0, 0.0, 1.0, 1.0), 17.2739622485, 4.1490992836),
+]
+
+
+@pytest.mark.data
+@pytest.mark.parametrize(("abcd", "energy", "length"), CAT_REFERENCE)
+def test_exact_discretization_values_on_the_cats(cats, abcd, energy, length):
+    path = ej.straight_path(*cats, 13)
+    metric = ej.SplitMetric(*abcd)
+    assert float(ej.path_energy(metric, path)) == pytest.approx(energy, rel=1e-8)
+    assert float(ej.path_length(metric, path)) == pytest.approx(length, rel=1e-8)
+
+
+@pytest.mark.data
+def test_no_absolute_regularization_on_the_small_hand():
+    hand = load_shape("hand4")  # coordinates about 5e-3
+    cat = load_shape("cat1")
+    # A second small surface: the cat scaled to the hand's area, centered on it.
+    scale = np.sqrt(float(ej.surface_area(hand) / ej.surface_area(cat)))
+    target = np.asarray(ej.center(cat)) * scale + (hand.mean(axis=(1, 2)))[:, None, None]
+    path = ej.straight_path(hand, target, 7)
+    metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+    small = float(ej.path_energy(metric, path))
+    large = float(ej.path_energy(metric, 1e3 * path)) / 1e6
+    assert small == pytest.approx(large, rel=1e-10)
+    assert small > 0
+
+
+def _small_path(n_times=5, m=9, n=17):
+    f1 = shapes.sample(shapes.bumpy, m, n)
+    f2 = shapes.sample(shapes.bent_cylinder, m, n)
+    return ej.straight_path(f1, f2, n_times)
+
+
+def test_straight_path_end_points_and_linearity():
+    f1, f2 = shapes.sample(shapes.bumpy, 13, 25), shapes.sample(shapes.ellipsoid, 13, 25)
+    path = ej.straight_path(f1, f2, 9)
+    assert path.shape == (9, 3, 13, 25)
+    assert bool(jnp.all(path[0] == f1)) and bool(jnp.all(path[-1] == f2))
+    np.testing.assert_allclose(path[3], 0.625 * f1 + 0.375 * f2, atol=1e-15)
+    batched = ej.straight_path(jnp.stack([f1, f2]), f2, 4)
+    assert batched.shape == (2, 4, 3, 13, 25)
+
+
+def test_energy_bounds_length_and_schemes_agree_under_refinement():
+    f1, f2 = shapes.sample(shapes.ellipsoid, 13, 25), shapes.sample(shapes.bumpy, 13, 25)
+    metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.2)
+    gaps = []
+    for n_times in (5, 9, 17):
+        path = ej.straight_path(f1, f2, n_times)
+        energy, length = ej.path_energy(metric, path), ej.path_length(metric, path)
+        assert float(length) ** 2 <= float(energy) * (1 + 1e-14)  # Cauchy-Schwarz
+        central = ej.path_energy(metric, path, scheme="central")
+        gaps.append(abs(float(energy - central)) / float(energy))
+    # Both schemes discretize the same integral: their gap shrinks like 1/T.
+    assert gaps[1] < 0.6 * gaps[0] and gaps[2] < 0.6 * gaps[1]
+
+
+def test_central_scheme_is_symmetric_under_reversal():
+    path = _small_path(6)
+    metric = ej.SplitMetric(1.0, 0.5, 0.3, 0.1)
+    assert (
+        relerr(
+            ej.path_energy(metric, path[::-1], scheme="central"),
+            ej.path_energy(metric, path, scheme="central"),
+        )
+        < 1e-13
+    )
+
+
+def test_jit_matches_eager_and_vmap_matches_a_loop():
+    metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+    paths = jnp.stack([_small_path(5), _small_path(5)[::-1], 1.5 * _small_path(5)])
+    looped = jnp.stack([ej.path_energy(metric, p) for p in paths])
+    vmapped = jax.vmap(lambda p: ej.path_energy(metric, p))(paths)
+    batched = ej.path_energy(metric, paths)
+    jitted = jax.jit(lambda p: ej.path_energy(metric, p))(paths[0])
+    assert relerr(vmapped, looped) < 1e-14
+    assert relerr(batched, looped) < 1e-14
+    assert relerr(jitted, looped[0]) < 1e-14
+    over_metrics = jax.vmap(lambda b: ej.path_energy(ej.SplitMetric(1.0, b, 0.1, 0.0), paths[0]))(
+        jnp.asarray([1.0, 2.0])
+    )
+    assert (
+        relerr(over_metrics[1], ej.path_energy(ej.SplitMetric(1.0, 2.0, 0.1, 0.0), paths[0]))
+        < 1e-14
+    )
+
+
+@pytest.mark.parametrize("scheme", ["forward", "central"])
+def test_gradient_matches_finite_differences(scheme):
+    """Derivatives along well-formed perturbations of the interior frames (poles stay constant)."""
+    path = _small_path(4)
+    m, n = path.shape[-2:]
+    fields = jnp.stack(
+        [shapes.sample(s, m, n) for s in (shapes.ellipsoid, shapes.bumpy, shapes.sphere)]
+    )
+    profile = jnp.asarray([0.0, 1.0, -0.5, 0.0])  # end frames fixed
+    directions = profile[None, :, None, None, None] * fields[:, None]
+    metric = ej.SplitMetric(1.0, 0.7, 0.2, 0.3)
+
+    def moved(c):
+        return path + jnp.einsum("k,k...->...", c, directions)
+
+    c0 = jnp.asarray([0.05, -0.02, 0.1])
+    check_grads(
+        lambda c: ej.path_energy(metric, moved(c), scheme=scheme),
+        (c0,),
+        order=2,
+        modes=["fwd", "rev"],
+    )
+    check_grads(
+        lambda c: ej.path_length(metric, moved(c), scheme=scheme),
+        (c0,),
+        order=1,
+        modes=["fwd", "rev"],
+    )
+    # The full gradient (what a solver sees) contracts to the directional derivatives.
+    grad = jax.grad(lambda p: ej.path_energy(metric, p, scheme=scheme))(path)
+    directional = jax.jacfwd(lambda c: ej.path_energy(metric, moved(c), scheme=scheme))(
+        jnp.zeros(3)
+    )
+    np.testing.assert_allclose(jnp.einsum("k...,...->k", directions, grad), directional, rtol=1e-12)
+
+
+def test_changing_coefficients_does_not_recompile():
+    path = _small_path(5, 11, 21)
+    ej.path_energy(ej.SplitMetric(1.0, 1.0, 0.1, 0.0), path)
+    before = _path_energy._cache_size()
+    values = [ej.path_energy(ej.SplitMetric(a, 2.0 * a, 0.1, a / 3), path) for a in (0.5, 2.0, 7.0)]
+    assert _path_energy._cache_size() == before
+    assert len({float(v) for v in values}) == 3
+    traces = []
+
+    @jax.jit
+    def energy(metric):
+        traces.append(None)
+        return ej.path_energy(metric, path)
+
+    for a in (1.0, 2.0, 3.0):
+        energy(ej.SplitMetric(a, 1.0, 0.1, 0.0))
+    assert len(traces) == 1
+
+
+def test_float32_agrees_with_float64():
+    path = _small_path(5, 13, 25)
+    metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+    e64 = ej.path_energy(metric, path)
+    e32 = ej.path_energy(metric, path.astype(jnp.float32))
+    assert e32.dtype == jnp.float32
+    assert relerr(e32, e64) < 1e-5
