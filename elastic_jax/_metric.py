@@ -231,7 +231,7 @@ def _broadcast_fields(f, u, v) -> tuple[Array, Array, Array]:
             raise ValueError(
                 f"{name} must be a field on the grid of f, (..., {grid}); got {x.shape}"
             )
-        if not isinstance(x, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(x))):
+        if not isinstance(x, jax.core.Tracer) and not np.isfinite(np.asarray(x)).all():
             raise ValueError(f"{name} contains non-finite values (NaN or inf)")
     return jnp.broadcast_arrays(f, u, v)
 
