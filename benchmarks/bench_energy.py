@@ -49,6 +49,7 @@ def main() -> None:
     f1, f2, pair = end_surfaces(args.m, args.n)
     metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
     env = environment()
+    reference_grad = None
     for dtype in (jnp.float64, jnp.float32):
         path = ej.straight_path(jnp.asarray(f1, dtype), jnp.asarray(f2, dtype), args.n_times)
         start, end, interior = path[:1], path[-1:], path[1:-1]
@@ -60,6 +61,11 @@ def main() -> None:
         compiled = jax.jit(jax.value_and_grad(energy)).lower(interior).compile()
         compile_s = time.perf_counter() - t0
         value, grad = jax.block_until_ready(compiled(interior))
+        if reference_grad is None:
+            reference_grad = np.asarray(grad)
+        grad_error = np.linalg.norm(np.asarray(grad, np.float64) - reference_grad) / np.linalg.norm(
+            reference_grad
+        )
         timing = time_calls(
             lambda compiled=compiled, interior=interior: compiled(interior), args.repeats
         )
@@ -79,6 +85,7 @@ def main() -> None:
                 **timing,
                 "energy": float(value),
                 "grad_norm": float(jnp.linalg.norm(grad)),
+                "grad_rel_l2_error_vs_float64": float(grad_error),
                 "target_median_s": 0.010 if dtype == jnp.float64 else None,
                 "environment": env,
             }
