@@ -23,3 +23,13 @@ from ._srnf import surface_area as surface_area
 from ._validation import validate_surface as validate_surface
 
 __version__ = "0.1.0"
+from ._geodesic import ConvergenceWarning as ConvergenceWarning
+from ._geodesic import GeodesicResult as GeodesicResult
+from ._geodesic import geodesic as geodesic
+from ._geodesic import upsample_coefficients as upsample_coefficients
+from ._harmonics import SphericalHarmonics as SphericalHarmonics
+from ._harmonics import max_degree as max_degree
+from ._harmonics import real_sph_harm as real_sph_harm
+from ._harmonics import surface_basis as surface_basis
+from ._harmonics import vector_field_basis as vector_field_basis
+from ._interp import resample as resample

@@ -26,15 +26,18 @@ def interior_frame(f: Float[Array, "*batch 3 m n"]) -> tuple[Array, Array]:
     Returns ``(a1, a2)``, each ``(..., 3, m-2, n-1)``: a1 = f_theta / sin(phi), a2 = f_phi,
     by central differences (periodic in theta, half-turn rule across the poles). These
     are the only grid points with quadrature weight, so every integral is built on them.
+    Acts on the last two axes only, so any leading shape works; a numpy input gives
+    numpy output (used to precompute the differentials of the bases in float64).
     """
+    xp = np if isinstance(f, np.ndarray) else jnp
     m, n = f.shape[-2:]
     g = f[..., :-1]  # distinct columns; the seam column repeats column 0
     dphi = np.pi / (m - 1)
     dtheta = 2.0 * np.pi / (n - 1)
     inner = g[..., 1:-1, :]
-    f_theta = (jnp.roll(inner, -1, axis=-1) - jnp.roll(inner, 1, axis=-1)) / (2.0 * dtheta)
+    f_theta = (xp.roll(inner, -1, axis=-1) - xp.roll(inner, 1, axis=-1)) / (2.0 * dtheta)
     sin_phi = np.sin(np.arange(1, m - 1) * dphi).reshape((1,) * (f.ndim - 2) + (m - 2, 1))
-    a1 = f_theta / jnp.asarray(sin_phi, dtype=f.dtype)
+    a1 = f_theta / xp.asarray(sin_phi, dtype=f.dtype)
     a2 = (g[..., 2:, :] - g[..., :-2, :]) / (2.0 * dphi)
     return a1, a2
 

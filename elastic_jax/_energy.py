@@ -16,21 +16,22 @@ from ._validation import as_surface
 SCHEMES = ("forward", "central")
 
 
-def _speeds2(metric: SplitMetric, path: Array, scheme: str) -> tuple[Array, Array]:
-    """Squared speeds G_{f_k}(v_k, v_k) and the time-quadrature weights, for ``(..., N, 3, m, n)``.
+def frame_speeds2(metric: SplitMetric, a1: Array, a2: Array, scheme: str) -> tuple[Array, Array]:
+    """Squared speeds and time-quadrature weights of a path given by its interior frames.
 
+    ``a1, a2 (..., N, 3, m-2, n-1)`` are the columns of df_k (see ``interior_frame``);
+    the differential is linear, so d(f_{k+1} - f_k) = df_{k+1} - df_k.
     forward: v_k = T (f_{k+1} - f_k) at f_k, k = 0..T-1, weights 1/T.
     central: v_k = T (f_{k+1} - f_{k-1}) / 2 at interior k, one-sided at the two ends,
     trapezoid weights (1/2, 1, ..., 1, 1/2) / T: symmetric under reversing the path.
     """
-    n_times = path.shape[-4]
+    n_times = a1.shape[-4]
     t = n_times - 1
-    a1, a2 = interior_frame(path)  # the differential is linear: d(f_{k+1} - f_k) = df_{k+1} - df_k
     if scheme == "forward":
         base1, base2 = a1[..., :-1, :, :, :], a2[..., :-1, :, :, :]
         v1 = t * (a1[..., 1:, :, :, :] - a1[..., :-1, :, :, :])
         v2 = t * (a2[..., 1:, :, :, :] - a2[..., :-1, :, :, :])
-        weights = jnp.full((t,), 1.0 / t, dtype=path.dtype)
+        weights = jnp.full((t,), 1.0 / t, dtype=a1.dtype)
     else:
 
         def central(a):
@@ -40,21 +41,26 @@ def _speeds2(metric: SplitMetric, path: Array, scheme: str) -> tuple[Array, Arra
             return t * jnp.concatenate([first, inner, last], axis=-4)
 
         base1, base2, v1, v2 = a1, a2, central(a1), central(a2)
-        weights = jnp.full((n_times,), 1.0 / t, dtype=path.dtype)
+        weights = jnp.full((n_times,), 1.0 / t, dtype=a1.dtype)
         weights = weights.at[0].mul(0.5).at[-1].mul(0.5)
     speeds2 = integrate_interior(_split_bilinear(metric, base1, base2, v1, v2, v1, v2))
     return speeds2, weights
 
 
-@functools.partial(jax.jit, static_argnames=("scheme",))
-def _path_energy(metric, path, *, scheme):
-    speeds2, weights = _speeds2(metric, path, scheme)
+def frame_energy(metric: SplitMetric, a1: Array, a2: Array, scheme: str) -> Array:
+    """Path energy from interior frames ``(..., N, 3, m-2, n-1)`` (see :func:`path_energy`)."""
+    speeds2, weights = frame_speeds2(metric, a1, a2, scheme)
     return jnp.einsum("...k,k->...", speeds2, weights)
 
 
 @functools.partial(jax.jit, static_argnames=("scheme",))
+def _path_energy(metric, path, *, scheme):
+    return frame_energy(metric, *interior_frame(path), scheme)
+
+
+@functools.partial(jax.jit, static_argnames=("scheme",))
 def _path_length(metric, path, *, scheme):
-    speeds2, weights = _speeds2(metric, path, scheme)
+    speeds2, weights = frame_speeds2(metric, *interior_frame(path), scheme)
     return jnp.einsum("...k,k->...", jnp.sqrt(speeds2), weights)
 
 
@@ -140,6 +146,7 @@ def straight_path(
     f1, f2 = jnp.broadcast_arrays(f1, f2)
     batch_ones = (1,) * (f1.ndim - 3)
     t = jnp.linspace(0.0, 1.0, n_times, dtype=f1.dtype).reshape(batch_ones + (n_times, 1, 1, 1))
-    path = (1.0 - t) * f1[..., None, :, :, :] + t * f2[..., None, :, :, :]
-    # (1 - t) f1 + t f2 rounds at t = 1; make the end points exact.
+    # f1 + t (f2 - f1) is exactly constant when f1 = f2; it rounds at t = 1, so the end
+    # points are set exactly.
+    path = f1[..., None, :, :, :] + t * (f2 - f1)[..., None, :, :, :]
     return path.at[..., 0, :, :, :].set(f1).at[..., -1, :, :, :].set(f2)

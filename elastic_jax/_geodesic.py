@@ -1,0 +1,331 @@
+"""Geodesics between parametrized surfaces: path straightening with BFGS (paper Algorithm 1).
+
+The path is f_k = (1 - t_k) f1 + t_k f2 + sum_j C[k, j] S_j for interior k, end points
+fixed, with S_j the spherical-harmonic surface basis (MATH.md 5, 7); the discrete energy
+of MATH.md 4 is minimized over C. The basis enters through its finite-difference
+differential, precomputed once per grid and degree, so that the objective is one matmul
+plus the energy kernel, and the energy of the returned path equals path_energy exactly
+(the differential is linear).
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from ._differential import area_element, interior_frame
+from ._energy import _check_scheme, frame_energy
+from ._grid import integrate_interior
+from ._harmonics import _harmonics_np, check_degree
+from ._metric import SplitMetric, _split_bilinear
+from ._solvers import check_solver, minimize, result_message
+from ._validation import as_surface
+
+
+class ConvergenceWarning(UserWarning):
+    """A solve stopped before meeting its tolerance (its result says converged=False)."""
+
+
+class GeodesicResult(NamedTuple):
+    """A geodesic between parametrized surfaces; a pytree, batched by ``jax.vmap``.
+
+    Attributes:
+        path: ``(N, 3, m, n)`` the optimal path, f1 and f2 at its ends.
+        distance: ``()`` sqrt(energy), the geodesic distance.
+        energy: ``()`` the path energy (MATH.md 4) of ``path``.
+        straight_energy: ``()`` the energy of the straight line (the starting point).
+        coefficients: ``(N - 2, L)`` C of the interior frames in :func:`surface_basis` order.
+        num_steps: ``()`` solver steps taken.
+        converged: ``()`` whether the solver met its tolerance within max_steps.
+        result: the solver's result code (``optimistix.RESULTS``; jaxopt's outcome mapped to it).
+        grad_norm: ``()`` 2-norm of the gradient of the scaled objective at the end
+            (energy / straight_energy in whitened coefficients, where its Hessian is ~2 I).
+    """
+
+    path: Float[Array, "N 3 m n"]
+    distance: Float[Array, ""]
+    energy: Float[Array, ""]
+    straight_energy: Float[Array, ""]
+    coefficients: Float[Array, "N-2 L"]
+    num_steps: Int[Array, ""]
+    converged: Array
+    result: optx.RESULTS
+    grad_norm: Float[Array, ""]
+
+    @property
+    def message(self) -> str:
+        """Why the solver stopped, in its own words ('' when it converged)."""
+        return result_message(self.result)
+
+
+@functools.cache
+def _basis_np(m: int, n: int, degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """Harmonics of degree 1..deg as ``(K, m n)`` and their differentials as ``(K, 2 P)``.
+
+    P = (m - 2)(n - 1) interior points. One matmul with the second gives the
+    perturbation of every frame's differential (STACK.md: faster than an einsum).
+    """
+    y = _harmonics_np(m, n, degree)[0][1:]
+    a1, a2 = interior_frame(y)
+    k = y.shape[0]
+    return y.reshape(k, m * n), np.concatenate([a1.reshape(k, -1), a2.reshape(k, -1)], axis=1)
+
+
+def _straight_frames(f1, f2, n_times):
+    t = jnp.linspace(0.0, 1.0, n_times, dtype=f1.dtype).reshape(n_times, 1, 1, 1)
+    frames = []
+    # a + t (b - a): velocities are exactly zero when f1 = f2.
+    for a, b in zip(interior_frame(f1), interior_frame(f2), strict=True):
+        frames.append(a[None] + t * (b - a)[None])
+    return frames
+
+
+def _sqrt_inverse_pair(matrix: Array, floor: float) -> tuple[Array, Array]:
+    """M^(-1/2) and M^(1/2) of a symmetric PSD matrix, eigenvalues floored at floor * max."""
+    lam, vec = jnp.linalg.eigh(matrix)
+    lam = jnp.maximum(lam, floor * lam[-1])
+    root = jnp.sqrt(lam)[None, :]
+    return (vec / root) @ vec.T, (vec * root) @ vec.T
+
+
+def _whitening(metric, mid1, mid2, dframe, n_times):
+    """Factors of the change of variables X = A Z B that makes the energy's Hessian ~ 2 I.
+
+    Returns (A, B, A^-1, B^-1, mean eigenvalue of M).
+
+    The quadratic part of the energy in the coefficients X ``(N - 2, 3K)`` is
+    tr(X^T L X M): L = T tridiag(-1, 2, -1) from the time differences (Dirichlet ends),
+    M = [G_f(S_i, S_j)] the metric's Gram matrix of the basis, taken at the middle of the
+    straight line. Its condition number grows like l^2 T^2 (about 1e6 at degree 7,
+    N = 10), which stalls BFGS started from the identity; with A = L^(-1/2) and
+    B = M^(-1/2) the solver sees a problem close to the identity.
+    """
+    k = dframe.shape[0]
+    points = dframe.shape[1] // 2
+    shape = (3, *mid1.shape[-2:])
+
+    def quadratic(c):
+        pert = c.reshape(3, k) @ dframe
+        x1, x2 = pert[:, :points].reshape(shape), pert[:, points:].reshape(shape)
+        return integrate_interior(_split_bilinear(metric, mid1, mid2, x1, x2, x1, x2))
+
+    gram = 0.5 * jax.hessian(quadratic)(jnp.zeros(3 * k, mid1.dtype))
+    eye = functools.partial(jnp.eye, n_times - 2, dtype=mid1.dtype)
+    lap = (n_times - 1) * (2.0 * eye() - eye(k=1) - eye(k=-1))
+    a, a_inv = _sqrt_inverse_pair(lap, 0.0)
+    # Degenerate metrics (SRNF's (0, 1/2, 1, 0)) have nearly free directions: floor them.
+    b, b_inv = _sqrt_inverse_pair(gram, 1e-6)
+    return a, b, a_inv, b_inv, jnp.trace(gram) / gram.shape[0]
+
+
+@functools.partial(jax.jit, static_argnames=("n_times", "solver", "max_steps", "tol", "scheme"))
+def _geodesic(metric, f1, f2, init, values, dframe, *, n_times, solver, max_steps, tol, scheme):
+    m, n = f1.shape[-2:]
+    k = values.shape[0]
+    points = (m - 2) * (n - 1)
+    s1, s2 = _straight_frames(f1, f2, n_times)
+    straight = frame_energy(metric, s1, s2, scheme)
+    # The solver works on z with X = sqrt(E_s) A z B (see _whitening) and the energy
+    # divided by E_s: one tolerance then means the same for every shape, size and metric.
+    mid = n_times // 2
+    a, b, a_inv, b_inv, gram_mean = _whitening(metric, s1[mid], s2[mid], dframe, n_times)
+    # When f1 = f2 the straight energy is rounding noise; floor the scale at sqrt(eps)
+    # times the energy of a deformation of the shapes' own size (not an absolute constant).
+    area = integrate_interior(area_element(*interior_frame(f1)))
+    area = area + integrate_interior(area_element(*interior_frame(f2)))
+    own_scale = gram_mean * area / (8.0 * np.pi)
+    energy_scale = jnp.maximum(straight, np.sqrt(np.finfo(f1.dtype).eps) * own_scale)
+    root = jnp.sqrt(energy_scale)
+
+    def coefficients_of(z):
+        return root * (a @ z @ b)
+
+    def objective(z):
+        pert = (coefficients_of(z).reshape(-1, k) @ dframe).reshape(n_times - 2, 3, 2 * points)
+        p1 = pert[..., :points].reshape(n_times - 2, 3, m - 2, n - 1)
+        p2 = pert[..., points:].reshape(n_times - 2, 3, m - 2, n - 1)
+        return frame_energy(metric, s1.at[1:-1].add(p1), s2.at[1:-1].add(p2), scheme) / energy_scale
+
+    z0 = (a_inv @ init @ b_inv) / root
+    found = minimize(objective, z0, solver=solver, max_steps=max_steps, tol=tol)
+    value, grad = jax.value_and_grad(objective)(found.x)
+    coefficients = coefficients_of(found.x)
+    t = jnp.linspace(0.0, 1.0, n_times, dtype=f1.dtype)[1:-1].reshape(n_times - 2, 1, 1, 1)
+    interior = f1[None] + t * (f2 - f1)[None]
+    interior = interior + (coefficients.reshape(-1, k) @ values).reshape(n_times - 2, 3, m, n)
+    path = jnp.concatenate([f1[None], interior, f2[None]])
+    energy = value * energy_scale
+    return GeodesicResult(
+        path=path,
+        distance=jnp.sqrt(energy),
+        energy=energy,
+        straight_energy=straight,
+        coefficients=coefficients,
+        num_steps=found.num_steps,
+        converged=found.result == optx.RESULTS.successful,
+        result=found.result,
+        grad_norm=jnp.linalg.norm(grad),
+    )
+
+
+def upsample_coefficients(
+    coefficients: Float[ArrayLike, "N0-2 L0"], degree: int, new_degree: int, new_n_times: int
+) -> Float[Array, "N1-2 L1"]:
+    """Lift a coarse solution to a finer (degree, n_times) as an initial guess.
+
+    Coefficients of spherical harmonics do not depend on the grid, so a change of grid
+    needs nothing; a higher degree pads with zeros; more time points interpolate the
+    perturbation linearly in time (it vanishes at both ends).
+
+    Args:
+        coefficients: ``(N0 - 2, 3 K0)`` from a solve at ``degree``.
+        degree, new_degree: old and new degree (new >= old).
+        new_n_times: N1 >= 3.
+
+    Returns:
+        ``(N1 - 2, 3 K1)``, K = (degree + 1)^2 - 1.
+    """
+    c = jnp.asarray(coefficients)
+    k0, k1 = (degree + 1) ** 2 - 1, (new_degree + 1) ** 2 - 1
+    if new_degree < degree:
+        raise ValueError(f"new_degree={new_degree} is below degree={degree}")
+    if c.shape[-1] != 3 * k0:
+        raise ValueError(f"coefficients of degree {degree} have {3 * k0} columns; got {c.shape}")
+    c = c.reshape(c.shape[0], 3, k0)
+    c = jnp.pad(c, ((0, 0), (0, 0), (0, k1 - k0)))
+    zeros = jnp.zeros((1, 3, k1), c.dtype)
+    full = jnp.concatenate([zeros, c, zeros]).reshape(c.shape[0] + 2, -1)
+    t_old = jnp.linspace(0.0, 1.0, full.shape[0], dtype=c.dtype)
+    t_new = jnp.linspace(0.0, 1.0, new_n_times, dtype=c.dtype)[1:-1]
+    lifted = jax.vmap(lambda column: jnp.interp(t_new, t_old, column), in_axes=1, out_axes=1)(full)
+    return lifted.reshape(new_n_times - 2, 3 * k1)
+
+
+def geodesic(
+    f1: Float[ArrayLike, "3 m n"],
+    f2: Float[ArrayLike, "3 m n"],
+    metric: SplitMetric,
+    *,
+    degree: int = 7,
+    n_times: int = 13,
+    solver: str = "bfgs",
+    max_steps: int = 1000,
+    tol: float | None = None,
+    init: Float[ArrayLike, "N-2 L"] | None = None,
+    scheme: str = "forward",
+    schedule: Sequence[tuple[int, int]] = (),
+) -> GeodesicResult:
+    """Geodesic between two parametrized surfaces under a split metric (paper Algorithm 1).
+
+    Minimizes the discrete energy (MATH.md 4) of f_k = (1 - t_k) f1 + t_k f2 + sum_j C[k, j] S_j
+    over the coefficients C of the surface basis of the given degree (MATH.md 5), starting
+    from the straight line (or ``init``), with gradients by autodiff through the energy.
+    The whole solve is one jitted call; batch over targets with ``jax.vmap``.
+
+    Args:
+        f1, f2: ``(3, m, n)`` immersions on the same grid.
+        metric: the split metric coefficients.
+        degree: highest spherical-harmonic degree of the perturbations
+            (limit: min(m - 3, (n - 3) // 2)).
+        n_times: N >= 3 time points, end points included.
+        solver: ``"bfgs"`` (optimistix.BFGS) or ``"lbfgs"`` (jaxopt.LBFGS).
+        max_steps: step limit; reaching it gives ``converged=False`` and a ConvergenceWarning.
+        tol: solver tolerance on the scaled problem (default 1e-6 in float64, 1e-4 in float32);
+            see ``minimize`` in ``_solvers.py`` for what each solver compares with it.
+        init: ``(N - 2, L)`` coefficients of an earlier solve (warm start); zeros by default.
+        scheme: ``"forward"`` (the paper's) or ``"central"`` time differences.
+        schedule: coarser ``(degree, n_times)`` levels solved first, each warm-starting
+            the next (multiresolution, paper remark after Table 3), e.g. ``[(4, 5), (7, 9)]``.
+
+    Returns:
+        :class:`GeodesicResult`.
+
+    Example:
+        >>> import elastic_jax as ej
+        >>> from elastic_jax import shapes
+        >>> f1 = shapes.sample(shapes.bumpy, 25, 49)
+        >>> f2 = shapes.sample(shapes.bent_cylinder, 25, 49)
+        >>> res = ej.geodesic(f1, f2, ej.SplitMetric(1.0, 1.0, 0.1, 0.0), degree=5, n_times=7)
+        >>> bool(res.energy < res.straight_energy)
+        True
+    """
+    f1 = as_surface(f1, "f1")
+    f2 = as_surface(f2, "f2")
+    for name, f in (("f1", f1), ("f2", f2)):
+        if f.ndim != 3:
+            raise ValueError(
+                f"{name} must be one surface (3, m, n); got {f.shape}. Batch with jax.vmap."
+            )
+    if f1.shape != f2.shape:
+        raise ValueError(f"f1 and f2 must be on the same grid; got {f1.shape} and {f2.shape}")
+    if f1.dtype != f2.dtype:
+        raise ValueError(f"f1 and f2 must have the same dtype; got {f1.dtype} and {f2.dtype}")
+    m, n = f1.shape[-2:]
+    check_degree(degree, m, n)
+    check_solver(solver)
+    _check_scheme(scheme)
+    if not isinstance(n_times, int) or n_times < 3:
+        raise ValueError(
+            f"n_times must be an integer >= 3 (one free time point at least); got {n_times!r}"
+        )
+    if not isinstance(max_steps, int) or max_steps < 1:
+        raise ValueError(f"max_steps must be a positive integer; got {max_steps!r}")
+    if tol is None:
+        tol = 1e-6 if f1.dtype == jnp.float64 else 1e-4
+    if not tol > 0:
+        raise ValueError(f"tol must be positive; got {tol!r}")
+    size = 3 * ((degree + 1) ** 2 - 1)
+    if init is None:
+        init = jnp.zeros((n_times - 2, size), f1.dtype)
+        for level_degree, level_times in schedule:
+            coarse = geodesic(
+                f1,
+                f2,
+                metric,
+                degree=level_degree,
+                n_times=level_times,
+                solver=solver,
+                max_steps=max_steps,
+                tol=tol,
+                scheme=scheme,
+            )
+            init = upsample_coefficients(coarse.coefficients, level_degree, degree, n_times)
+    else:
+        if schedule:
+            raise ValueError("give either init or schedule, not both")
+        init = jnp.asarray(init, f1.dtype)
+        if init.shape != (n_times - 2, size):
+            raise ValueError(
+                f"init must have shape (n_times - 2, L) = {(n_times - 2, size)} "
+                f"for degree={degree}; got {init.shape}"
+            )
+    values, dframe = (jnp.asarray(a, f1.dtype) for a in _basis_np(m, n, degree))
+    result = _geodesic(
+        metric,
+        f1,
+        f2,
+        init,
+        values,
+        dframe,
+        n_times=n_times,
+        solver=solver,
+        max_steps=max_steps,
+        tol=float(tol),
+        scheme=scheme,
+    )
+    if not isinstance(result.converged, jax.core.Tracer) and not bool(result.converged):
+        warnings.warn(
+            f"geodesic: {solver} stopped after {int(result.num_steps)} steps without meeting "
+            f"tol={tol:g}: {result.message}",
+            ConvergenceWarning,
+            stacklevel=2,
+        )
+    return result
