@@ -21,10 +21,11 @@ jax.config.update("jax_enable_x64", True)  # a script, not the library: float64 
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import emit, environment, time_calls  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import shapes  # noqa: E402
+
+from _common import emit, environment, time_calls  # noqa: E402
 
 DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data"
 

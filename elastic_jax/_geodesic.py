@@ -25,6 +25,7 @@ from ._differential import area_element, interior_frame
 from ._energy import _check_scheme, frame_energy
 from ._grid import integrate_interior
 from ._harmonics import _harmonics_np, check_degree
+from ._interp import resample
 from ._metric import SplitMetric, _split_bilinear
 from ._solvers import check_solver, minimize, result_message
 from ._validation import as_surface
@@ -221,7 +222,7 @@ def geodesic(
     tol: float | None = None,
     init: Float[ArrayLike, "N-2 L"] | None = None,
     scheme: str = "forward",
-    schedule: Sequence[tuple[int, int]] = (),
+    schedule: Sequence[tuple[int, ...]] = (),
 ) -> GeodesicResult:
     """Geodesic between two parametrized surfaces under a split metric (paper Algorithm 1).
 
@@ -242,8 +243,11 @@ def geodesic(
             see ``minimize`` in ``_solvers.py`` for what each solver compares with it.
         init: ``(N - 2, L)`` coefficients of an earlier solve (warm start); zeros by default.
         scheme: ``"forward"`` (the paper's) or ``"central"`` time differences.
-        schedule: coarser ``(degree, n_times)`` levels solved first, each warm-starting
-            the next (multiresolution, paper remark after Table 3), e.g. ``[(4, 5), (7, 9)]``.
+        schedule: coarser levels ``(degree, n_times)`` or ``(degree, n_times, m, n)`` solved
+            first, each warm-starting the next (multiresolution, paper remark after
+            Table 3); a level with a grid solves on f1, f2 resampled bilinearly, e.g.
+            ``[(4, 5, 25, 49), (7, 7)]``. Spherical-harmonic coefficients do not depend
+            on the grid, so they carry over unchanged.
 
     Returns:
         :class:`GeodesicResult`.
@@ -285,10 +289,12 @@ def geodesic(
     size = 3 * ((degree + 1) ** 2 - 1)
     if init is None:
         init = jnp.zeros((n_times - 2, size), f1.dtype)
-        for level_degree, level_times in schedule:
+        for level in schedule:
+            level_degree, level_times, *grid = level
+            g1, g2 = (f1, f2) if not grid else (resample(f, *grid) for f in (f1, f2))
             coarse = geodesic(
-                f1,
-                f2,
+                g1,
+                g2,
                 metric,
                 degree=level_degree,
                 n_times=level_times,

@@ -22,16 +22,17 @@ def sample_at(
     """
     m, n = f.shape[-2:]
     x = jnp.clip(phi * ((m - 1) / np.pi), 0.0, m - 1.0)
-    i0 = jnp.clip(jnp.floor(x), 0, m - 2).astype(jnp.int32)
-    wx = x - i0
+    row = jnp.clip(jnp.floor(x), 0, m - 2)
     y = jnp.mod(theta * ((n - 1) / (2.0 * np.pi)), n - 1.0)
-    j0 = jnp.clip(jnp.floor(y), 0, n - 2).astype(jnp.int32)
-    wy = y - j0
+    col = jnp.clip(jnp.floor(y), 0, n - 2)
+    wx, wy = x - row, y - col
+    i0, j0 = row.astype(jnp.int32), col.astype(jnp.int32)
 
     def at(i, j):
         return f[..., i, j]
 
-    wx, wy = wx.astype(f.dtype), wy.astype(f.dtype)
+    lead = (1,) * (f.ndim - 2)  # the weights broadcast over (..., 3)
+    wx, wy = (w.astype(f.dtype).reshape(lead + w.shape) for w in (wx, wy))
     top = at(i0, j0) * (1 - wy) + at(i0, j0 + 1) * wy
     bottom = at(i0 + 1, j0) * (1 - wy) + at(i0 + 1, j0 + 1) * wy
     return top * (1 - wx) + bottom * wx

@@ -107,6 +107,9 @@ def test_warm_start_and_multiresolution(cylinders, forward):
     multi = ej.geodesic(*cylinders, METRIC, schedule=[(3, 4)], **SETTINGS)
     assert bool(multi.converged)
     assert relerr(multi.energy, forward.energy) < 1e-5
+    coarse_grid = ej.geodesic(*cylinders, METRIC, schedule=[(3, 4, 13, 25)], **SETTINGS)
+    assert bool(coarse_grid.converged)
+    assert relerr(coarse_grid.energy, forward.energy) < 1e-5
 
 
 def test_upsampling_keeps_the_perturbation():

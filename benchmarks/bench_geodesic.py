@@ -1,0 +1,112 @@
+"""Parametrized geodesics (paper Algorithm 1): compile time, solve time, steps, energies.
+
+Settings (issue 3): metric (1, 1, 0.1, 0); 25 x 49 with degree 7 and N = 10, and 50 x 99
+with degree 7 and N = 13; the cat pair from ../shared/data (resampled to 25 x 49 for the
+middle row; skipped when absent) and a synthetic pair (bent cylinders); both solvers; and
+the multiresolution schedule at 50 x 99. One JSON record per solve. Targets on a 2-core
+CPU after compilation: under 5 s at 25 x 49 and under 20 s at 50 x 99.
+
+Run: python benchmarks/bench_geodesic.py [--repeats 3] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import time
+import warnings
+
+import jax
+
+jax.config.update("jax_enable_x64", True)  # a script, not the library
+
+import numpy as np  # noqa: E402
+
+import elastic_jax as ej  # noqa: E402
+from elastic_jax import shapes  # noqa: E402
+
+from _common import emit, environment, time_calls  # noqa: E402
+
+DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data"
+METRIC = (1.0, 1.0, 0.1, 0.0)
+
+
+def pairs(m: int, n: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    out = {
+        "bent cylinders (synthetic)": (
+            np.asarray(shapes.sample(shapes.bent_cylinder, m, n, curvature=0.0)),
+            np.asarray(shapes.sample(shapes.bent_cylinder, m, n, curvature=0.6, half_length=1.2)),
+        )
+    }
+    cats = [DATA / f"cat{i}_50x99.npz" for i in (1, 2)]
+    if all(p.exists() for p in cats):
+        f1, f2 = (np.load(p)["f"] for p in cats)
+        if (m, n) != (50, 99):
+            f1, f2 = (np.asarray(ej.resample(f, m, n)) for f in (f1, f2))
+        out["cat1 -> cat2"] = (f1, f2)
+    return out
+
+
+def solve_record(f1, f2, *, repeats, **options) -> dict:
+    metric = ej.SplitMetric(*METRIC)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        start = time.perf_counter()
+        result = jax.block_until_ready(ej.geodesic(f1, f2, metric, **options))
+        first = time.perf_counter() - start
+        timing = time_calls(lambda: ej.geodesic(f1, f2, metric, **options), repeats)
+    return {
+        "first_call_s": first,
+        "compile_s_estimate": first - timing["min_s"],
+        "solve_s_median": timing["median_s"],
+        "solve_s_min": timing["min_s"],
+        "repeats": repeats,
+        "num_steps": int(result.num_steps),
+        "converged": bool(result.converged),
+        "grad_norm": float(result.grad_norm),
+        "energy": float(result.energy),
+        "straight_energy": float(result.straight_energy),
+        "distance": float(result.distance),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--quick", action="store_true", help="only the 25 x 49 synthetic row")
+    args = parser.parse_args()
+    env = environment()
+    rows = [(25, 49, 7, 10)] if args.quick else [(25, 49, 7, 10), (50, 99, 7, 13)]
+    for m, n, degree, n_times in rows:
+        for pair, (f1, f2) in pairs(m, n).items():
+            if args.quick and pair != "bent cylinders (synthetic)":
+                continue
+            solvers = ["bfgs"] if args.quick else ["bfgs", "lbfgs"]
+            schedules = [()] if (args.quick or m < 50) else [(), ((4, 5), (7, 7))]
+            for solver in solvers:
+                for schedule in schedules:
+                    options = {"degree": degree, "n_times": n_times, "solver": solver}
+                    if schedule:
+                        options["schedule"] = schedule
+                    record = solve_record(f1, f2, repeats=args.repeats, **options)
+                    emit(
+                        {
+                            "benchmark": "geodesic",
+                            "settings": {
+                                "pair": pair,
+                                "m": m,
+                                "n": n,
+                                "metric": METRIC,
+                                "dtype": "float64",
+                                **{k: v for k, v in options.items() if k != "schedule"},
+                                "schedule": [list(level) for level in schedule],
+                            },
+                            **record,
+                            "target_solve_s": 5.0 if m == 25 else 20.0,
+                            "environment": env,
+                        }
+                    )
+
+
+if __name__ == "__main__":
+    main()
