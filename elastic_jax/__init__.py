@@ -33,3 +33,8 @@ from ._harmonics import real_sph_harm as real_sph_harm
 from ._harmonics import surface_basis as surface_basis
 from ._harmonics import vector_field_basis as vector_field_basis
 from ._interp import resample as resample
+from ._so3 import hat as hat
+from ._so3 import icosahedral_group as icosahedral_group
+from ._so3 import so3_exp as so3_exp
+from ._so3 import so3_log as so3_log
+from ._so3 import vee as vee
