@@ -33,6 +33,11 @@ from ._harmonics import real_sph_harm as real_sph_harm
 from ._harmonics import surface_basis as surface_basis
 from ._harmonics import vector_field_basis as vector_field_basis
 from ._interp import resample as resample
+from ._reparam import diffeomorphism as diffeomorphism
+from ._reparam import diffeomorphism_bound as diffeomorphism_bound
+from ._reparam import jacobian_determinant as jacobian_determinant
+from ._reparam import reparametrize as reparametrize
+from ._reparam import rotate_parametrization as rotate_parametrization
 from ._so3 import hat as hat
 from ._so3 import icosahedral_group as icosahedral_group
 from ._so3 import so3_exp as so3_exp

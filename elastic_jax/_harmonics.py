@@ -134,18 +134,9 @@ def surface_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, "L 3 
     return jnp.asarray(basis.reshape(3 * k, 3, m, n), dtype=dtype)
 
 
-def vector_field_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, "Lbar 3 m n"]:
-    """Tangent vector fields on S^2: grad Y_lk and e1 x grad Y_lk over sqrt(l(l+1)) (MATH.md 5).
-
-    grad Y = Y_phi e_phi + (Y_theta / sin phi) e_theta with e_phi, e_theta the unit
-    coordinate vectors; on the pole rows the limit of Y_theta / sin phi is used, so the
-    fields are exact there too. Lbar = 2(degree + 1)^2 - 2; entries 2j and 2j + 1 are the
-    gradient and the rotated gradient of harmonic j (degree >= 1). Unit L2 norm each.
-
-    Returns:
-        ``(Lbar, 3, m, n)`` fields tangent to the sphere (stored in R^3).
-    """
-    check_degree(degree, m, n)
+@functools.cache
+def _vector_fields_np(m: int, n: int, degree: int) -> np.ndarray:
+    """grad Y / sqrt(l(l+1)) and e1 x grad Y / sqrt(l(l+1)), ``(Lbar, 3, m, n)`` float64."""
     _, y_phi, _, grad_theta, ls, _ = _harmonics_np(m, n, degree)
     phi, theta = _angles_np(m, n)
     cp, sp = np.cos(phi)[:, None], np.sin(phi)[:, None]
@@ -161,4 +152,19 @@ def vector_field_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, 
     fields[..., 0, :] = fields[..., 0, :1]
     fields[..., -1, :] = fields[..., -1, :1]
     fields[..., -1] = fields[..., 0]
-    return jnp.asarray(fields, dtype=dtype)
+    return fields
+
+
+def vector_field_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, "Lbar 3 m n"]:
+    """Tangent vector fields on S^2: grad Y_lk and e1 x grad Y_lk over sqrt(l(l+1)) (MATH.md 5).
+
+    grad Y = Y_phi e_phi + (Y_theta / sin phi) e_theta with e_phi, e_theta the unit
+    coordinate vectors; on the pole rows the limit of Y_theta / sin phi is used, so the
+    fields are exact there too. Lbar = 2(degree + 1)^2 - 2; entries 2j and 2j + 1 are the
+    gradient and the rotated gradient of harmonic j (degree >= 1). Unit L2 norm each.
+
+    Returns:
+        ``(Lbar, 3, m, n)`` fields tangent to the sphere (stored in R^3).
+    """
+    check_degree(degree, m, n)
+    return jnp.asarray(_vector_fields_np(m, n, degree), dtype=dtype)

@@ -59,7 +59,9 @@ def test_log_at_a_half_turn():
 def test_icosahedral_group():
     g = np.asarray(ej.icosahedral_group())
     assert g.shape == (60, 3, 3)
-    np.testing.assert_allclose(np.einsum("gji,gjk->gik", g, g), np.broadcast_to(np.eye(3), g.shape), atol=1e-13)
+    np.testing.assert_allclose(
+        np.einsum("gji,gjk->gik", g, g), np.broadcast_to(np.eye(3), g.shape), atol=1e-13
+    )
     np.testing.assert_allclose(np.linalg.det(g), 1.0, atol=1e-13)
     distances = np.abs(g[:, None] - g[None]).max(axis=(-1, -2))
     assert np.sort(distances + 10 * np.eye(60), axis=1)[:, 0].min() > 0.1  # 60 distinct
@@ -76,4 +78,6 @@ def test_icosahedral_group():
     # Rotation angles of the icosahedral group: 1 identity, 15 half-turns, 20 of 2pi/3,
     # 24 of 2pi/5 or 4pi/5.
     angles = np.round(np.linalg.norm(np.asarray(ej.so3_log(g)), axis=-1) / np.pi * 15).astype(int)
-    assert sorted(np.bincount(angles).tolist()) == sorted([1, 15, 20, 12, 12] + [0] * (len(np.bincount(angles)) - 5))
+    assert sorted(np.bincount(angles).tolist()) == sorted(
+        [1, 15, 20, 12, 12] + [0] * (len(np.bincount(angles)) - 5)
+    )

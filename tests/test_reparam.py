@@ -1,0 +1,114 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+import elastic_jax as ej
+from elastic_jax import shapes
+from elastic_jax._reparam import _field_derivatives_np
+
+DEGREE = 5
+
+
+def _field(seed):
+    return np.random.default_rng(seed).standard_normal(2 * (DEGREE + 1) ** 2 - 2)
+
+
+def _analytic_jacobian(x, m, n):
+    """D / |W|^3 from the proof of Theorem 3 (exact derivatives), interior rows."""
+    u, v, u_phi, u_theta, v_phi, v_theta = np.einsum("k,jkmn->jmn", x, _field_derivatives_np(m, n, DEGREE))
+    phi = np.asarray(ej.grid_angles(m, n)[0])[1:-1, None]
+    a, b = u_phi, v_phi
+    c, d = (u_theta - v * np.cos(phi)) / np.sin(phi), (v_theta + u * np.cos(phi)) / np.sin(phi)
+    one = np.ones_like(u)
+    rows = [np.stack([one, u, v], -1), np.stack([-u, 1 + a, b], -1), np.stack([-v, c, 1 + d], -1)]
+    return np.linalg.det(np.stack(rows, -2)) / (1 + u**2 + v**2) ** 1.5
+
+
+def test_identity():
+    x = np.zeros(2 * (DEGREE + 1) ** 2 - 2)
+    np.testing.assert_allclose(ej.diffeomorphism(x, 25, 49, DEGREE), ej.sphere_points(25, 49), atol=1e-15)
+    assert float(ej.diffeomorphism_bound(x, 25, 49, DEGREE)) == np.inf
+    j = ej.jacobian_determinant(ej.sphere_points(50, 99))
+    # Central differences of sin/cos lose sin(h)/h per direction: J = 1 - O(h^2).
+    assert float(jnp.abs(j - 1).max()) < 2e-3
+
+
+def test_jacobian_converges_to_the_analytic_one():
+    x = 0.05 * _field(0)
+    errors = []
+    for m, n in [(25, 49), (50, 99), (100, 199)]:
+        j = np.asarray(ej.jacobian_determinant(ej.diffeomorphism(x, m, n, DEGREE)))[1:-1]
+        errors.append(np.abs(j - _analytic_jacobian(x, m, n)).max())
+    assert errors[0] / errors[1] > 3.5 and errors[1] / errors[2] > 3.5
+
+
+def test_theorem3_bound():
+    folded = 0
+    for seed in range(4):
+        x = _field(seed)
+        bound = float(ej.diffeomorphism_bound(x, 100, 199, DEGREE))
+        assert 0 < bound < np.inf
+        # Below the bound: positive Jacobian everywhere, on a grid finer than the bound's.
+        for t in (0.5, 0.99):
+            gamma = ej.diffeomorphism(t * bound * x, 150, 299, DEGREE)
+            assert float(ej.jacobian_determinant(gamma).min()) > 0
+        # The bound is sufficient; a few times beyond it the map folds.
+        gamma = ej.diffeomorphism(3 * bound * x, 150, 299, DEGREE)
+        folded += float(ej.jacobian_determinant(gamma).min()) < 0
+    assert folded >= 1
+
+
+def test_bound_batches_and_scales():
+    xs = np.stack([_field(1), _field(2)])
+    bounds = ej.diffeomorphism_bound(xs, 50, 99, DEGREE)
+    assert bounds.shape == (2,)
+    np.testing.assert_allclose(ej.diffeomorphism_bound(2.0 * xs, 50, 99, DEGREE), bounds / 2, rtol=1e-12)
+    assert ej.diffeomorphism(xs, 25, 49, DEGREE).shape == (2, 3, 25, 49)
+
+
+@pytest.mark.parametrize("method", ["bilinear", "bicubic"])
+def test_reparametrize_by_a_rotation_converges(method):
+    r = shapes.random_rotation(3)
+    errors = []
+    for m, n in [(25, 49), (50, 99), (100, 199)]:
+        f = shapes.sample(shapes.bumpy, m, n)
+        exact = shapes.sample(shapes.bumpy, m, n, rotation=r)
+        errors.append(float(jnp.abs(ej.rotate_parametrization(f, r, method=method) - exact).max()))
+    order = 3.5 if method == "bilinear" else 7.0  # second vs third order
+    assert errors[0] / errors[1] > order and errors[1] / errors[2] > order
+    if method == "bicubic":
+        assert errors[1] < 1e-4
+
+
+def test_reparametrize_identity_and_gradients():
+    f = shapes.sample(shapes.bent_cylinder, 13, 25)
+    e1 = ej.sphere_points(13, 25)
+    for method in ("bilinear", "bicubic"):
+        np.testing.assert_allclose(ej.reparametrize(f, e1, method=method), f, atol=1e-13)
+    gamma = ej.diffeomorphism(0.03 * _field(5), 13, 25, DEGREE)
+
+    def energy(g):
+        return jnp.sum(ej.reparametrize(f, g, method="bicubic") ** 2)
+
+    grad = jax.grad(energy)(gamma)
+    assert bool(jnp.all(jnp.isfinite(grad)))
+    # Differentiable in gamma through the diffeomorphism's coefficients (interior points).
+    check_grads(
+        lambda x: ej.reparametrize(f, ej.diffeomorphism(x, 13, 25, DEGREE), method="bicubic"),
+        (jnp.asarray(0.03 * _field(6)),),
+        order=1,
+        modes=["fwd", "rev"],
+        atol=1e-5,
+        rtol=1e-5,
+    )
+
+
+def test_errors():
+    with pytest.raises(ValueError, match=r"Lbar = 2\(degree \+ 1\)\^2 - 2 = 70"):
+        ej.diffeomorphism(np.zeros(5), 25, 49, DEGREE)
+    with pytest.raises(ValueError, match="method must be one of"):
+        ej.reparametrize(ej.sphere_points(13, 25), ej.sphere_points(13, 25), method="nearest")
+    with pytest.raises(ValueError, match=r"gamma must have shape \(3, p, q\)"):
+        ej.reparametrize(ej.sphere_points(13, 25), np.zeros((2, 3, 5, 5)))
