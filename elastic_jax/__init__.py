@@ -38,6 +38,8 @@ from ._reparam import diffeomorphism_bound as diffeomorphism_bound
 from ._reparam import jacobian_determinant as jacobian_determinant
 from ._reparam import reparametrize as reparametrize
 from ._reparam import rotate_parametrization as rotate_parametrization
+from ._shape import ShapeGeodesicResult as ShapeGeodesicResult
+from ._shape import shape_geodesic as shape_geodesic
 from ._so3 import hat as hat
 from ._so3 import icosahedral_group as icosahedral_group
 from ._so3 import so3_exp as so3_exp

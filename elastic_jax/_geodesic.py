@@ -81,12 +81,36 @@ def _basis_np(m: int, n: int, degree: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _straight_frames(f1, f2, n_times):
-    t = jnp.linspace(0.0, 1.0, n_times, dtype=f1.dtype).reshape(n_times, 1, 1, 1)
-    frames = []
+    return _frames_between(interior_frame(f1), interior_frame(f2), n_times)
+
+
+def _frames_between(start, end, n_times):
+    """Interior frames of the straight line between two surfaces given by their frames."""
+    t = jnp.linspace(0.0, 1.0, n_times, dtype=start[0].dtype).reshape(n_times, 1, 1, 1)
     # a + t (b - a): velocities are exactly zero when f1 = f2.
-    for a, b in zip(interior_frame(f1), interior_frame(f2), strict=True):
-        frames.append(a[None] + t * (b - a)[None])
-    return frames
+    return [a[None] + t * (b - a)[None] for a, b in zip(start, end, strict=True)]
+
+
+def _perturbed_frames(straight, coefficients, dframe):
+    """Frames of the straight line plus sum_j C[k, j] S_j on the interior time points."""
+    s1, s2 = straight
+    n_inner, shape = s1.shape[0] - 2, s1.shape[1:]
+    k = dframe.shape[0]
+    points = dframe.shape[1] // 2
+    pert = (coefficients.reshape(-1, k) @ dframe).reshape(n_inner, 3, 2 * points)
+    p1 = pert[..., :points].reshape((n_inner, *shape))
+    p2 = pert[..., points:].reshape((n_inner, *shape))
+    return s1.at[1:-1].add(p1), s2.at[1:-1].add(p2)
+
+
+def _path(f1, f2, coefficients, values, n_times):
+    """The path (N, 3, m, n): straight line plus the basis perturbation (paper eq. (4.2))."""
+    m, n = f1.shape[-2:]
+    k = values.shape[0]
+    t = jnp.linspace(0.0, 1.0, n_times, dtype=f1.dtype)[1:-1].reshape(n_times - 2, 1, 1, 1)
+    interior = f1[None] + t * (f2 - f1)[None]
+    interior = interior + (coefficients.reshape(-1, k) @ values).reshape(n_times - 2, 3, m, n)
+    return jnp.concatenate([f1[None], interior, f2[None]])
 
 
 def _sqrt_inverse_pair(matrix: Array, floor: float) -> tuple[Array, Array]:
@@ -127,54 +151,67 @@ def _whitening(metric, mid1, mid2, dframe, n_times):
     return a, b, a_inv, b_inv, jnp.trace(gram) / gram.shape[0]
 
 
-@functools.partial(jax.jit, static_argnames=("n_times", "solver", "max_steps", "tol", "scheme"))
-def _geodesic(metric, f1, f2, init, values, dframe, *, n_times, solver, max_steps, tol, scheme):
-    m, n = f1.shape[-2:]
-    k = values.shape[0]
-    points = (m - 2) * (n - 1)
-    s1, s2 = _straight_frames(f1, f2, n_times)
-    straight = frame_energy(metric, s1, s2, scheme)
-    # The solver works on z with X = sqrt(E_s) A z B (see _whitening) and the energy
+class _Scaling(NamedTuple):
+    """The change of variables C = sqrt(E) A z B and the energy scale E of one problem."""
+
+    energy_scale: Array
+    straight: Array
+    a: Array
+    b: Array
+    a_inv: Array
+    b_inv: Array
+
+    def coefficients(self, z):
+        return jnp.sqrt(self.energy_scale) * (self.a @ z @ self.b)
+
+    def whitened(self, coefficients):
+        return (self.a_inv @ coefficients @ self.b_inv) / jnp.sqrt(self.energy_scale)
+
+
+def _scaling(metric, f1, f2, dframe, n_times, scheme) -> _Scaling:
+    straight_frames = _straight_frames(f1, f2, n_times)
+    straight = frame_energy(metric, *straight_frames, scheme)
+    # The solver works on z with C = sqrt(E_s) A z B (see _whitening) and the energy
     # divided by E_s: one tolerance then means the same for every shape, size and metric.
     mid = n_times // 2
-    a, b, a_inv, b_inv, gram_mean = _whitening(metric, s1[mid], s2[mid], dframe, n_times)
+    mid_frames = (straight_frames[0][mid], straight_frames[1][mid])
+    a, b, a_inv, b_inv, gram_mean = _whitening(metric, *mid_frames, dframe, n_times)
     # When f1 = f2 the straight energy is rounding noise; floor the scale at sqrt(eps)
     # times the energy of a deformation of the shapes' own size (not an absolute constant).
     area = integrate_interior(area_element(*interior_frame(f1)))
     area = area + integrate_interior(area_element(*interior_frame(f2)))
     own_scale = gram_mean * area / (8.0 * np.pi)
     energy_scale = jnp.maximum(straight, np.sqrt(np.finfo(f1.dtype).eps) * own_scale)
-    root = jnp.sqrt(energy_scale)
+    return _Scaling(energy_scale, straight, a, b, a_inv, b_inv)
 
-    def coefficients_of(z):
-        return root * (a @ z @ b)
+
+def _solve(metric, f1, f2, init, values, dframe, *, n_times, solver, max_steps, tol, scheme):
+    """One parametrized geodesic (traceable; the jitted entry point is ``_geodesic``)."""
+    scaling = _scaling(metric, f1, f2, dframe, n_times, scheme)
+    straight = _straight_frames(f1, f2, n_times)
 
     def objective(z):
-        pert = (coefficients_of(z).reshape(-1, k) @ dframe).reshape(n_times - 2, 3, 2 * points)
-        p1 = pert[..., :points].reshape(n_times - 2, 3, m - 2, n - 1)
-        p2 = pert[..., points:].reshape(n_times - 2, 3, m - 2, n - 1)
-        return frame_energy(metric, s1.at[1:-1].add(p1), s2.at[1:-1].add(p2), scheme) / energy_scale
+        frames = _perturbed_frames(straight, scaling.coefficients(z), dframe)
+        return frame_energy(metric, *frames, scheme) / scaling.energy_scale
 
-    z0 = (a_inv @ init @ b_inv) / root
-    found = minimize(objective, z0, solver=solver, max_steps=max_steps, tol=tol)
+    found = minimize(objective, scaling.whitened(init), solver=solver, max_steps=max_steps, tol=tol)
     value, grad = jax.value_and_grad(objective)(found.x)
-    coefficients = coefficients_of(found.x)
-    t = jnp.linspace(0.0, 1.0, n_times, dtype=f1.dtype)[1:-1].reshape(n_times - 2, 1, 1, 1)
-    interior = f1[None] + t * (f2 - f1)[None]
-    interior = interior + (coefficients.reshape(-1, k) @ values).reshape(n_times - 2, 3, m, n)
-    path = jnp.concatenate([f1[None], interior, f2[None]])
-    energy = value * energy_scale
+    coefficients = scaling.coefficients(found.x)
+    energy = value * scaling.energy_scale
     return GeodesicResult(
-        path=path,
+        path=_path(f1, f2, coefficients, values, n_times),
         distance=jnp.sqrt(energy),
         energy=energy,
-        straight_energy=straight,
+        straight_energy=scaling.straight,
         coefficients=coefficients,
         num_steps=found.num_steps,
         converged=found.result == optx.RESULTS.successful,
         result=found.result,
         grad_norm=jnp.linalg.norm(grad),
     )
+
+
+_geodesic = jax.jit(_solve, static_argnames=("n_times", "solver", "max_steps", "tol", "scheme"))
 
 
 def upsample_coefficients(

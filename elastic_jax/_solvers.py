@@ -38,7 +38,7 @@ def check_solver(solver: str) -> None:
 
 
 def minimize(
-    fun: Callable[[Array], Array], x0: Array, *, solver: str, max_steps: int, tol: float
+    fun: Callable[[Array], Array], x0, *, solver: str, max_steps: int, tol: float
 ) -> Minimum:
     """Minimize a smooth scalar function of one array (traceable, vmappable).
 
@@ -52,7 +52,7 @@ def minimize(
     check_solver(solver)
     # optimistix tests its stopping rule only after a step the line search accepts; at a
     # start that is already optimal (f1 = f2) no step passes Armijo, so stop here first.
-    start_grad = jnp.linalg.norm(jax.grad(fun)(x0))
+    start_grad = optx.two_norm(jax.grad(fun)(x0))
     return jax.lax.cond(
         start_grad <= tol,
         lambda x: Minimum(x, optx.RESULTS.successful, jnp.zeros((), jnp.int32)),

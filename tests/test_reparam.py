@@ -17,7 +17,9 @@ def _field(seed):
 
 def _analytic_jacobian(x, m, n):
     """D / |W|^3 from the proof of Theorem 3 (exact derivatives), interior rows."""
-    u, v, u_phi, u_theta, v_phi, v_theta = np.einsum("k,jkmn->jmn", x, _field_derivatives_np(m, n, DEGREE))
+    u, v, u_phi, u_theta, v_phi, v_theta = np.einsum(
+        "k,jkmn->jmn", x, _field_derivatives_np(m, n, DEGREE)
+    )
     phi = np.asarray(ej.grid_angles(m, n)[0])[1:-1, None]
     a, b = u_phi, v_phi
     c, d = (u_theta - v * np.cos(phi)) / np.sin(phi), (v_theta + u * np.cos(phi)) / np.sin(phi)
@@ -28,7 +30,9 @@ def _analytic_jacobian(x, m, n):
 
 def test_identity():
     x = np.zeros(2 * (DEGREE + 1) ** 2 - 2)
-    np.testing.assert_allclose(ej.diffeomorphism(x, 25, 49, DEGREE), ej.sphere_points(25, 49), atol=1e-15)
+    np.testing.assert_allclose(
+        ej.diffeomorphism(x, 25, 49, DEGREE), ej.sphere_points(25, 49), atol=1e-15
+    )
     assert float(ej.diffeomorphism_bound(x, 25, 49, DEGREE)) == np.inf
     j = ej.jacobian_determinant(ej.sphere_points(50, 99))
     # Central differences of sin/cos lose sin(h)/h per direction: J = 1 - O(h^2).
@@ -64,7 +68,9 @@ def test_bound_batches_and_scales():
     xs = np.stack([_field(1), _field(2)])
     bounds = ej.diffeomorphism_bound(xs, 50, 99, DEGREE)
     assert bounds.shape == (2,)
-    np.testing.assert_allclose(ej.diffeomorphism_bound(2.0 * xs, 50, 99, DEGREE), bounds / 2, rtol=1e-12)
+    np.testing.assert_allclose(
+        ej.diffeomorphism_bound(2.0 * xs, 50, 99, DEGREE), bounds / 2, rtol=1e-12
+    )
     assert ej.diffeomorphism(xs, 25, 49, DEGREE).shape == (2, 3, 25, 49)
 
 
