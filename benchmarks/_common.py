@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import pathlib
 import platform
 import statistics
 import sys
@@ -49,3 +50,21 @@ def time_calls(fn: Callable[[], object], repeats: int) -> dict:
 def emit(record: dict) -> None:
     """Print one JSON record per line (machine-readable)."""
     print(json.dumps(record, sort_keys=True), flush=True)
+
+
+DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def cat_pair(m: int, n: int):
+    """The shared cats on an m x n grid (resampled from 50 x 99), or None when absent."""
+    import numpy as np
+
+    import elastic_jax as ej
+
+    paths = [DATA / f"cat{i}_50x99.npz" for i in (1, 2)]
+    if not all(p.exists() for p in paths):
+        return None
+    f1, f2 = (np.load(p)["f"] for p in paths)
+    if (m, n) != (50, 99):
+        f1, f2 = (np.asarray(ej.resample(f, m, n)) for f in (f1, f2))
+    return f1, f2

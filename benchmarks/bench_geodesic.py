@@ -12,7 +12,6 @@ Run: python benchmarks/bench_geodesic.py [--repeats 3] [--quick]
 from __future__ import annotations
 
 import argparse
-import pathlib
 import time
 import warnings
 
@@ -25,9 +24,8 @@ import numpy as np  # noqa: E402
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import shapes  # noqa: E402
 
-from _common import emit, environment, time_calls  # noqa: E402
+from _common import cat_pair, emit, environment, time_calls  # noqa: E402
 
-DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data"
 METRIC = (1.0, 1.0, 0.1, 0.0)
 
 
@@ -38,12 +36,9 @@ def pairs(m: int, n: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
             np.asarray(shapes.sample(shapes.bent_cylinder, m, n, curvature=0.6, half_length=1.2)),
         )
     }
-    cats = [DATA / f"cat{i}_50x99.npz" for i in (1, 2)]
-    if all(p.exists() for p in cats):
-        f1, f2 = (np.load(p)["f"] for p in cats)
-        if (m, n) != (50, 99):
-            f1, f2 = (np.asarray(ej.resample(f, m, n)) for f in (f1, f2))
-        out["cat1 -> cat2"] = (f1, f2)
+    cats = cat_pair(m, n)
+    if cats is not None:
+        out["cat1 -> cat2"] = cats
     return out
 
 

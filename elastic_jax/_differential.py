@@ -108,3 +108,16 @@ def cross(x: Array, y: Array) -> Array:
     x0, x1, x2 = x[..., 0, :, :], x[..., 1, :, :], x[..., 2, :, :]
     y0, y1, y2 = y[..., 0, :, :], y[..., 1, :, :], y[..., 2, :, :]
     return jnp.stack([x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0], axis=-3)
+
+
+def pole_fourier1(row: Array) -> tuple[Array, Array]:
+    """X, Y with row_j ~ cos(theta_j) X + sin(theta_j) Y, for ``row (..., 3, n-1)``.
+
+    At a pole, df maps the direction at azimuth theta to f_phi(pole, theta); its first
+    Fourier mode gives the tangent plane (X, Y) there.
+    """
+    k = row.shape[-1]
+    theta = 2.0 * np.pi * np.arange(k) / k
+    cos = jnp.asarray(np.cos(theta) * 2.0 / k, dtype=row.dtype)
+    sin = jnp.asarray(np.sin(theta) * 2.0 / k, dtype=row.dtype)
+    return jnp.einsum("...j,j->...", row, cos), jnp.einsum("...j,j->...", row, sin)

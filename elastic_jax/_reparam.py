@@ -10,7 +10,7 @@ import numpy as np
 import scipy.special
 from jaxtyping import Array, ArrayLike, Float
 
-from ._differential import _pole_phi_derivative, cross, dot, interior_frame
+from ._differential import _pole_phi_derivative, cross, dot, interior_frame, pole_fourier1
 from ._grid import _angles_np, sphere_points
 from ._harmonics import _vector_fields_np, check_degree
 from ._interp import sample_at
@@ -135,22 +135,14 @@ def diffeomorphism_bound(
     return _bound(x, derivs, cos_phi, sin_phi)
 
 
-def _fourier1(row: Array) -> tuple[Array, Array]:
-    k = row.shape[-1]
-    theta = 2.0 * np.pi * np.arange(k) / k
-    cos = jnp.asarray(np.cos(theta) * 2.0 / k, dtype=row.dtype)
-    sin = jnp.asarray(np.sin(theta) * 2.0 / k, dtype=row.dtype)
-    return jnp.einsum("...j,j->...", row, cos), jnp.einsum("...j,j->...", row, sin)
-
-
 @jax.jit
 def _jacobian_determinant(gamma):
     a1, a2 = interior_frame(gamma)
     inner = dot(cross(a2, a1), gamma[..., 1:-1, :-1])
     # At a pole the azimuth-theta direction maps to f_phi(pole, theta) = cos X + sin Y.
     north, south = _pole_phi_derivative(gamma)
-    xn, yn = _fourier1(north)
-    xs, ys = _fourier1(south)
+    xn, yn = pole_fourier1(north)
+    xs, ys = pole_fourier1(south)
     jn = jnp.sum(jnp.cross(xn, yn, axis=-1) * gamma[..., :, 0, 0], axis=-1)
     js = jnp.sum(jnp.cross(ys, xs, axis=-1) * gamma[..., :, -1, 0], axis=-1)
     cols = inner.shape[-1]

@@ -4,21 +4,18 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._differential import _pole_phi_derivative, area_element, cross, dot, interior_frame
+from ._differential import (
+    _pole_phi_derivative,
+    area_element,
+    cross,
+    dot,
+    interior_frame,
+    pole_fourier1,
+)
 from ._grid import integrate_interior
 from ._validation import as_surface
-
-
-def _fourier1(row: Array) -> tuple[Array, Array]:
-    """X, Y with row_j ~ cos(theta_j) X + sin(theta_j) Y, for ``row (..., 3, n-1)``."""
-    k = row.shape[-1]
-    theta = 2.0 * np.pi * np.arange(k) / k
-    cos = jnp.asarray(np.cos(theta) * 2.0 / k, dtype=row.dtype)
-    sin = jnp.asarray(np.sin(theta) * 2.0 / k, dtype=row.dtype)
-    return jnp.einsum("...j,j->...", row, cos), jnp.einsum("...j,j->...", row, sin)
 
 
 def _sqrt_normal(normal: Array) -> Array:
@@ -34,8 +31,8 @@ def _srnf(f: Array) -> Array:
     # At a pole df maps the direction at azimuth theta to f_phi(pole, theta); its
     # first Fourier mode cos(theta) X + sin(theta) Y gives the tangent plane X, Y.
     north, south = _pole_phi_derivative(f)
-    xn, yn = _fourier1(north)
-    xs, ys = _fourier1(south)
+    xn, yn = pole_fourier1(north)
+    xs, ys = pole_fourier1(south)
     qn = _sqrt_normal(jnp.cross(xn, yn, axis=-1)[..., :, None, None])
     qs = _sqrt_normal(jnp.cross(ys, xs, axis=-1)[..., :, None, None])
     n_cols = q.shape[-1]
