@@ -1,0 +1,316 @@
+"""Karcher means and distance matrices of shape collections (paper section 4.1, MATH.md 7).
+
+Batch jobs: every step solves K independent geodesics, batched by one of three
+strategies ("vmap", "map": lax.map in one jit, "loop": a Python loop of jitted solves),
+sharded across devices when there are several, and checkpointed atomically after each
+finished step or chunk so that a killed job resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pathlib
+import tempfile
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jaxtyping import Array, ArrayLike, Float
+
+from ._geodesic import geodesic
+from ._metric import SplitMetric, _metric_inner
+from ._shape import shape_geodesic
+from ._srnf import _center
+from ._validation import as_surface
+
+MODULI = ("rigid", "diff", "none")
+STRATEGIES = ("auto", "vmap", "map", "loop")
+
+
+class KarcherResult(NamedTuple):
+    """A Karcher mean and the registered collection.
+
+    Attributes:
+        mean: ``(3, m, n)`` the mean shape (keeps its parametrization).
+        distances: ``(K,)`` distances from the mean to each shape.
+        registered: ``(K, 3, m, n)`` each shape reparametrized (and rotated) onto the mean.
+        velocities: ``(K, 3, m, n)`` initial velocities T (f(t_1) - f(t_0)) at the mean.
+        history: ``(steps, 2)`` per step: sum of squared distances, norm of the mean velocity.
+        converged: whether the mean velocity's norm fell below tol x RMS distance.
+        num_steps: Karcher steps taken.
+    """
+
+    mean: Array
+    distances: Array
+    registered: Array
+    velocities: Array
+    history: np.ndarray
+    converged: bool
+    num_steps: int
+
+
+def default_strategy() -> str:
+    """ "vmap" on accelerators; "loop" on CPU, where vmapped BFGS runs in lockstep (STACK.md)."""
+    return "loop" if jax.default_backend() == "cpu" else "vmap"
+
+
+def _one_geodesic(mean, shape, metric, modulo, options):
+    """Distance, registered shape and initial velocity at the mean, for one shape."""
+    if modulo == "none":
+        res = geodesic(mean, shape, metric, **options)
+        path = res.path
+        return res.distance, shape, (path.shape[0] - 1) * (path[1] - path[0])
+    res = shape_geodesic(shape, mean, metric, modulo=modulo, **options)
+    # The path runs from shape o gamma to R (mean); turn it by R^T so that it ends at the
+    # mean as parametrized and placed (rigid centers both), and read it backwards.
+    back = jnp.einsum("ji,tj...->ti...", res.rotation, res.path)
+    shift = (mean - back[-1]).mean(axis=(-2, -1), keepdims=True)
+    back = back + shift[None]
+    return res.distance, back[0], (back.shape[0] - 1) * (back[-2] - back[-1])
+
+
+def _batched(fn: Callable, batch: Array, strategy: str) -> tuple:
+    if strategy == "loop":
+        outs = [fn(item) for item in batch]
+        return tuple(jnp.stack(parts) for parts in zip(*outs, strict=True))
+    if strategy == "map":
+        return jax.jit(lambda b: jax.lax.map(fn, b))(batch)
+    devices = jax.devices()
+    if len(devices) > 1:
+        # Shard the batch axis over a one-axis mesh (optimistix solves break under
+        # shard_map; jit with a NamedSharding partitions the vmapped solve instead).
+        pad = (-batch.shape[0]) % len(devices)
+        padded = jnp.concatenate([batch, jnp.repeat(batch[-1:], pad, axis=0)]) if pad else batch
+        mesh = Mesh(np.asarray(devices), ("batch",))
+        padded = jax.device_put(padded, NamedSharding(mesh, PartitionSpec("batch")))
+        out = jax.jit(jax.vmap(fn))(padded)
+        return tuple(o[: batch.shape[0]] for o in out)
+    return jax.jit(jax.vmap(fn))(batch)
+
+
+def _chunks(n: int, size: int | None):
+    size = n if size is None else size
+    return [(start, min(start + size, n)) for start in range(0, n, size)]
+
+
+def _fingerprint(*arrays, **settings) -> str:
+    digest = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(np.asarray(a))
+        digest.update(str((a.shape, a.dtype.str)).encode())
+        digest.update(a.tobytes())
+    digest.update(json.dumps(settings, sort_keys=True, default=str).encode())
+    return digest.hexdigest()
+
+
+def _save_atomic(path: pathlib.Path, **arrays) -> None:
+    """Write an .npz next to its destination and rename it into place."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".npz", delete=False) as tmp:
+        try:
+            np.savez(tmp, **arrays)
+        except BaseException:
+            os.unlink(tmp.name)
+            raise
+    os.replace(tmp.name, path)
+
+
+def _load_checkpoint(path: pathlib.Path, fingerprint: str) -> dict | None:
+    if not path.exists():
+        return None
+    with np.load(path, allow_pickle=False) as data:
+        saved = str(data["fingerprint"])
+        if saved != fingerprint:
+            raise ValueError(
+                f"checkpoint {path} was written for different shapes or settings "
+                f"(fingerprint {saved[:12]} != {fingerprint[:12]}); remove it or pass resume=False"
+            )
+        return {k: data[k] for k in data.files}
+
+
+def _check_collection(shapes, name="shapes") -> Array:
+    shapes = as_surface(shapes, name)
+    if shapes.ndim != 4 or shapes.shape[0] < 2:
+        raise ValueError(f"{name} must have shape (K, 3, m, n) with K >= 2; got {shapes.shape}")
+    return shapes
+
+
+def karcher_mean(
+    shapes: Float[ArrayLike, "K 3 m n"],
+    metric: SplitMetric,
+    *,
+    modulo: str = "rigid",
+    init: Float[ArrayLike, "3 m n"] | None = None,
+    max_steps: int = 10,
+    tol: float = 1e-3,
+    step_size: float = 1.0,
+    batch_size: int | None = None,
+    strategy: str = "auto",
+    checkpoint: str | os.PathLike | None = None,
+    resume: bool = False,
+    progress: Callable[[dict], None] | None = None,
+    **geodesic_options,
+) -> KarcherResult:
+    """Karcher (Frechet) mean of a collection of surfaces (paper section 4.1, MATH.md 7).
+
+    Each step registers every shape to the current mean (the shape is reparametrized and,
+    for modulo="rigid", rotated; the mean keeps its parametrization), solves the K
+    geodesics from the mean, averages their initial velocities v_k = T (f_k(t_1) - mean)
+    and moves the mean by step_size times the average. Stops when the average's norm
+    sqrt(G_mean(v, v)) is below tol times the RMS distance.
+
+    The forward difference T (f_1 - f_0) is the initial velocity only to first order in
+    1/T; with few time points (N = 5) the average can cycle instead of vanishing. Use
+    n_times >= 9 or scheme="central" (both converge in 3 steps on the package's tests).
+
+    Args:
+        shapes: ``(K, 3, m, n)`` surfaces on one grid.
+        metric: split metric coefficients.
+        modulo: ``"rigid"``, ``"diff"`` (:func:`shape_geodesic`) or ``"none"`` (:func:`geodesic`).
+        init: starting mean (default: the first shape).
+        max_steps, tol, step_size: the iteration.
+        batch_size: shapes per batched call (bounds memory); default all.
+        strategy: ``"vmap"``, ``"map"``, ``"loop"`` or ``"auto"`` (:func:`default_strategy`).
+        checkpoint: path of an .npz written atomically after every finished step.
+        resume: continue from ``checkpoint`` (refused if it belongs to other inputs).
+        progress: called after each step with a dict (step, sum of squared distances, ...).
+        **geodesic_options: passed to :func:`geodesic` / :func:`shape_geodesic`.
+
+    Returns:
+        :class:`KarcherResult`.
+    """
+    if modulo not in MODULI:
+        raise ValueError(f"modulo must be one of {MODULI}; got {modulo!r}")
+    if strategy not in STRATEGIES:
+        raise ValueError(f"strategy must be one of {STRATEGIES}; got {strategy!r}")
+    strategy = default_strategy() if strategy == "auto" else strategy
+    shapes = _check_collection(shapes)
+    mean = shapes[0] if init is None else as_surface(init, "init")
+    if modulo == "rigid":
+        mean = _center(mean)
+    settings = {
+        "metric": [float(x) for x in jax.tree_util.tree_leaves(metric)],
+        "modulo": modulo,
+        "step_size": step_size,
+        "tol": tol,
+        "options": geodesic_options,
+    }
+    fingerprint = _fingerprint(shapes, mean, **settings)
+    path = None if checkpoint is None else pathlib.Path(checkpoint)
+    history: list[tuple[float, float]] = []
+    start = 0
+    if path is not None and resume:
+        saved = _load_checkpoint(path, fingerprint)
+        if saved is not None:
+            mean, start = jnp.asarray(saved["mean"]), int(saved["step"])
+            history = [tuple(row) for row in saved["history"].tolist()]
+
+    def single(shape):
+        return _one_geodesic(mean_now, shape, metric, modulo, geodesic_options)
+
+    def solve_all():
+        parts = [
+            _batched(single, shapes[a:b], strategy) for a, b in _chunks(shapes.shape[0], batch_size)
+        ]
+        return tuple(jnp.concatenate(p) for p in zip(*parts, strict=True))
+
+    converged = False
+    step = start
+    for step in range(start, max_steps + 1):
+        mean_now = mean
+        distances, registered, velocities = solve_all()
+        average = velocities.mean(axis=0)
+        norm = float(jnp.sqrt(_metric_inner(metric, mean, average, average)))
+        rms = float(jnp.sqrt(jnp.mean(distances**2)))
+        converged = norm <= tol * max(rms, np.finfo(np.float64).tiny)
+        if converged or step == max_steps:
+            break
+        history.append((float(jnp.sum(distances**2)), norm))
+        mean = mean + step_size * average
+        if path is not None:
+            _save_atomic(
+                path,
+                mean=np.asarray(mean),
+                step=step + 1,
+                history=np.asarray(history),
+                fingerprint=fingerprint,
+            )
+        if progress is not None:
+            progress(
+                {"step": step + 1, "sum_sq_distances": history[-1][0], "mean_velocity_norm": norm}
+            )
+    history.append((float(jnp.sum(distances**2)), norm))
+    return KarcherResult(
+        mean, distances, registered, velocities, np.asarray(history), bool(converged), step
+    )
+
+
+def distance_matrix(
+    shapes: Float[ArrayLike, "K 3 m n"],
+    metric: SplitMetric,
+    *,
+    modulo: str = "rigid",
+    batch_size: int | None = None,
+    strategy: str = "auto",
+    checkpoint: str | os.PathLike | None = None,
+    resume: bool = False,
+    progress: Callable[[dict], None] | None = None,
+    **geodesic_options,
+) -> Float[Array, "K K"]:
+    """Symmetric matrix of pairwise shape distances: K(K-1)/2 geodesics, batched (MATH.md 7).
+
+    Pair (i, j), i < j, uses shape_geodesic(shapes[i], shapes[j]) (or geodesic for
+    modulo="none"); the matrix is symmetrized from the upper triangle and has a zero
+    diagonal. With ``checkpoint`` every finished chunk of pairs is saved atomically;
+    ``resume=True`` skips the chunks already done.
+
+    Returns:
+        ``(K, K)``.
+    """
+    if modulo not in MODULI:
+        raise ValueError(f"modulo must be one of {MODULI}; got {modulo!r}")
+    if strategy not in STRATEGIES:
+        raise ValueError(f"strategy must be one of {STRATEGIES}; got {strategy!r}")
+    strategy = default_strategy() if strategy == "auto" else strategy
+    shapes = _check_collection(shapes)
+    k = shapes.shape[0]
+    rows, cols = np.triu_indices(k, 1)
+    settings = {
+        "metric": [float(x) for x in jax.tree_util.tree_leaves(metric)],
+        "modulo": modulo,
+        "options": geodesic_options,
+        "batch_size": batch_size,
+    }
+    fingerprint = _fingerprint(shapes, **settings)
+    path = None if checkpoint is None else pathlib.Path(checkpoint)
+    values = np.full(rows.size, np.nan)
+    done = np.zeros(rows.size, bool)
+    if path is not None and resume:
+        saved = _load_checkpoint(path, fingerprint)
+        if saved is not None:
+            values, done = saved["values"], saved["done"]
+
+    def pair(ij):
+        a, b = shapes[ij[0]], shapes[ij[1]]
+        if modulo == "none":
+            return (geodesic(a, b, metric, **geodesic_options).distance,)
+        return (shape_geodesic(a, b, metric, modulo=modulo, **geodesic_options).distance,)
+
+    pairs = jnp.stack([jnp.asarray(rows), jnp.asarray(cols)], axis=1)
+    for a, b in _chunks(rows.size, batch_size):
+        if done[a:b].all():
+            continue
+        (chunk,) = _batched(pair, pairs[a:b], strategy)
+        values[a:b], done[a:b] = np.asarray(chunk), True
+        if path is not None:
+            _save_atomic(path, values=values, done=done, fingerprint=fingerprint)
+        if progress is not None:
+            progress({"pairs_done": int(done.sum()), "pairs": int(rows.size)})
+    matrix = np.zeros((k, k))
+    matrix[rows, cols] = values
+    return jnp.asarray(matrix + matrix.T, dtype=shapes.dtype)
