@@ -39,6 +39,7 @@ def test_concentric_spheres_mean_is_the_mean_radius():
     np.testing.assert_allclose(res.distances, exact, rtol=3e-2)
 
 
+@pytest.mark.slow
 def test_strategies_agree_and_permutation_does_not_matter():
     coll = _collection()
     options = {"modulo": "none", "tol": 1e-6, "max_steps": 15, **FAST}
@@ -115,6 +116,7 @@ print(json.dumps({"devices": jax.device_count(), "mean": res.mean.ravel().tolist
 """
 
 
+@pytest.mark.slow
 def test_sharded_equals_unsharded():
     env = {
         **os.environ,
@@ -148,6 +150,7 @@ def test_errors():
 
 # Inner shape geodesics at 13 x 25 stop at interpolation-noise energies and may warn.
 @pytest.mark.filterwarnings("ignore::elastic_jax.ConvergenceWarning")
+@pytest.mark.slow
 def test_mean_is_invariant_to_reparametrization_and_rotation():
     f = shapes.sample(shapes.bumpy, M, N)
     moved = shapes.sample(shapes.bumpy, M, N, rotation=shapes.random_rotation(1))

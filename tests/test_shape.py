@@ -39,6 +39,7 @@ def test_recovers_a_reparametrization(bumpy_pair):
     assert np.all(np.diff(history[1:]) <= 1e-12 * history[0])  # registration never raises it
 
 
+@pytest.mark.slow
 def test_recovers_a_rigid_motion_and_a_reparametrization(bumpy_pair):
     f1, f2, _ = bumpy_pair
     r = shapes.random_rotation(5)
@@ -77,6 +78,7 @@ def test_shape_distance_is_below_the_parametrized_one_on_real_shapes(other):
     _check_gamma(res)
 
 
+@pytest.mark.slow
 def test_vmap_over_targets_equals_a_loop(bumpy_pair):
     f1, f2, _ = bumpy_pair
     targets = jnp.stack([f2, shapes.sample(shapes.bumpy, M, N, rotation=shapes.random_rotation(2))])
