@@ -1,0 +1,113 @@
+"""Karcher steps and distance matrices: time per step for three batching strategies.
+
+Settings (issue 5): 8 surfaces at 25 x 49 (synthetic, plus the shared cats, horse and
+hand when ../shared/data is present, each scaled to unit area since the shape space here
+keeps scale), metric (1, 1, 0.1, 0), modulo="rigid", degree 5, vf degree 5, N = 7,
+scheme "central", 2 outer steps; one Karcher step per strategy ("vmap", "map" = lax.map
+in one jit, "loop" = Python loop of jitted solves), each in its own process so that its
+peak resident memory (ru_maxrss) is its own; then a 16-shape distance matrix. One JSON
+record per measurement: first call (with compilation) and a repeat.
+
+Run: python benchmarks/bench_karcher.py [--shapes 8] [--matrix-shapes 16]
+     [--strategies vmap,map,loop]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+
+WORKER = r"""
+import json, resource, sys, time, warnings
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
+import numpy as np
+sys.path.insert(0, {bench_dir!r})
+from _common import DATA
+import elastic_jax as ej
+from elastic_jax import shapes
+
+k, task, strategy = {k}, {task!r}, {strategy!r}
+m, n = 25, 49
+options = dict(degree=5, vf_degree=5, n_times=7, scheme="central", outer_steps=2)
+coll = []
+for name in ("cat1", "cat2", "horse0", "hand4"):
+    p = DATA / f"{{name}}_50x99.npz"
+    if p.exists() and len(coll) < k // 2:
+        f = np.asarray(ej.center(ej.resample(np.load(p)["f"], m, n)))
+        coll.append(f / np.sqrt(float(ej.surface_area(f))))
+i = 0
+while len(coll) < k:
+    r = shapes.random_rotation(i)
+    make = [shapes.bumpy, shapes.ellipsoid, shapes.bent_cylinder][i % 3]
+    f = np.asarray(ej.center(shapes.sample(make, m, n, rotation=r)))
+    coll.append(f / np.sqrt(float(ej.surface_area(f))) * (1 + 0.05 * i))
+    i += 1
+coll = jnp.asarray(np.stack(coll))
+metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+warnings.simplefilter("ignore", ej.ConvergenceWarning)
+
+def run():
+    if task == "karcher":
+        kw = dict(modulo="rigid", max_steps=1, strategy=strategy, **options)
+        return ej.karcher_mean(coll, metric, **kw).mean
+    return ej.distance_matrix(coll, metric, modulo="rigid", strategy=strategy, **options)
+
+t = time.perf_counter(); jax.block_until_ready(run()); first = time.perf_counter() - t
+t = time.perf_counter(); out = jax.block_until_ready(run()); again = time.perf_counter() - t
+print(json.dumps({{"first_s": first, "repeat_s": again,
+                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "checksum": float(jnp.sum(out))}}))
+"""
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--shapes", type=int, default=8)
+    parser.add_argument("--matrix-shapes", type=int, default=16)
+    parser.add_argument("--strategies", default="vmap,map,loop")
+    parser.add_argument("--matrix-strategy", default="loop")
+    args = parser.parse_args()
+    import pathlib
+
+    bench_dir = str(pathlib.Path(__file__).resolve().parent)
+    sys.path.insert(0, bench_dir)
+    from _common import emit, environment
+
+    env = environment()
+    jobs = [("karcher", s, args.shapes) for s in args.strategies.split(",")]
+    if args.matrix_shapes:
+        jobs.append(("distance_matrix", args.matrix_strategy, args.matrix_shapes))
+    for task, strategy, k in jobs:
+        code = WORKER.format(bench_dir=bench_dir, k=k, task=task, strategy=strategy)
+        out = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, check=True
+        )
+        record = json.loads(out.stdout.strip().splitlines()[-1])
+        emit(
+            {
+                "benchmark": "karcher_step" if task == "karcher" else "distance_matrix",
+                "settings": {
+                    "shapes": k,
+                    "pairs": k * (k - 1) // 2 if task != "karcher" else None,
+                    "strategy": strategy,
+                    "grid": [25, 49],
+                    "metric": [1.0, 1.0, 0.1, 0.0],
+                    "modulo": "rigid",
+                    "degree": 5,
+                    "vf_degree": 5,
+                    "n_times": 7,
+                    "scheme": "central",
+                    "outer_steps": 2,
+                },
+                **record,
+                "environment": env,
+            }
+        )
+
+
+if __name__ == "__main__":
+    main()
