@@ -133,6 +133,15 @@ def _load_checkpoint(path: pathlib.Path, fingerprint: str) -> dict | None:
         return {k: data[k] for k in data.files}
 
 
+def _check_options(modulo: str, strategy: str) -> str:
+    """Validate modulo and strategy; resolve "auto" to this backend's strategy."""
+    if modulo not in MODULI:
+        raise ValueError(f"modulo must be one of {MODULI}; got {modulo!r}")
+    if strategy not in STRATEGIES:
+        raise ValueError(f"strategy must be one of {STRATEGIES}; got {strategy!r}")
+    return default_strategy() if strategy == "auto" else strategy
+
+
 def _check_collection(shapes, name="shapes") -> Array:
     shapes = as_surface(shapes, name)
     if shapes.ndim != 4 or shapes.shape[0] < 2:
@@ -184,11 +193,7 @@ def karcher_mean(
     Returns:
         :class:`KarcherResult`.
     """
-    if modulo not in MODULI:
-        raise ValueError(f"modulo must be one of {MODULI}; got {modulo!r}")
-    if strategy not in STRATEGIES:
-        raise ValueError(f"strategy must be one of {STRATEGIES}; got {strategy!r}")
-    strategy = default_strategy() if strategy == "auto" else strategy
+    strategy = _check_options(modulo, strategy)
     shapes = _check_collection(shapes)
     mean = shapes[0] if init is None else as_surface(init, "init")
     if modulo == "rigid":
@@ -272,11 +277,7 @@ def distance_matrix(
     Returns:
         ``(K, K)``.
     """
-    if modulo not in MODULI:
-        raise ValueError(f"modulo must be one of {MODULI}; got {modulo!r}")
-    if strategy not in STRATEGIES:
-        raise ValueError(f"strategy must be one of {STRATEGIES}; got {strategy!r}")
-    strategy = default_strategy() if strategy == "auto" else strategy
+    strategy = _check_options(modulo, strategy)
     shapes = _check_collection(shapes)
     k = shapes.shape[0]
     rows, cols = np.triu_indices(k, 1)
