@@ -8,6 +8,7 @@ finished step or chunk so that a killed job resumes where it stopped.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -74,23 +75,62 @@ def _one_geodesic(mean, shape, metric, modulo, options):
     return res.distance, back[0], (back.shape[0] - 1) * (back[-2] - back[-1])
 
 
-def _batched(fn: Callable, batch: Array, strategy: str) -> tuple:
+def _pair_distance(a, b, metric, modulo, options):
+    if modulo == "none":
+        return (geodesic(a, b, metric, **options).distance,)
+    return (shape_geodesic(a, b, metric, modulo=modulo, **options).distance,)
+
+
+def _freeze(value):
+    """Options as a hashable static key (lists, e.g. a schedule, become tuples)."""
+    if isinstance(value, dict):
+        return tuple(sorted((k, _freeze(v)) for k, v in value.items()))
+    if isinstance(value, list | tuple):
+        return tuple(_freeze(v) for v in value)
+    return value
+
+
+# Module-level jitted batch solves: the mean and the metric are arguments and the options
+# a static key, so consecutive Karcher steps reuse one compilation.
+@functools.partial(jax.jit, static_argnames=("modulo", "options", "mode"))
+def _velocities_batch(mean, batch, metric, *, modulo, options, mode):
+    def one(shape):
+        return _one_geodesic(mean, shape, metric, modulo, dict(options))
+
+    return jax.lax.map(one, batch) if mode == "map" else jax.vmap(one)(batch)
+
+
+@functools.partial(jax.jit, static_argnames=("modulo", "options", "mode"))
+def _distances_batch(pairs, metric, *, modulo, options, mode):
+    def one(pair):
+        return _pair_distance(pair[0], pair[1], metric, modulo, dict(options))
+
+    return jax.lax.map(one, pairs) if mode == "map" else jax.vmap(one)(pairs)
+
+
+def _batched(batch_call: Callable, single_call: Callable, batch, strategy: str) -> tuple:
+    """Run ``single_call`` over the leading axis of ``batch`` (a pytree) by ``strategy``.
+
+    ``batch_call(batch, mode)`` is the jitted lax.map / vmap form. With several devices
+    the vmap batch is sharded over a one-axis mesh (optimistix solves break under
+    shard_map; jit partitions a NamedSharding-placed input instead).
+    """
+    size = jax.tree_util.tree_leaves(batch)[0].shape[0]
     if strategy == "loop":
-        outs = [fn(item) for item in batch]
+        items = [jax.tree_util.tree_map(lambda x, i=i: x[i], batch) for i in range(size)]
+        outs = [single_call(item) for item in items]
         return tuple(jnp.stack(parts) for parts in zip(*outs, strict=True))
-    if strategy == "map":
-        return jax.jit(lambda b: jax.lax.map(fn, b))(batch)
     devices = jax.devices()
-    if len(devices) > 1:
-        # Shard the batch axis over a one-axis mesh (optimistix solves break under
-        # shard_map; jit with a NamedSharding partitions the vmapped solve instead).
-        pad = (-batch.shape[0]) % len(devices)
-        padded = jnp.concatenate([batch, jnp.repeat(batch[-1:], pad, axis=0)]) if pad else batch
-        mesh = Mesh(np.asarray(devices), ("batch",))
-        padded = jax.device_put(padded, NamedSharding(mesh, PartitionSpec("batch")))
-        out = jax.jit(jax.vmap(fn))(padded)
-        return tuple(o[: batch.shape[0]] for o in out)
-    return jax.jit(jax.vmap(fn))(batch)
+    if strategy == "vmap" and len(devices) > 1:
+        pad = (-size) % len(devices)
+
+        def padded(x):
+            return jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
+
+        sharding = NamedSharding(Mesh(np.asarray(devices), ("batch",)), PartitionSpec("batch"))
+        batch = jax.tree_util.tree_map(lambda x: jax.device_put(padded(x), sharding), batch)
+        return tuple(o[:size] for o in batch_call(batch, strategy))
+    return batch_call(batch, strategy)
 
 
 def _chunks(n: int, size: int | None):
@@ -215,19 +255,22 @@ def karcher_mean(
             mean, start = jnp.asarray(saved["mean"]), int(saved["step"])
             history = [tuple(row) for row in saved["history"].tolist()]
 
-    def single(shape):
-        return _one_geodesic(mean_now, shape, metric, modulo, geodesic_options)
+    frozen = _freeze(geodesic_options)
 
     def solve_all():
-        parts = [
-            _batched(single, shapes[a:b], strategy) for a, b in _chunks(shapes.shape[0], batch_size)
-        ]
+        def batch_call(batch, mode):
+            return _velocities_batch(mean, batch, metric, modulo=modulo, options=frozen, mode=mode)
+
+        def single_call(shape):
+            return _one_geodesic(mean, shape, metric, modulo, geodesic_options)
+
+        chunks = _chunks(shapes.shape[0], batch_size)
+        parts = [_batched(batch_call, single_call, shapes[a:b], strategy) for a, b in chunks]
         return tuple(jnp.concatenate(p) for p in zip(*parts, strict=True))
 
     converged = False
     step = start
     for step in range(start, max_steps + 1):
-        mean_now = mean
         distances, registered, velocities = solve_all()
         average = velocities.mean(axis=0)
         norm = float(jnp.sqrt(_metric_inner(metric, mean, average, average)))
@@ -296,17 +339,20 @@ def distance_matrix(
         if saved is not None:
             values, done = saved["values"], saved["done"]
 
-    def pair(ij):
-        a, b = shapes[ij[0]], shapes[ij[1]]
-        if modulo == "none":
-            return (geodesic(a, b, metric, **geodesic_options).distance,)
-        return (shape_geodesic(a, b, metric, modulo=modulo, **geodesic_options).distance,)
+    frozen = _freeze(geodesic_options)
 
-    pairs = jnp.stack([jnp.asarray(rows), jnp.asarray(cols)], axis=1)
+    def batch_call(batch, mode):
+        return _distances_batch(batch, metric, modulo=modulo, options=frozen, mode=mode)
+
+    def single_call(pair):
+        return _pair_distance(pair[0], pair[1], metric, modulo, geodesic_options)
+
+    pairs = (shapes[rows], shapes[cols])
     for a, b in _chunks(rows.size, batch_size):
         if done[a:b].all():
             continue
-        (chunk,) = _batched(pair, pairs[a:b], strategy)
+        chunk_pairs = (pairs[0][a:b], pairs[1][a:b])
+        (chunk,) = _batched(batch_call, single_call, chunk_pairs, strategy)
         values[a:b], done[a:b] = np.asarray(chunk), True
         if path is not None:
             _save_atomic(path, values=values, done=done, fingerprint=fingerprint)

@@ -88,7 +88,6 @@ class _Config(NamedTuple):
     n_times: int
     outer_steps: int
     icosahedral: bool
-    init_degree: int
     solver: str
     max_steps: int
     tol: float
@@ -423,7 +422,6 @@ def shape_geodesic(
         n_times=n_times,
         outer_steps=outer_steps,
         icosahedral=init == "icosahedral",
-        init_degree=init_degree,
         solver=solver,
         max_steps=max_steps,
         tol=float(tol),
