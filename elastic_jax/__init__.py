@@ -48,3 +48,14 @@ from ._so3 import icosahedral_group as icosahedral_group
 from ._so3 import so3_exp as so3_exp
 from ._so3 import so3_log as so3_log
 from ._so3 import vee as vee
+
+_SUBMODULES = ("cli", "io", "plot")
+
+
+def __getattr__(name: str):
+    # io (trimesh) and plot (matplotlib) load on first use: `import elastic_jax` stays light.
+    if name in _SUBMODULES:
+        import importlib
+
+        return importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -13,7 +13,6 @@ import hashlib
 import json
 import os
 import pathlib
-import tempfile
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -23,6 +22,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, ArrayLike, Float
 
+from ._atomic import save_npz_atomic
 from ._geodesic import geodesic
 from ._metric import SplitMetric, _metric_inner
 from ._shape import shape_geodesic
@@ -149,15 +149,7 @@ def _fingerprint(*arrays, **settings) -> str:
 
 
 def _save_atomic(path: pathlib.Path, **arrays) -> None:
-    """Write an .npz next to its destination and rename it into place."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".npz", delete=False) as tmp:
-        try:
-            np.savez(tmp, **arrays)
-        except BaseException:
-            os.unlink(tmp.name)
-            raise
-    os.replace(tmp.name, path)
+    save_npz_atomic(path, **arrays)
 
 
 def _load_checkpoint(path: pathlib.Path, fingerprint: str) -> dict | None:

@@ -14,7 +14,8 @@ _area_element = jax.jit(lambda f: area_element(*interior_frame(f)))
 def _where(batch_shape: tuple[int, ...], flat_index: int) -> str:
     if not batch_shape:
         return ""
-    return f" of item {np.unravel_index(flat_index, batch_shape)}"
+    index = tuple(int(i) for i in np.unravel_index(flat_index, batch_shape))
+    return f" of item {index[0] if len(index) == 1 else index}"
 
 
 def check_grid_shape(shape: tuple[int, ...], name: str) -> tuple[int, int]:

@@ -1,0 +1,642 @@
+"""The ``elastic-jax`` command line: geodesics, shape geodesics, Karcher means, distances.
+
+Every command reads surfaces (``.npz`` with array ``f``, the authors' ``.mat``, or any mesh
+trimesh reads, resampled by :func:`elastic_jax.io.mesh_to_grid`), computes, and writes into
+``--out DIR``: the arrays (``.npz``), meshes (``.ply``), figures (``.png``) and
+``summary.json``. The summary is also printed on stdout. All files are written atomically,
+so Ctrl-C never leaves half a file; ``karcher`` and ``distances`` checkpoint every finished
+step or chunk and continue with ``--resume``.
+
+Exit codes: 0 done and converged; 2 bad input (unreadable file, invalid surface or mesh,
+bad option); 3 finished but the solver did not converge (results are still written);
+130 interrupted; 1 anything else (a bug: please report it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import platform
+import sys
+import time
+from collections.abc import Callable, Sequence
+
+EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_NOT_CONVERGED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+DEFAULT_METRIC = (1.0, 1.0, 0.1, 0.0)
+
+
+class BadInput(Exception):
+    """An input the command cannot use; reported in one line with exit code 2."""
+
+
+class Progress:
+    """One line per stage on stderr, with the time since the command started."""
+
+    def __init__(self, quiet: bool):
+        self.quiet = quiet
+        self.start = time.perf_counter()
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
+
+    def __call__(self, message: str) -> None:
+        if not self.quiet:
+            print(f"[{self.elapsed():7.1f} s] {message}", file=sys.stderr, flush=True)
+
+
+# --------------------------------------------------------------------------- arguments
+
+
+def _metric(text: str) -> tuple[float, float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--metric wants four numbers a,b,c,d; got {text!r}"
+        ) from None
+    if len(values) != 4:
+        raise argparse.ArgumentTypeError(
+            f"--metric wants four numbers a,b,c,d; got {len(values)} in {text!r}"
+        )
+    return values  # type: ignore[return-value]
+
+
+def _common(parser: argparse.ArgumentParser, *, degree: int, times: int) -> None:
+    parser.add_argument(
+        "--metric",
+        type=_metric,
+        default=DEFAULT_METRIC,
+        metavar="A,B,C,D",
+        help="split metric coefficients: shear, stretch, bending, rotation (default 1,1,0.1,0)",
+    )
+    parser.add_argument(
+        "--grid",
+        type=int,
+        nargs=2,
+        metavar=("M", "N"),
+        default=None,
+        help="resample every input onto this grid (default: the first input's grid; "
+        "50 99 for meshes)",
+    )
+    parser.add_argument("--degree", type=int, default=degree, help="surface basis degree")
+    parser.add_argument("--times", type=int, default=times, help="time points N, ends included")
+    parser.add_argument("--solver", choices=("bfgs", "lbfgs"), default="bfgs")
+    parser.add_argument("--max-steps", type=int, default=None, help="solver step limit")
+    parser.add_argument(
+        "--dtype",
+        choices=("float64", "float32"),
+        default="float64",
+        help="precision (float64, the reference, is the default; float32 is faster on GPUs)",
+    )
+    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("elastic-jax-out"))
+    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+
+
+def _shape_options(parser: argparse.ArgumentParser, *, modulo: str, outer: int) -> None:
+    parser.add_argument("--modulo", choices=("diff", "rigid"), default=modulo)
+    parser.add_argument("--method", choices=("coordinate", "joint"), default="coordinate")
+    parser.add_argument("--vf-degree", type=int, default=None, help="Diff(S^2) basis degree")
+    parser.add_argument("--outer-steps", type=int, default=outer)
+
+
+def _batch_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--strategy", choices=("auto", "vmap", "map", "loop"), default="auto")
+    parser.add_argument("--batch-size", type=int, default=None)
+    parser.add_argument(
+        "--resume", action="store_true", help="continue from the checkpoint in --out"
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="elastic-jax",
+        description="Elastic shape analysis of spherical surfaces (split metrics, Su et al. 2020).",
+        epilog="Exit codes: 0 ok, 2 bad input, 3 not converged, 130 interrupted.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("geodesic", help="geodesic between two parametrized surfaces")
+    p.add_argument("source")
+    p.add_argument("target")
+    _common(p, degree=7, times=13)
+
+    p = sub.add_parser("shape-geodesic", help="geodesic between shapes (registration)")
+    p.add_argument("source")
+    p.add_argument("target")
+    _common(p, degree=7, times=13)
+    _shape_options(p, modulo="diff", outer=5)
+
+    p = sub.add_parser("karcher", help="Karcher mean of a collection of shapes")
+    p.add_argument("files", nargs="+")
+    _common(p, degree=5, times=9)
+    _shape_options(p, modulo="rigid", outer=2)
+    _batch_options(p)
+    p.add_argument("--karcher-steps", type=int, default=10)
+    p.add_argument("--tol", type=float, default=1e-3)
+    p.add_argument("--scheme", choices=("forward", "central"), default="central")
+
+    p = sub.add_parser("distances", help="matrix of pairwise shape distances")
+    p.add_argument("files", nargs="+")
+    _common(p, degree=5, times=9)
+    _shape_options(p, modulo="rigid", outer=2)
+    _batch_options(p)
+
+    p = sub.add_parser("demo", help="a geodesic between two built-in surfaces, with figures")
+    _common(p, degree=7, times=10)
+
+    p = sub.add_parser("bench", help="time the energy gradient and a geodesic solve (JSON)")
+    _common(p, degree=7, times=13)
+    p.add_argument("--repeat", type=int, default=3)
+    return parser
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _environment() -> dict:
+    import jax
+
+    return {
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "backend": jax.default_backend(),
+        "devices": [str(d) for d in jax.devices()],
+    }
+
+
+def _load_all(files: Sequence[str], grid, dtype, progress: Progress):
+    """Surfaces as one (K, 3, m, n) array on a common grid; BadInput names the file."""
+    import numpy as np
+
+    from . import io
+
+    out = []
+    m, n = (None, None) if grid is None else grid
+    for name in files:
+        progress(f"reading {name}")
+        try:
+            f = io.load_surface(name, m=m, n=n)
+        except (OSError, ValueError, KeyError) as err:
+            raise BadInput(f"{name}: {err}") from err
+        if m is None:
+            m, n = f.shape[1:]
+        out.append(f)
+    return np.stack(out).astype(dtype)
+
+
+def _metric_from(args):
+    from ._metric import SplitMetric
+
+    try:
+        return SplitMetric(*args.metric)
+    except ValueError as err:
+        raise BadInput(str(err)) from err
+
+
+def _check_degrees(args, m: int, n: int) -> None:
+    from ._harmonics import max_degree
+
+    top = max_degree(m, n)
+    for name in ("degree", "vf_degree"):
+        value = getattr(args, name, None)
+        if value is not None and not 1 <= value <= top:
+            raise BadInput(
+                f"--{name.replace('_', '-')} {value} is out of range for the {m} x {n} grid "
+                f"(1 .. {top})"
+            )
+    if args.times < 3:
+        raise BadInput(f"--times must be at least 3; got {args.times}")
+
+
+def _geodesic_options(args) -> dict:
+    options = {"degree": args.degree, "n_times": args.times, "solver": args.solver}
+    if args.max_steps is not None:
+        options["max_steps"] = args.max_steps
+    return options
+
+
+def _shape_geodesic_options(args) -> dict:
+    options = _geodesic_options(args)
+    options.update(method=args.method, outer_steps=args.outer_steps)
+    if args.vf_degree is not None:
+        options["vf_degree"] = args.vf_degree
+    return options
+
+
+def _write_summary(out: pathlib.Path, summary: dict) -> None:
+    from ._atomic import write_text_atomic
+
+    target = out / "summary.json"
+    summary["files"] = sorted({*summary.get("files", []), str(target)})
+    write_text_atomic(target, json.dumps(summary, indent=2) + "\n")
+    print(json.dumps(summary, indent=2))
+
+
+def _write_path(out: pathlib.Path, path, settings: dict, progress: Progress) -> list[str]:
+    from . import io, plot
+
+    progress(f"writing the path's {path.shape[0]} meshes and its figure to {out}")
+    written = [str(p) for p in io.save_path(path, out / "path", settings=settings)]
+    fig = plot.plot_path(path)
+    written.append(str(plot.save_figure(fig, out / "path.png")))
+    return written
+
+
+# --------------------------------------------------------------------------- commands
+
+
+def _run_geodesic(args, progress: Progress, f1=None, f2=None, label=None) -> dict:
+    import jax
+    import numpy as np
+
+    from ._geodesic import geodesic
+
+    if f1 is None:
+        f1, f2 = _load_all([args.source, args.target], args.grid, args.dtype, progress)
+    m, n = f1.shape[1:]
+    _check_degrees(args, m, n)
+    metric = _metric_from(args)
+    options = _geodesic_options(args)
+    progress(
+        f"solving the geodesic on {m} x {n}, degree {args.degree}, N = {args.times} "
+        "(the first call compiles)"
+    )
+    start = time.perf_counter()
+    res = jax.block_until_ready(geodesic(f1, f2, metric, **options))
+    seconds = time.perf_counter() - start
+    progress(f"distance {float(res.distance):.6g} after {int(res.num_steps)} steps")
+    settings = {"metric": list(args.metric), "grid": [m, n], **options, "dtype": args.dtype}
+    summary = {
+        "command": args.command,
+        "inputs": label or [args.source, args.target],
+        "settings": settings,
+        "distance": float(res.distance),
+        "energy": float(res.energy),
+        "straight_energy": float(res.straight_energy),
+        "num_steps": int(res.num_steps),
+        "converged": bool(res.converged),
+        "seconds": seconds,
+        "environment": _environment(),
+    }
+    summary["files"] = _write_path(args.out, np.asarray(res.path), settings, progress)
+    return summary
+
+
+def _run_shape_geodesic(args, progress: Progress) -> dict:
+    import jax
+    import numpy as np
+
+    from . import plot
+    from ._atomic import save_npz_atomic
+    from ._shape import shape_geodesic
+
+    f1, f2 = _load_all([args.source, args.target], args.grid, args.dtype, progress)
+    m, n = f1.shape[1:]
+    _check_degrees(args, m, n)
+    metric = _metric_from(args)
+    options = _shape_geodesic_options(args)
+    progress(
+        f"registering and solving modulo {args.modulo} on {m} x {n}, "
+        f"{args.outer_steps} outer steps (the first call compiles)"
+    )
+    start = time.perf_counter()
+    res = jax.block_until_ready(shape_geodesic(f1, f2, metric, modulo=args.modulo, **options))
+    seconds = time.perf_counter() - start
+    progress(
+        f"shape distance {float(res.distance):.6g} "
+        f"(parametrized {float(res.parametrized_distance):.6g})"
+    )
+    settings = {
+        "metric": list(args.metric),
+        "grid": [m, n],
+        "modulo": args.modulo,
+        **options,
+        "dtype": args.dtype,
+    }
+    files = _write_path(args.out, np.asarray(res.path), settings, progress)
+    files.append(
+        str(
+            save_npz_atomic(
+                args.out / "registration.npz",
+                gamma=np.asarray(res.gamma),
+                rotation=np.asarray(res.rotation),
+                f1_registered=np.asarray(res.f1_registered),
+                energy_history=np.asarray(res.energy_history),
+            )
+        )
+    )
+    fig = plot.plot_energy({"path energy": np.asarray(res.energy_history)})
+    files.append(str(plot.save_figure(fig, args.out / "energy.png")))
+    return {
+        "command": args.command,
+        "inputs": [args.source, args.target],
+        "settings": settings,
+        "distance": float(res.distance),
+        "parametrized_distance": float(res.parametrized_distance),
+        "energy": float(res.energy),
+        "num_steps": int(res.num_steps),
+        "converged": bool(res.converged),
+        "seconds": seconds,
+        "files": files,
+        "environment": _environment(),
+    }
+
+
+def _collection_settings(args, m: int, n: int) -> tuple[dict, dict]:
+    options = _shape_geodesic_options(args)
+    settings = {
+        "metric": list(args.metric),
+        "grid": [m, n],
+        "modulo": args.modulo,
+        "strategy": args.strategy,
+        "batch_size": args.batch_size,
+        **options,
+        "dtype": args.dtype,
+    }
+    return options, settings
+
+
+def _run_karcher(args, progress: Progress) -> dict:
+    import numpy as np
+
+    from . import io, plot
+    from ._atomic import save_npz_atomic
+    from ._karcher import karcher_mean
+
+    shapes = _load_all(args.files, args.grid, args.dtype, progress)
+    m, n = shapes.shape[2:]
+    _check_degrees(args, m, n)
+    metric = _metric_from(args)
+    options, settings = _collection_settings(args, m, n)
+    settings.update(karcher_steps=args.karcher_steps, tol=args.tol, scheme=args.scheme)
+    checkpoint = args.out / "karcher_checkpoint.npz"
+
+    def report(info):
+        progress(
+            f"Karcher step {info['step']}/{args.karcher_steps}: sum of squared distances "
+            f"{info['sum_sq_distances']:.6g}, mean velocity {info['mean_velocity_norm']:.3g}"
+            f" (checkpoint {checkpoint.name})"
+        )
+
+    progress(
+        f"Karcher mean of {len(args.files)} shapes modulo {args.modulo} on {m} x {n} "
+        f"(each step solves {len(args.files)} geodesics; the first compiles)"
+    )
+    start = time.perf_counter()
+    res = karcher_mean(
+        shapes,
+        metric,
+        modulo=args.modulo,
+        max_steps=args.karcher_steps,
+        tol=args.tol,
+        batch_size=args.batch_size,
+        strategy=args.strategy,
+        checkpoint=checkpoint,
+        resume=args.resume,
+        progress=report,
+        scheme=args.scheme,
+        **options,
+    )
+    seconds = time.perf_counter() - start
+    mean = np.asarray(res.mean)
+    files = [
+        str(
+            save_npz_atomic(
+                args.out / "mean.npz",
+                f=mean,
+                distances=np.asarray(res.distances),
+                registered=np.asarray(res.registered),
+                history=np.asarray(res.history),
+                settings=json.dumps(settings),
+            )
+        )
+    ]
+    files.append(str(io.save_surface(mean, args.out / "mean.ply")))
+    files.append(str(plot.save_figure(plot.plot_path(mean), args.out / "mean.png")))
+    history = np.asarray(res.history)
+    fig = plot.plot_energy(
+        {"sum of squared distances": history[:, 0], "mean velocity norm": history[:, 1]}
+    )
+    files.append(str(plot.save_figure(fig, args.out / "history.png")))
+    return {
+        "command": args.command,
+        "inputs": list(args.files),
+        "settings": settings,
+        "distances": [float(d) for d in np.asarray(res.distances)],
+        "sum_sq_distances": float(np.sum(np.asarray(res.distances) ** 2)),
+        "num_steps": int(res.num_steps),
+        "converged": bool(res.converged),
+        "seconds": seconds,
+        "files": files,
+        "environment": _environment(),
+    }
+
+
+def _run_distances(args, progress: Progress) -> dict:
+    import numpy as np
+
+    from . import plot
+    from ._atomic import save_npz_atomic, write_text_atomic
+    from ._karcher import default_strategy, distance_matrix
+
+    shapes = _load_all(args.files, args.grid, args.dtype, progress)
+    k, m, n = shapes.shape[0], *shapes.shape[2:]
+    _check_degrees(args, m, n)
+    metric = _metric_from(args)
+    options, settings = _collection_settings(args, m, n)
+    checkpoint = args.out / "distances_checkpoint.npz"
+
+    def report(info):
+        progress(f"pairs done {info['pairs_done']}/{info['pairs']} (checkpoint {checkpoint.name})")
+
+    progress(
+        f"{k * (k - 1) // 2} shape geodesics modulo {args.modulo} on {m} x {n} (the first compiles)"
+    )
+    start = time.perf_counter()
+    batch_size = args.batch_size
+    if batch_size is None and args.strategy in ("auto", "loop") and default_strategy() == "loop":
+        batch_size = 1  # a loop gains nothing from big chunks; checkpoint after every pair
+    matrix = np.asarray(
+        distance_matrix(
+            shapes,
+            metric,
+            modulo=args.modulo,
+            batch_size=batch_size,
+            strategy=args.strategy,
+            checkpoint=checkpoint,
+            resume=args.resume,
+            progress=report,
+            **options,
+        )
+    )
+    seconds = time.perf_counter() - start
+    names = [pathlib.Path(f).stem for f in args.files]
+    files = [
+        str(
+            save_npz_atomic(
+                args.out / "distances.npz",
+                distances=matrix,
+                files=np.asarray(args.files),
+                settings=json.dumps(settings),
+            )
+        )
+    ]
+    rows = [",".join(["", *names])]
+    rows += [
+        ",".join([name, *(f"{v:.10g}" for v in row)])
+        for name, row in zip(names, matrix, strict=True)
+    ]
+    files.append(str(write_text_atomic(args.out / "distances.csv", "\n".join(rows) + "\n")))
+    fig = plot.plot_distance_matrix(matrix, labels=names)
+    files.append(str(plot.save_figure(fig, args.out / "distances.png")))
+    return {
+        "command": args.command,
+        "inputs": list(args.files),
+        "settings": settings,
+        "distances": matrix.tolist(),
+        # distance_matrix reports no per-pair convergence; the CLI does not claim it.
+        "converged": None,
+        "seconds": seconds,
+        "files": files,
+        "environment": _environment(),
+    }
+
+
+def _run_demo(args, progress: Progress) -> dict:
+    import numpy as np
+
+    from . import io, shapes
+
+    m, n = args.grid or (25, 49)
+    dtype = np.dtype(args.dtype)
+    f1 = np.asarray(shapes.sample(shapes.bent_cylinder, m, n, curvature=0.0), dtype)
+    f2 = np.asarray(
+        shapes.sample(shapes.bent_cylinder, m, n, curvature=0.6, half_length=1.2), dtype
+    )
+    args.out.mkdir(parents=True, exist_ok=True)
+    inputs = [
+        str(io.save_surface(f1, args.out / "straight_cylinder.npz")),
+        str(io.save_surface(f2, args.out / "bent_cylinder.npz")),
+    ]
+    summary = _run_geodesic(args, progress, f1, f2, label=inputs)
+    summary["files"] = inputs + summary["files"]
+    return summary
+
+
+def _run_bench(args, progress: Progress) -> dict:
+    import jax
+    import numpy as np
+
+    from . import shapes
+    from ._energy import path_energy, straight_path
+    from ._geodesic import geodesic
+
+    m, n = args.grid or (50, 99)
+    _check_degrees(args, m, n)
+    metric = _metric_from(args)
+    dtype = np.dtype(args.dtype)
+    f1 = np.asarray(shapes.sample(shapes.bent_cylinder, m, n, curvature=0.0), dtype)
+    f2 = np.asarray(
+        shapes.sample(shapes.bent_cylinder, m, n, curvature=0.6, half_length=1.2), dtype
+    )
+    path = straight_path(f1, f2, args.times)
+    grad = jax.jit(jax.value_and_grad(lambda p: path_energy(metric, p)))
+
+    def timed(call: Callable) -> dict:
+        start = time.perf_counter()
+        jax.block_until_ready(call())
+        first = time.perf_counter() - start
+        runs = []
+        for _ in range(args.repeat):
+            start = time.perf_counter()
+            jax.block_until_ready(call())
+            runs.append(time.perf_counter() - start)
+        return {"first_call_s": first, "median_s": float(np.median(runs)), "runs_s": runs}
+
+    progress(f"energy value and gradient, {m} x {n}, N = {args.times}")
+    energy = timed(lambda: grad(path))
+    options = _geodesic_options(args)
+    progress(f"geodesic solve, degree {args.degree}")
+    solve = timed(lambda: geodesic(f1, f2, metric, **options))
+    res = geodesic(f1, f2, metric, **options)
+    return {
+        "command": "bench",
+        "settings": {
+            "grid": [m, n],
+            "metric": list(args.metric),
+            **options,
+            "dtype": args.dtype,
+            "repeat": args.repeat,
+            "shapes": "straight -> bent cylinder (built-in)",
+        },
+        "energy_value_and_grad": energy,
+        "geodesic_solve": {
+            **solve,
+            "num_steps": int(res.num_steps),
+            "distance": float(res.distance),
+        },
+        "converged": bool(res.converged),
+        "environment": _environment(),
+    }
+
+
+def _preflight(args) -> None:
+    """Refuse bad options before reading any file or starting any work."""
+    from ._validation import check_grid_shape
+
+    _metric_from(args)
+    if args.grid is not None:
+        try:
+            check_grid_shape((3, *args.grid), "--grid")
+        except ValueError as err:
+            raise BadInput(str(err)) from err
+
+
+COMMANDS = {
+    "geodesic": _run_geodesic,
+    "shape-geodesic": _run_shape_geodesic,
+    "karcher": _run_karcher,
+    "distances": _run_distances,
+    "demo": _run_demo,
+    "bench": _run_bench,
+}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``elastic-jax`` (and ``python -m elastic_jax``); returns the exit code."""
+    args = build_parser().parse_args(argv)
+    import jax
+
+    if args.dtype == "float64":
+        # The program chooses its precision (the library never changes JAX's global config);
+        # float32 runs cast their inputs instead, so an in-process call changes nothing else.
+        jax.config.update("jax_enable_x64", True)
+    import warnings
+
+    from ._geodesic import ConvergenceWarning
+
+    progress = Progress(args.quiet)
+    try:
+        with warnings.catch_warnings():
+            # Non-convergence is reported in the summary and the exit code instead.
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            _preflight(args)
+            summary = COMMANDS[args.command](args, progress)
+        _write_summary(args.out, summary)
+    except BadInput as err:
+        print(f"elastic-jax {args.command}: bad input: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print(
+            f"elastic-jax {args.command}: interrupted; every file in {args.out} is complete "
+            "(karcher and distances continue with --resume)",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
+    progress(f"done; summary in {args.out / 'summary.json'}")
+    return EXIT_NOT_CONVERGED if summary.get("converged") is False else EXIT_OK
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

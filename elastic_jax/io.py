@@ -1,0 +1,544 @@
+"""Reading and writing surfaces: grids (.npz, .mat) and triangle meshes (.ply, .obj, ...).
+
+A surface is an array ``(3, m, n)`` on the spherical grid (MATH.md 1). A closed mesh of
+sphere topology becomes such an array by radial projection: one ray per grid direction
+from a centre of the mesh, the surface point is where the ray leaves the mesh. This needs
+the mesh to be star-shaped about that centre (every ray crosses the surface exactly once),
+which :func:`mesh_to_grid` checks rather than assumes. The way back, :func:`grid_to_mesh`,
+triangulates the grid with one vertex per distinct grid point.
+
+Every file is written atomically (a temporary beside it, then a rename), so an interrupted
+job leaves the previous file or the new one, never part of one.
+
+Example:
+    >>> import numpy as np
+    >>> from elastic_jax import io, shapes
+    >>> mesh = io.grid_to_mesh(np.asarray(shapes.sample(shapes.ellipsoid, 13, 25)))
+    >>> bool(mesh.is_watertight), int(mesh.euler_number)
+    (True, 2)
+    >>> io.mesh_to_grid(mesh, 9, 17).shape
+    (3, 9, 17)
+"""
+
+from __future__ import annotations
+
+import json
+import operator
+import os
+import pathlib
+from collections.abc import Mapping, Sequence
+
+import jax
+import numpy as np
+import scipy.io
+import trimesh
+
+from ._atomic import atomic_path, save_npz_atomic
+from ._grid import _angles_np
+from ._interp import resample
+from ._validation import check_grid_shape, validate_surface
+
+__all__ = [
+    "MESH_FORMATS",
+    "MeshError",
+    "NotGenusZeroError",
+    "NotStarShapedError",
+    "NotWatertightError",
+    "grid_to_mesh",
+    "load_surface",
+    "mesh_to_grid",
+    "save_path",
+    "save_surface",
+]
+
+#: Mesh formats that :func:`save_surface` and :func:`save_path` write and that load back.
+#: (glTF is left out: trimesh writes it as several files, which cannot be renamed at once.)
+MESH_FORMATS = ("ply", "obj", "off", "stl", "glb")
+
+# Grid files; every other suffix is handed to trimesh.
+_GRID_FORMATS = ("npz", "mat")
+
+# Hits of one ray closer than this (times the mesh's size) are one crossing: a ray through
+# an edge or a vertex is reported once by each triangle there.
+_MERGE_RTOL = 1e-9
+
+# Bounds the (ray, candidate triangle) pairs that trimesh materialises per call: a ray
+# from the centre has a few percent (up to a third) of the faces as candidates.
+_PAIRS_PER_CHUNK = 5_000_000
+
+
+class MeshError(ValueError):
+    """A mesh that cannot be turned into a surface on the spherical grid."""
+
+
+class NotWatertightError(MeshError):
+    """The mesh has boundary edges (or edges shared by more than two faces)."""
+
+
+class NotGenusZeroError(MeshError):
+    """The mesh is closed but not a sphere: its Euler characteristic is not 2."""
+
+
+class NotStarShapedError(MeshError):
+    """Some ray from the centre misses the mesh or crosses it more than once."""
+
+
+def _mesh_loadable_formats() -> tuple[str, ...]:
+    # xyz is a point cloud and stl_ascii no file suffix; both are loader names only.
+    return tuple(sorted(trimesh.exchange.load.mesh_formats() - {"xyz", "stl_ascii"}))
+
+
+def _suffix(path: pathlib.Path) -> str:
+    return path.suffix.lower().lstrip(".")
+
+
+def _grid_directions(m: int, n: int) -> np.ndarray:
+    """Unit vectors of the distinct grid points: north pole, interior rows, south pole.
+
+    Returns:
+        ``(2 + (m - 2)(n - 1), 3)`` float64, in the vertex order of :func:`grid_to_mesh`.
+    """
+    phi, theta = _angles_np(m, n)
+    phi, theta = np.meshgrid(phi[1:-1], theta[:-1], indexing="ij")
+    interior = np.stack(
+        [np.sin(phi) * np.cos(theta), np.sin(phi) * np.sin(theta), np.cos(phi)], axis=-1
+    )
+    return np.concatenate([[[0.0, 0.0, 1.0]], interior.reshape(-1, 3), [[0.0, 0.0, -1.0]]])
+
+
+def _from_distinct(points: np.ndarray, m: int, n: int) -> np.ndarray:
+    """``(2 + (m - 2)(n - 1), 3)`` distinct grid points -> ``(3, m, n)`` with poles and seam."""
+    f = np.empty((3, m, n))
+    f[:, 0, :] = points[0][:, None]
+    f[:, -1, :] = points[-1][:, None]
+    f[:, 1:-1, :-1] = points[1:-1].reshape(m - 2, n - 1, 3).transpose(2, 0, 1)
+    f[:, :, -1] = f[:, :, 0]
+    return f
+
+
+def _as_trimesh(mesh) -> trimesh.Trimesh:
+    if isinstance(mesh, trimesh.Scene):
+        parts = [g for g in mesh.dump() if isinstance(g, trimesh.Trimesh)]
+        if not parts:
+            raise MeshError("the scene holds no triangle mesh")
+        return parts[0] if len(parts) == 1 else trimesh.util.concatenate(parts)
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise TypeError(f"mesh must be a trimesh.Trimesh or trimesh.Scene; got {type(mesh)!r}")
+    return mesh
+
+
+def _check_sphere_topology(mesh: trimesh.Trimesh) -> None:
+    """Raise unless the mesh is one closed surface with Euler characteristic 2."""
+    if len(mesh.faces) == 0:
+        raise MeshError("the mesh has no faces")
+    if not mesh.is_watertight:
+        edges = np.sort(mesh.edges, axis=1)
+        _, counts = np.unique(edges, axis=0, return_counts=True)
+        raise NotWatertightError(
+            f"the mesh is not closed (watertight): {int(np.sum(counts == 1))} edge(s) belong "
+            f"to one face only and {int(np.sum(counts > 2))} to more than two, out of "
+            f"{len(counts)} edges; a surface on the sphere grid needs a closed mesh (if the "
+            "file repeats vertices per face, load it with trimesh's default process=True "
+            "or call mesh.merge_vertices())"
+        )
+    bodies = int(mesh.body_count)
+    if bodies != 1:
+        raise MeshError(
+            f"the mesh has {bodies} connected components; a surface on the sphere grid is one"
+        )
+    chi = int(mesh.euler_number)
+    if chi != 2:
+        genus = (2 - chi) / 2
+        raise NotGenusZeroError(
+            f"the mesh is closed but not a topological sphere: its Euler characteristic "
+            f"V - E + F is {chi}, not 2 (genus (2 - chi)/2 = {genus:g})"
+        )
+
+
+def _area_centroid(mesh: trimesh.Trimesh) -> np.ndarray:
+    # Area weights, not trimesh's center_mass (volume weights): the area centroid needs
+    # no consistently oriented faces, only the surface itself.
+    area = np.asarray(mesh.area_faces, dtype=np.float64)
+    return area @ np.asarray(mesh.triangles_center, dtype=np.float64) / area.sum()
+
+
+def _crossings(
+    mesh: trimesh.Trimesh, origin: np.ndarray, directions: np.ndarray, atol: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where each ray ``origin + t u`` (t > 0) crosses the mesh; hits closer than atol merged.
+
+    Args:
+        directions: ``(R, 3)`` unit vectors u.
+
+    Returns:
+        ``(ray, t)``: the ray index and distance of every distinct crossing, sorted by ray
+        and then by distance (``(H,)`` each).
+    """
+    rays, dists = [], []
+    chunk = int(np.clip(_PAIRS_PER_CHUNK // max(len(mesh.faces), 1), 16, 1024))
+    for start in range(0, len(directions), chunk):
+        u = directions[start : start + chunk]
+        _, index_ray, loc = mesh.ray.intersects_id(
+            np.broadcast_to(origin, u.shape), u, multiple_hits=True, return_locations=True
+        )
+        rays.append(np.asarray(index_ray, dtype=np.int64) + start)
+        dists.append(np.einsum("ij,ij->i", np.reshape(loc, (-1, 3)) - origin, u[index_ray]))
+    ray, t = np.concatenate(rays), np.concatenate(dists)
+    # trimesh keeps hits up to 1e-6 behind the origin; a crossing needs t > 0.
+    ahead = t > atol
+    ray, t = ray[ahead], t[ahead]
+    order = np.lexsort((t, ray))
+    ray, t = ray[order], t[order]
+    new = np.ones(len(ray), dtype=bool)
+    new[1:] = (ray[1:] != ray[:-1]) | (t[1:] - t[:-1] > atol)
+    return ray[new], t[new]
+
+
+def _direction_name(k: int, m: int, n: int, u: np.ndarray) -> str:
+    if k == 0:
+        where = "the north pole, row i=0"
+    elif k == 1 + (m - 2) * (n - 1):
+        where = f"the south pole, row i={m - 1}"
+    else:
+        i, j = divmod(k - 1, n - 1)
+        phi, theta = (i + 1) * np.pi / (m - 1), j * 2 * np.pi / (n - 1)
+        where = f"row i={i + 1}, column j={j}: phi={phi:.4f}, theta={theta:.4f}"
+    return f"({u[0]:.4f}, {u[1]:.4f}, {u[2]:.4f}) ({where})"
+
+
+def mesh_to_grid(
+    mesh: trimesh.Trimesh | trimesh.Scene,
+    m: int = 50,
+    n: int = 99,
+    *,
+    center: Sequence[float] | np.ndarray | None = None,
+) -> np.ndarray:
+    """A closed genus-0 triangle mesh as a surface on the m x n grid, by radial projection.
+
+    With c the mesh's area-weighted centroid (sum_T area_T centroid_T / sum_T area_T),
+    f(phi_i, theta_j) = c + t_ij e1(phi_i, theta_j), where t_ij > 0 is where the ray from c
+    in the grid direction e1 (MATH.md 1) crosses the mesh. One ray per distinct grid point:
+    (m - 2)(n - 1) interior directions and the two poles; the pole rows repeat the pole hit
+    and the seam column repeats column 0, so the result passes ``validate_surface``.
+    Where the rays go exactly through mesh vertices (a mesh from :func:`grid_to_mesh` on
+    the same grid, if it is radial about c) those vertices come back to rounding error;
+    elsewhere the mesh is interpolated linearly inside its triangles.
+
+    The checks run in this order, the topological ones before any ray is cast: closed
+    (watertight), one connected component, Euler characteristic 2; then every ray must
+    cross the mesh exactly once (crossings closer than 1e-9 times the mesh's size, as at
+    an edge or a vertex that several triangles share, count once).
+
+    Args:
+        mesh: a ``trimesh.Trimesh``, or a ``trimesh.Scene`` whose meshes are concatenated.
+        m, n: grid size (n odd, both >= 5).
+        center: the point the rays start from, ``(3,)``; default the area-weighted
+            centroid. Give one when the mesh is star-shaped about another point.
+
+    Returns:
+        ``(3, m, n)`` float64 numpy array.
+
+    Raises:
+        NotWatertightError: the mesh has boundary or non-manifold edges (counts given).
+        NotGenusZeroError: its Euler characteristic is not 2 (value and genus given).
+        NotStarShapedError: some rays miss the mesh or cross it more than once (counts and
+            the first such direction given).
+        MeshError: no faces, several connected components, or a scene without meshes.
+        TypeError: ``mesh`` is not a trimesh mesh or scene.
+        ValueError: a bad grid size or center.
+    """
+    m, n = operator.index(m), operator.index(n)
+    check_grid_shape((3, m, n), "the grid (3, m, n)")
+    mesh = _as_trimesh(mesh)
+    _check_sphere_topology(mesh)
+
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    if center is None:
+        origin = _area_centroid(mesh)
+        about = "its area-weighted centroid"
+    else:
+        origin = np.asarray(center, dtype=np.float64)
+        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+            raise ValueError(f"center must be 3 finite numbers; got {center!r}")
+        about = "the given center"
+    scale = float(np.max(np.linalg.norm(vertices - origin, axis=1)))
+    directions = _grid_directions(m, n)
+    ray, t = _crossings(mesh, origin, directions, _MERGE_RTOL * scale)
+    count = np.bincount(ray, minlength=len(directions))
+
+    bad = np.flatnonzero(count != 1)
+    if bad.size:
+        k = int(bad[0])
+        missed, multiple = int(np.sum(count == 0)), int(np.sum(count > 1))
+        found = (
+            "misses the mesh"
+            if count[k] == 0
+            else f"crosses it {count[k]} times, at distances "
+            + ", ".join(f"{d:.4g}" for d in t[ray == k])
+        )
+        raise NotStarShapedError(
+            f"the mesh is not star-shaped about {about} "
+            f"({origin[0]:.4g}, {origin[1]:.4g}, {origin[2]:.4g}): of {len(directions)} rays "
+            f"from it, {missed} missed the mesh and {multiple} crossed it more than once "
+            f"(up to {int(count.max())} times); the first, in direction "
+            f"{_direction_name(k, m, n, directions[k])}, {found}"
+            + ("" if center is not None else "; pass center= a point it is star-shaped about")
+        )
+    # One crossing per ray, sorted by ray: t lines up with the directions.
+    return _from_distinct(origin + t[:, None] * directions, m, n)
+
+
+def _grid_faces(m: int, n: int) -> np.ndarray:
+    """Triangles of the grid mesh, counterclockwise seen from outside (normal e_phi x e_theta).
+
+    Vertex k of an interior point (i, j), 1 <= i <= m - 2, 0 <= j <= n - 2, is
+    1 + (i - 1)(n - 1) + j; the north pole is vertex 0 and the south pole the last one.
+    """
+    c = n - 1
+    south = 1 + (m - 2) * c
+    j = np.arange(c)
+    jn = (j + 1) % c  # the seam: the last column's neighbour is column 0
+    # Along +phi then +theta: (e_phi, e_theta, e_r) is right-handed on the unit sphere.
+    north = np.stack([np.zeros(c, dtype=np.int64), 1 + j, 1 + jn], axis=1)
+    southfan = np.stack([south - c + j, np.full(c, south), south - c + jn], axis=1)
+    top = 1 + np.arange(m - 3)[:, None] * c  # first vertex of interior rows 1 .. m-3
+    a, b = top + j, top + jn  # (i, j), (i, j + 1)
+    lower, lower_next = a + c, b + c  # (i + 1, j), (i + 1, j + 1)
+    quads = np.concatenate(
+        [
+            np.stack([a, lower, b], axis=-1).reshape(-1, 3),
+            np.stack([lower, lower_next, b], axis=-1).reshape(-1, 3),
+        ]
+    )
+    return np.concatenate([north, quads, southfan])
+
+
+def grid_to_mesh(f) -> trimesh.Trimesh:
+    """Triangulate a surface on the grid: one vertex per distinct grid point.
+
+    Vertices: the north pole, the interior rows i = 1 .. m-2 at columns j = 0 .. n-2 (the
+    seam column is column 0 again), the south pole: (m - 2)(n - 1) + 2 in all. Faces: a
+    fan of n - 1 triangles at each pole and two triangles per grid quad between interior
+    rows, wrapping across the seam: 2 (n - 1)(m - 2) faces. Faces are oriented along
+    e_phi x e_theta, which is outward for the grid's own parametrisation of the sphere, so
+    ``grid_to_mesh(sample(sphere, m, n))`` has positive volume and outward normals. The
+    result is closed with Euler characteristic 2; ``process=False``, so trimesh merges no
+    vertices even where the surface touches itself.
+
+    Args:
+        f: ``(3, m, n)`` surface (array-like), checked with ``validate_surface``.
+
+    Returns:
+        ``trimesh.Trimesh`` with float64 vertices.
+
+    Raises:
+        ValueError: ``f`` is not a single well-formed surface on the grid.
+    """
+    # Validate a float64 copy: validate_surface returns a JAX array, float32 without x64.
+    f = np.asarray(f, dtype=np.float64)
+    validate_surface(f, "f")
+    if f.ndim != 3:
+        raise ValueError(f"f must be one surface (3, m, n); got shape {f.shape}")
+    m, n = f.shape[1:]
+    vertices = np.concatenate(
+        [f[:, 0, :1].T, f[:, 1:-1, :-1].reshape(3, -1).T, f[:, -1, :1].T], axis=0
+    )
+    return trimesh.Trimesh(vertices=vertices, faces=_grid_faces(m, n), process=False)
+
+
+def _check_exists(path: pathlib.Path) -> None:
+    if not path.exists():
+        raise FileNotFoundError(f"no such file: {str(path)!r}")
+    if path.is_dir():
+        raise IsADirectoryError(f"{str(path)!r} is a directory, not a surface file")
+
+
+def _unknown_suffix(path: pathlib.Path, verb: str, formats: Sequence[str]) -> ValueError:
+    return ValueError(
+        f"cannot {verb} {str(path)!r}: unknown file type {path.suffix or '(no suffix)'!r}; "
+        f"supported: {', '.join('.' + s for s in formats)}"
+    )
+
+
+def _from_key(data: Mapping, path: pathlib.Path) -> np.ndarray:
+    if "f" not in data:
+        keys = sorted(k for k in data if not k.startswith("__"))
+        raise KeyError(
+            f"{str(path)!r} holds no array 'f' (the surface); it holds {keys or 'nothing'}"
+        )
+    return np.asarray(data["f"])
+
+
+def load_surface(path: str | os.PathLike, m: int | None = None, n: int | None = None) -> np.ndarray:
+    """Read a surface ``(3, m, n)`` from a grid file or a mesh file.
+
+    - ``.npz``: the array ``f`` ``(3, m, n)``.
+    - ``.mat`` (the paper's MATLAB files, read by ``scipy.io.loadmat``): the variable ``f``,
+      stored ``(3, m, n)`` or ``(m, n, 3)``; the latter (last axis 3, first axis not) is
+      transposed to ``(3, m, n)``.
+    - a mesh file trimesh reads (``.ply .obj .off .stl .glb`` ...): loaded with
+      ``trimesh.load(path, force="mesh")`` and projected with :func:`mesh_to_grid` on the
+      m x n grid, default 50 x 99.
+
+    For grid files, giving m and n that differ from the file's grid resamples bilinearly
+    (``elastic_jax.resample``, MATH.md 6) in float64.
+
+    Args:
+        path: the file; the suffix picks the format.
+        m, n: grid size, both or neither.
+
+    Returns:
+        ``(3, m, n)`` float64 numpy array that passed ``validate_surface``.
+
+    Raises:
+        FileNotFoundError: no such file.
+        KeyError: a grid file without the array ``f`` (the keys it has are named).
+        ValueError: an unknown suffix (the supported ones are named), a badly shaped array,
+            NaN/inf, or any other ``validate_surface`` failure.
+        MeshError: from :func:`mesh_to_grid` for meshes that are not closed, genus-0 and
+            star-shaped about their centroid.
+    """
+    path = pathlib.Path(path)
+    if (m is None) != (n is None):
+        raise ValueError(f"give both m and n or neither; got m={m}, n={n}")
+    if m is not None:
+        m, n = operator.index(m), operator.index(n)
+        check_grid_shape((3, m, n), "the grid (3, m, n)")
+    kind = _suffix(path)
+    mesh_formats = _mesh_loadable_formats()
+    if kind not in _GRID_FORMATS and kind not in mesh_formats:
+        raise _unknown_suffix(path, "load", _GRID_FORMATS + mesh_formats)
+    _check_exists(path)
+
+    if kind in mesh_formats:
+        mesh = trimesh.load(path, force="mesh")
+        f = mesh_to_grid(mesh, 50 if m is None else m, 99 if n is None else n)
+    else:
+        if kind == "npz":
+            with np.load(path, allow_pickle=False) as data:
+                f = _from_key(data, path)
+        else:
+            try:
+                data = scipy.io.loadmat(path)
+            except NotImplementedError as err:  # MATLAB v7.3 files are HDF5
+                raise ValueError(
+                    f"{str(path)!r} is a MATLAB v7.3 (HDF5) file, which scipy cannot read; "
+                    "save it with save(..., '-v7') or convert it to .npz"
+                ) from err
+            f = _from_key(data, path)
+            if f.ndim == 3 and f.shape[-1] == 3 and f.shape[0] != 3:
+                f = f.transpose(2, 0, 1)
+        if f.ndim != 3:
+            raise ValueError(f"the array 'f' in {str(path)!r} has shape {f.shape}; need (3, m, n)")
+        if not np.issubdtype(f.dtype, np.number) or np.iscomplexobj(f):
+            raise ValueError(f"the array 'f' in {str(path)!r} is not real numbers: {f.dtype}")
+        f = f.astype(np.float64)
+        validate_surface(f, f"the surface in {str(path)!r}")
+        if m is not None and (m, n) != f.shape[1:]:
+            # Keep float64 whatever the caller's JAX precision setting.
+            with jax.enable_x64(True):
+                f = np.asarray(resample(f, m, n), dtype=np.float64)
+    validate_surface(f, f"the surface read from {str(path)!r}")
+    return f
+
+
+def _export_mesh(mesh: trimesh.Trimesh, path: pathlib.Path) -> pathlib.Path:
+    with atomic_path(path) as tmp:
+        mesh.export(tmp, file_type=_suffix(path))
+    return path
+
+
+def save_surface(f, path: str | os.PathLike) -> pathlib.Path:
+    """Write one surface ``(3, m, n)`` to ``path`` atomically; the suffix picks the format.
+
+    ``.npz``: the array under the key ``f``, exactly. A mesh format (``MESH_FORMATS``:
+    ``.ply .obj .off .stl .glb``): the triangulation of :func:`grid_to_mesh` (the grid's
+    vertices, no seam copies), which :func:`load_surface` projects back onto a grid. The
+    mesh writers round coordinates: .ply, .stl and .glb store float32, .obj 8 decimals and
+    .off 10; use .npz to keep float64.
+
+    Args:
+        f: ``(3, m, n)`` surface, checked with ``validate_surface``.
+        path: the destination; its directory is created if missing.
+
+    Returns:
+        the path written.
+
+    Raises:
+        ValueError: a bad surface or an unknown suffix (the supported ones are named).
+    """
+    path = pathlib.Path(path)
+    kind = _suffix(path)
+    if kind != "npz" and kind not in MESH_FORMATS:
+        raise _unknown_suffix(path, "save", ("npz",) + MESH_FORMATS)
+    f = np.asarray(f)
+    if not np.issubdtype(f.dtype, np.floating):
+        f = f.astype(np.float64)
+    validate_surface(f, "f")
+    if f.ndim != 3:
+        raise ValueError(f"f must be one surface (3, m, n); got shape {f.shape}")
+    if kind == "npz":
+        return save_npz_atomic(path, f=f)
+    return _export_mesh(grid_to_mesh(f), path)
+
+
+def _json_default(value):
+    # numpy and JAX scalars and arrays: what settings dicts built from results hold.
+    if isinstance(value, np.generic | np.ndarray | jax.Array):
+        return np.asarray(value).tolist()
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    raise TypeError(f"settings value {value!r} of type {type(value).__name__} is not JSON data")
+
+
+def save_path(
+    path,
+    directory: str | os.PathLike,
+    format: str = "ply",
+    settings: Mapping | None = None,
+) -> list[pathlib.Path]:
+    """Write a path of surfaces: one mesh per time point and the whole array as .npz.
+
+    Files, each written atomically: ``frame_000.<format>``, ``frame_001.<format>``, ...
+    (three digits, more when N > 1000), the triangulation of :func:`grid_to_mesh` for
+    each time point, and ``path.npz`` holding the array ``path`` and, under ``settings``,
+    the settings as a JSON string (a 0-d unicode array, so ``np.load`` reads it without
+    pickles: ``json.loads(str(np.load(p)["settings"]))``).
+
+    Args:
+        path: ``(N, 3, m, n)`` surfaces, e.g. ``GeodesicResult.path``.
+        directory: created if missing.
+        format: a mesh format in ``MESH_FORMATS`` (``ply obj off stl glb``).
+        settings: JSON data (numbers, strings, lists, dicts; numpy and JAX scalars and
+            arrays become numbers and lists), e.g. the metric and solver options used.
+
+    Returns:
+        The paths written: the N frames in order, then ``path.npz``.
+
+    Raises:
+        ValueError: a bad path array or an unknown format.
+        TypeError: settings that are not JSON data (checked before anything is written).
+    """
+    kind = str(format).lower().lstrip(".")
+    if kind not in MESH_FORMATS:
+        raise ValueError(f"unknown mesh format {format!r}; supported: {', '.join(MESH_FORMATS)}")
+    surfaces = np.asarray(path)
+    if not np.issubdtype(surfaces.dtype, np.floating):
+        surfaces = surfaces.astype(np.float64)
+    validate_surface(surfaces, "path")
+    if surfaces.ndim != 4:
+        raise ValueError(f"path must have shape (N, 3, m, n); got shape {surfaces.shape}")
+    text = json.dumps({} if settings is None else dict(settings), default=_json_default)
+    directory = pathlib.Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    digits = max(3, len(str(len(surfaces) - 1)))
+    written = [
+        _export_mesh(grid_to_mesh(f), directory / f"frame_{k:0{digits}d}.{kind}")
+        for k, f in enumerate(surfaces)
+    ]
+    # Not save_npz_atomic: its first parameter is called path, like the array.
+    target = directory / "path.npz"
+    with atomic_path(target, suffix=".npz") as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, path=surfaces, settings=np.str_(text))
+    written.append(target)
+    return written

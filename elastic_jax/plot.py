@@ -1,0 +1,395 @@
+"""Figures: geodesic paths, optimisation histories and distance matrices (matplotlib).
+
+Everything here builds a :class:`matplotlib.figure.Figure` directly, never through pyplot,
+so it works headless, needs no display backend and leaves pyplot's global state alone.
+:func:`save_figure` writes a PNG atomically.
+
+Surfaces are coloured by their parametrization: each grid cell gets a colour that depends
+only on its (phi, theta) position (hue from theta, brightness from phi, and a coarse
+checkerboard), the same on every frame, so that the point-to-point correspondence along a
+geodesic can be followed by eye, as in the paper's figures.
+
+Example:
+    >>> from elastic_jax import plot, shapes, straight_path
+    >>> path = straight_path(shapes.sample(shapes.sphere, 13, 25),
+    ...                      shapes.sample(shapes.bumpy, 13, 25), 5)
+    >>> fig = plot.plot_path(path, frames=3)
+    >>> [ax.get_title() for ax in fig.axes]
+    ['t = 0/4', 't = 2/4', 't = 4/4']
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from matplotlib import colors as mcolors
+from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
+from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the "3d" projection)
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+from ._atomic import atomic_path
+from ._validation import as_surface
+
+__all__ = [
+    "parametrization_colors",
+    "plot_path",
+    "plot_energy",
+    "plot_distance_matrix",
+    "save_figure",
+]
+
+# Frames drawn when the caller does not say: enough to read a deformation, few enough to fit.
+_DEFAULT_FRAMES = 7
+# Checkerboard blocks over the whole sphere (in phi, in theta): landmarks that stay put
+# whatever the grid resolution, so corresponding regions can be matched across frames.
+_CHECKER = (6, 12)
+# Shading maps cos(normal, light) in [-1, 1] linearly onto this brightness range, as
+# matplotlib's own shading does, so faces turned away from the light keep some colour.
+_SHADE_RANGE = (0.3, 1.0)
+
+
+def parametrization_colors(m: int, n: int) -> np.ndarray:
+    """The colour of every grid cell, a fixed function of its position on the parameter sphere.
+
+    Cell (i, j) spans rows i, i+1 and columns j, j+1; its colour is evaluated at the cell's
+    centre (phi, theta): the hue goes once round the colour wheel with theta (so it is
+    continuous across the seam), the brightness falls from the north pole to the south pole,
+    and alternate blocks of a 6 x 12 checkerboard in (phi, theta) are darkened.
+
+    Args:
+        m, n: grid size (at least 2 each).
+
+    Returns:
+        ``(m - 1, n - 1, 4)`` RGBA values in [0, 1], opaque.
+    """
+    if m < 2 or n < 2:
+        raise ValueError(f"the grid needs at least 2 rows and 2 columns; got m={m}, n={n}")
+    u = (np.arange(m - 1) + 0.5) / (m - 1)  # phi / pi at the cell centres
+    v = (np.arange(n - 1) + 0.5) / (n - 1)  # theta / (2 pi) at the cell centres
+    u, v = np.meshgrid(u, v, indexing="ij")
+    checker = (np.floor(_CHECKER[0] * u) + np.floor(_CHECKER[1] * v)) % 2
+    value = (0.95 - 0.45 * u) * np.where(checker == 1, 0.78, 1.0)
+    hsv = np.stack([v, np.full_like(u, 0.7), value], axis=-1)
+    rgb = mcolors.hsv_to_rgb(hsv)
+    return np.concatenate([rgb, np.ones_like(u)[..., None]], axis=-1)
+
+
+def _cell_colors(colors, m: int, n: int) -> np.ndarray:
+    if isinstance(colors, str) and colors == "parametrization":
+        return parametrization_colors(m, n)
+    if isinstance(colors, np.ndarray | Sequence) and not isinstance(colors, str):
+        arr = np.asarray(colors, dtype=float)
+        if arr.ndim == 3:
+            if arr.shape[:2] != (m - 1, n - 1) or arr.shape[2] not in (3, 4):
+                raise ValueError(
+                    f"colors as an array must have shape ({m - 1}, {n - 1}, 3 or 4), one "
+                    f"RGB(A) colour per grid cell; got {arr.shape}"
+                )
+            if not np.all(np.isfinite(arr)) or arr.min() < 0 or arr.max() > 1:
+                raise ValueError("colors must hold finite RGB(A) values in [0, 1]")
+            return mcolors.to_rgba_array(arr.reshape(-1, arr.shape[2])).reshape(m - 1, n - 1, 4)
+    try:
+        rgba = mcolors.to_rgba(colors)
+    except (ValueError, TypeError):
+        raise ValueError(
+            "colors must be 'parametrization', a matplotlib colour, or an array "
+            f"({m - 1}, {n - 1}, 3 or 4) of per-cell colours; got {colors!r}"
+        ) from None
+    return np.broadcast_to(np.asarray(rgba), (m - 1, n - 1, 4)).copy()
+
+
+def _choose_frames(frames, count: int) -> list[int]:
+    if frames is None:
+        frames = count if count <= _DEFAULT_FRAMES else _DEFAULT_FRAMES
+    if isinstance(frames, int | np.integer) and not isinstance(frames, bool):
+        if not 1 <= frames <= count:
+            raise ValueError(f"frames={frames} must be between 1 and the path's {count} frames")
+        # Spacing (count - 1) / (frames - 1) >= 1, so rounding never repeats an index.
+        return [int(k) for k in np.rint(np.linspace(0, count - 1, frames))]
+    if isinstance(frames, str | bytes):
+        raise ValueError(
+            f"frames must be None, an int or a sequence of frame indices; got {frames!r}"
+        )
+    try:
+        chosen = [int(k) for k in frames]
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"frames must be None, an int or a sequence of frame indices; got {frames!r}"
+        ) from None
+    if not chosen:
+        raise ValueError("frames is an empty sequence; give at least one frame index")
+    if any(isinstance(k, float) and not float(k).is_integer() for k in frames):
+        raise ValueError(f"frame indices must be integers; got {list(frames)!r}")
+    bad = [k for k in chosen if not 0 <= k < count]
+    if bad:
+        raise ValueError(f"frame indices {bad} are out of range for a path of {count} frames")
+    return chosen
+
+
+def _cells(surface: np.ndarray) -> np.ndarray:
+    """Quadrilateral of every grid cell, ``(3, m, n)`` -> ``((m-1)(n-1), 4, 3)``, row-major."""
+    p = np.moveaxis(surface, 0, -1)
+    # Corners in the order (i, j), (i+1, j), (i+1, j+1), (i, j+1): increasing phi then theta,
+    # which makes the cross product below point outward for a positively oriented surface.
+    quads = np.stack([p[:-1, :-1], p[1:, :-1], p[1:, 1:], p[:-1, 1:]], axis=2)
+    return quads.reshape(-1, 4, 3)
+
+
+def _shading(quads: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """Brightness factor per cell from the angle between its outward normal and the light."""
+    # The cross product of the diagonals stays nonzero on the pole cells, which are
+    # triangles (two corners coincide), where edge-based normals would vanish.
+    normals = np.cross(quads[:, 2] - quads[:, 0], quads[:, 3] - quads[:, 1])
+    # Twice the signed volume (divergence theorem): negative for an inward-facing
+    # parametrization, whose normals must be flipped for the light to fall outside.
+    if np.sum(quads.mean(axis=1) * normals) < 0:
+        normals = -normals
+    length = np.linalg.norm(normals, axis=1)
+    cos = np.divide(normals @ light, length, out=np.zeros(len(quads)), where=length > 0)
+    lo, hi = _SHADE_RANGE
+    return lo + (hi - lo) * 0.5 * (1.0 + cos)
+
+
+def _as_path(path) -> np.ndarray:
+    ndim = np.ndim(path)
+    if ndim not in (3, 4):
+        raise ValueError(
+            f"path must be a surface (3, m, n) or a path (N, 3, m, n); got shape {np.shape(path)}"
+        )
+    # Drawing does not need an immersion: a geodesic may pass through a pinched surface.
+    x = np.asarray(as_surface(path, "path", check_immersion=False), dtype=float)
+    return x[None] if ndim == 3 else x
+
+
+def plot_path(
+    path,
+    *,
+    frames: int | Sequence[int] | None = None,
+    colors="parametrization",
+    elev: float = 20,
+    azim: float = -60,
+    figsize: tuple[float, float] | None = None,
+    shade: bool = True,
+) -> Figure:
+    """Draw frames of a path of surfaces side by side, coloured by the parametrization.
+
+    One 3D axes per chosen frame, titled ``"t = k/(N-1)"`` with k the frame's index
+    (``"t = 0"`` for a single surface). Every frame is a mesh of the grid cells, lit by a
+    light placed relative to the view, in colours that depend on the grid cell only
+    (:func:`parametrization_colors`), so a colour marks the same point of the parameter
+    sphere on every frame and the correspondence along the path is visible. All axes share
+    the same limits, the data range of the drawn frames, and a box aspect equal to that
+    range, so sizes compare across frames and nothing is stretched.
+
+    Args:
+        path: ``(N, 3, m, n)`` surfaces at times k/(N-1), or one surface ``(3, m, n)``.
+        frames: how many frames to draw, chosen evenly with the first and last included,
+            or a sequence of frame indices; default all when N <= 7, else 7.
+        colors: ``"parametrization"``; or one matplotlib colour for the whole surface; or an
+            array ``(m-1, n-1, 3 or 4)`` with one RGB(A) colour per grid cell.
+        elev, azim: the camera's elevation and azimuth in degrees (matplotlib's).
+        figsize: ``(width, height)`` in inches; default 2.5 inches wide per frame.
+        shade: darken each cell by the angle between its normal and the light. The
+            unshaded colours are multiplied by a factor in [0.3, 1] per cell; hue is kept.
+
+    Returns:
+        The figure; ``fig.axes`` are the frames' axes in order.
+
+    Raises:
+        ValueError: for a malformed path (shape, NaN/inf, poles, seam), bad ``frames`` or
+            bad ``colors``.
+    """
+    x = _as_path(path)
+    count, _, m, n = x.shape
+    chosen = _choose_frames(frames, count)
+    base = _cell_colors(colors, m, n).reshape(-1, 4)
+
+    shown = x[chosen]
+    lo = shown.min(axis=(0, 2, 3))
+    hi = shown.max(axis=(0, 2, 3))
+    span = hi - lo
+    # A flat frame set (zero extent along one axis) would give a degenerate box.
+    floor = 1e-3 * span.max()
+    pad = np.maximum(floor - span, 0.0) / 2
+    lo, hi = lo - pad, hi + pad
+
+    light = mcolors.LightSource(azdeg=90 - (azim - 45), altdeg=min(elev + 30, 90)).direction
+
+    if figsize is None:
+        figsize = (2.5 * len(chosen), 2.8)
+    fig = Figure(figsize=figsize)
+    for slot, k in enumerate(chosen):
+        ax = fig.add_subplot(1, len(chosen), slot + 1, projection="3d")
+        quads = _cells(x[k])
+        face = base.copy()
+        if shade:
+            face[:, :3] *= _shading(quads, light)[:, None]
+        # Thin edges in the face colour cover the antialiasing seams between cells.
+        ax.add_collection3d(
+            Poly3DCollection(quads, facecolors=face, edgecolors=face, linewidths=0.25)
+        )
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_zlim(lo[2], hi[2])
+        ax.set_box_aspect(tuple(hi - lo))
+        ax.view_init(elev=elev, azim=azim)
+        ax.set_axis_off()
+        ax.set_title(f"t = {k}/{count - 1}" if count > 1 else "t = 0")
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.92, wspace=0.0)
+    return fig
+
+
+def _history_columns(history, labels) -> list[tuple[str | None, np.ndarray]]:
+    if isinstance(history, Mapping):
+        if labels is not None:
+            raise ValueError("labels cannot be given with a dict history: its keys are the labels")
+        if not history:
+            raise ValueError("history is an empty dict")
+        columns = []
+        for key, values in history.items():
+            arr = np.asarray(values, dtype=float)
+            if arr.ndim != 1:
+                raise ValueError(f"history[{key!r}] must be 1-D; got shape {arr.shape}")
+            columns.append((str(key), arr))
+        return columns
+    arr = np.asarray(history, dtype=float)
+    if arr.ndim not in (1, 2):
+        raise ValueError(f"history must have shape (steps,) or (steps, k); got {arr.shape}")
+    arr = arr.reshape(arr.shape[0], -1)
+    k = arr.shape[1]
+    if labels is None:
+        names = [None] if k == 1 else [f"column {j}" for j in range(k)]
+    else:
+        names = [str(s) for s in labels]
+        if len(names) != k:
+            raise ValueError(f"got {len(names)} labels for {k} history column(s)")
+    return [(name, arr[:, j]) for j, name in enumerate(names)]
+
+
+def plot_energy(history, *, labels: Sequence[str] | None = None, logy: bool = True) -> Figure:
+    """Plot optimisation records against the step number, one line per column.
+
+    For instance the history of a :class:`~elastic_jax.KarcherResult`, whose two columns are
+    the sum of squared distances to the mean and the norm of the mean velocity.
+
+    Args:
+        history: ``(steps,)`` or ``(steps, k)`` values, or a dict name -> ``(steps_i,)``
+            (the lines may then have different lengths).
+        labels: k names for the columns of an array (legend entries); not with a dict.
+        logy: use a logarithmic y axis when every value is positive (a linear axis
+            otherwise, whatever this says).
+
+    Returns:
+        The figure, with one axes; step numbers 0, 1, ... on the x axis.
+
+    Raises:
+        ValueError: for a wrong shape, an empty record, NaN/inf, or a labels mismatch.
+    """
+    columns = _history_columns(history, labels)
+    for name, values in columns:
+        which = "history" if name is None else repr(name)
+        if values.size == 0:
+            raise ValueError(f"{which} has no steps")
+        bad = ~np.isfinite(values)
+        if bad.any():
+            raise ValueError(
+                f"{which} has {int(bad.sum())} non-finite value(s), the first at step "
+                f"{int(np.argmax(bad))}"
+            )
+
+    fig = Figure(figsize=(5.0, 3.5), layout="constrained")
+    ax = fig.add_subplot()
+    for name, values in columns:
+        ax.plot(
+            np.arange(values.size), values, marker="." if values.size < 50 else None, label=name
+        )
+    if logy and all(np.all(values > 0) for _, values in columns):
+        ax.set_yscale("log")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_xlabel("step")
+    ax.set_ylabel("value")
+    if any(name is not None for name, _ in columns):
+        ax.legend()
+    ax.grid(True, which="major", alpha=0.3)
+    return fig
+
+
+def plot_distance_matrix(
+    D, *, labels: Sequence[str] | None = None, cmap: str = "viridis"
+) -> Figure:
+    """Show a matrix of pairwise distances as an image with a colourbar.
+
+    Entry (i, j) is drawn at row i, column j (row 0 at the top), unchanged: the image's
+    data is ``D`` itself.
+
+    Args:
+        D: ``(K, K)`` symmetric (to 1e-8 relative to its largest entry), finite.
+        labels: K names for the rows and columns (tick labels); default indices.
+        cmap: a matplotlib colormap name.
+
+    Returns:
+        The figure: the matrix axes, then the colourbar's.
+
+    Raises:
+        ValueError: if ``D`` is not square, has NaN/inf, is not symmetric, or the number of
+            labels is not K.
+    """
+    D = np.asarray(D, dtype=float)
+    if D.ndim != 2 or D.shape[0] != D.shape[1]:
+        raise ValueError(f"D must be a square matrix (K, K); got shape {D.shape}")
+    bad = ~np.isfinite(D)
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        raise ValueError(
+            f"D has {int(bad.sum())} non-finite value(s) (NaN or inf), the first at ({i}, {j})"
+        )
+    asym = np.abs(D - D.T)
+    scale = np.max(np.abs(D)) if D.size else 0.0
+    if asym.size and asym.max() > 1e-8 * scale:
+        i, j = np.unravel_index(np.argmax(asym), asym.shape)
+        raise ValueError(
+            f"D is not symmetric: D[{i}, {j}] = {D[i, j]:.6g} but D[{j}, {i}] = {D[j, i]:.6g} "
+            f"(difference {asym[i, j]:.3g}, more than 1e-8 times max |D| = {scale:.3g})"
+        )
+    k = D.shape[0]
+    if labels is not None:
+        labels = [str(s) for s in labels]
+        if len(labels) != k:
+            raise ValueError(f"got {len(labels)} labels for a {k} x {k} matrix")
+
+    side = min(3.0 + 0.3 * k, 12.0)
+    fig = Figure(figsize=(side + 1.0, side), layout="constrained")
+    ax = fig.add_subplot()
+    image = ax.imshow(D, cmap=cmap, interpolation="nearest")
+    fig.colorbar(image, ax=ax, label="distance")
+    if labels is not None:
+        ax.set_xticks(np.arange(k), labels, rotation=90)
+        ax.set_yticks(np.arange(k), labels)
+    return fig
+
+
+def save_figure(fig: Figure, path: str | os.PathLike, dpi: float = 120) -> pathlib.Path:
+    """Write ``fig`` as a PNG of ``figsize * dpi`` pixels, atomically.
+
+    The image goes to a temporary file beside ``path`` that is renamed onto it once
+    complete: an error or Ctrl-C while saving leaves the old file (or none), never a
+    truncated PNG and no temporary. Missing parent directories are created.
+
+    Args:
+        fig: the figure.
+        path: destination; PNG whatever its suffix.
+        dpi: pixels per inch.
+
+    Returns:
+        ``path`` as a :class:`pathlib.Path`.
+    """
+    if not dpi > 0:
+        raise ValueError(f"dpi must be positive; got {dpi}")
+    path = pathlib.Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=dpi)
+    return path

@@ -1,0 +1,162 @@
+"""The ``elastic-jax`` command line: the files it promises, numbers equal to the library's,
+exit codes for bad input and non-convergence, and Ctrl-C that leaves only complete files."""
+
+import json
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+import elastic_jax as ej
+from elastic_jax import cli, io, shapes
+
+M, N = 13, 25
+METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+SMALL = ["--grid", str(M), str(N), "--degree", "3", "--times", "5", "--quiet"]
+SHAPE = [*SMALL, "--vf-degree", "3", "--outer-steps", "1"]
+SHAPE_OPTIONS = dict(degree=3, vf_degree=3, n_times=5, outer_steps=1)
+
+
+def _no_temporaries(directory):
+    return [p.name for p in directory.rglob("*") if p.name.startswith(".")]
+
+
+def _save(tmp_path, name, f):
+    return str(io.save_surface(np.asarray(f), tmp_path / name))
+
+
+def test_demo_writes_what_it_promises_and_matches_the_library(tmp_path):
+    out = tmp_path / "demo"
+    run = subprocess.run(
+        [sys.executable, "-m", "elastic_jax", "demo", *SMALL, "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert run.returncode == 0, run.stderr
+    summary = json.loads(run.stdout)
+    assert summary == json.loads((out / "summary.json").read_text())
+    assert all(pathlib.Path(name).is_file() for name in summary["files"])
+    names = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()}
+    assert {"summary.json", "path.png", "path/path.npz", "straight_cylinder.npz"} <= names
+    assert sum(n.startswith("path/frame_") for n in names) == 5
+    f1 = shapes.sample(shapes.bent_cylinder, M, N, curvature=0.0)
+    f2 = shapes.sample(shapes.bent_cylinder, M, N, curvature=0.6, half_length=1.2)
+    res = ej.geodesic(f1, f2, METRIC, degree=3, n_times=5)
+    assert summary["distance"] == pytest.approx(float(res.distance), rel=1e-9)
+    assert summary["converged"] is True
+    np.testing.assert_allclose(np.load(out / "path" / "path.npz")["path"], res.path, atol=1e-9)
+    assert _no_temporaries(out) == []
+
+
+def test_geodesic_between_files_equals_the_library_call(tmp_path, capsys):
+    # Concentric spheres from a mesh file and a grid file: the closed form sqrt(8 pi b)|r2 - r1|.
+    f1 = shapes.sample(shapes.sphere, M, N, radius=1.0)
+    f2 = shapes.sample(shapes.sphere, M, N, radius=2.0)
+    a, b = _save(tmp_path, "a.npz", f1), _save(tmp_path, "b.npz", f2)
+    code = cli.main(["geodesic", a, b, *SMALL, "--out", str(tmp_path / "out")])
+    summary = json.loads(capsys.readouterr().out)
+    assert code == 0
+    res = ej.geodesic(f1, f2, METRIC, degree=3, n_times=5)
+    assert summary["distance"] == pytest.approx(float(res.distance), rel=1e-12)
+    assert summary["distance"] == pytest.approx(np.sqrt(8 * np.pi), rel=2e-2)
+
+
+def test_bad_input_and_non_convergence_have_their_own_exit_codes(tmp_path, capsys):
+    good = _save(tmp_path, "good.npz", shapes.sample(shapes.sphere, M, N))
+    bad = np.array(shapes.sample(shapes.sphere, M, N))
+    bad[0, 5, 5] = np.nan
+    nan_file = str(tmp_path / "nan.npz")
+    np.savez(nan_file, f=bad)  # not through save_surface, which refuses it
+    torus = str(tmp_path / "torus.ply")
+    trimesh.creation.torus(1.0, 0.3).export(torus)
+    out = str(tmp_path / "out")
+    cases = {  # argv, a word the one-line message must contain
+        "missing": (["geodesic", good, str(tmp_path / "absent.npz")], "absent.npz"),
+        "nan": (["geodesic", good, nan_file], "nan.npz"),
+        "genus": (["geodesic", good, torus], "genus"),
+        "degree": (["geodesic", good, good, "--degree", "40"], "--degree 40"),
+        "metric": (["geodesic", good, good, "--metric", "1,-1,0,0"], "negative"),
+    }
+    for key, (argv, word) in cases.items():
+        code = cli.main([*argv, "--grid", str(M), str(N), "--quiet", "--out", out])
+        err = capsys.readouterr().err
+        assert code == cli.EXIT_BAD_INPUT, key
+        assert "bad input" in err and word in err, (key, err)
+        assert len(err.strip().splitlines()) == 1, key
+    assert not pathlib.Path(out).exists()  # refused before any work or file
+    code = cli.main(["geodesic", good, good, "--grid", str(M), "24", "--out", out])
+    assert code == cli.EXIT_BAD_INPUT and "n must be odd" in capsys.readouterr().err
+    # A step limit of 2: the files are written, the exit code says "not converged".
+    f2 = _save(tmp_path, "big.npz", shapes.sample(shapes.bumpy, M, N))
+    code = cli.main(["geodesic", good, f2, *SMALL, "--max-steps", "2", "--out", out])
+    summary = json.loads(capsys.readouterr().out)
+    assert code == cli.EXIT_NOT_CONVERGED
+    assert summary["converged"] is False and summary["num_steps"] == 2
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::elastic_jax.ConvergenceWarning")
+def test_distances_interrupted_then_resumed_equal_the_library(tmp_path, capsys, monkeypatch):
+    fs = [
+        shapes.sample(shapes.ellipsoid, M, N, axes=axes)
+        for axes in [(1.0, 0.8, 0.6), (1.2, 0.7, 0.6), (0.9, 0.9, 0.5)]
+    ]
+    files = [_save(tmp_path, f"s{i}.npz", f) for i, f in enumerate(fs)]
+    out = tmp_path / "out"
+    argv = ["distances", *files, *SHAPE, "--strategy", "loop", "--batch-size", "1"]
+    argv += ["--out", str(out)]
+    report = cli.Progress.__call__
+
+    def interrupt(self, message):
+        report(self, message)
+        if message.startswith("pairs done 2/"):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli.Progress, "__call__", interrupt)
+    assert cli.main([a for a in argv if a != "--quiet"]) == cli.EXIT_INTERRUPTED
+    assert sorted(p.name for p in out.iterdir()) == ["distances_checkpoint.npz"]
+    assert int(np.load(out / "distances_checkpoint.npz")["done"].sum()) == 2
+    monkeypatch.setattr(cli.Progress, "__call__", report)
+    capsys.readouterr()
+    assert cli.main([*argv, "--resume"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    expected = ej.distance_matrix(np.stack(fs), METRIC, modulo="rigid", **SHAPE_OPTIONS)
+    np.testing.assert_allclose(summary["distances"], expected, rtol=1e-9)
+    np.testing.assert_allclose(np.load(out / "distances.npz")["distances"], expected, rtol=1e-9)
+    assert (out / "distances.png").exists() and (out / "distances.csv").exists()
+    assert _no_temporaries(out) == []
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::elastic_jax.ConvergenceWarning")
+def test_karcher_and_shape_geodesic_equal_the_library(tmp_path, capsys):
+    fs = [
+        shapes.sample(shapes.ellipsoid, M, N, axes=axes, rotation=shapes.random_rotation(i))
+        for i, axes in enumerate([(1.0, 0.8, 0.6), (1.2, 0.7, 0.6), (0.9, 0.9, 0.5)])
+    ]
+    files = [_save(tmp_path, f"s{i}.npz", f) for i, f in enumerate(fs)]
+    out = tmp_path / "karcher"
+    argv = ["karcher", *files, *SHAPE, "--karcher-steps", "2", "--out", str(out)]
+    code = cli.main(argv)
+    summary = json.loads(capsys.readouterr().out)
+    res = ej.karcher_mean(
+        np.stack(fs), METRIC, modulo="rigid", max_steps=2, scheme="central", **SHAPE_OPTIONS
+    )
+    assert code == (0 if res.converged else cli.EXIT_NOT_CONVERGED)
+    np.testing.assert_allclose(summary["distances"], res.distances, rtol=1e-9)
+    np.testing.assert_allclose(np.load(out / "mean.npz")["f"], res.mean, atol=1e-9)
+    assert {"mean.ply", "mean.png", "history.png", "summary.json"} <= {
+        p.name for p in out.iterdir()
+    }
+
+    out = tmp_path / "shape"
+    code = cli.main(["shape-geodesic", files[0], files[1], *SHAPE, "--out", str(out)])
+    summary = json.loads(capsys.readouterr().out)
+    res = ej.shape_geodesic(fs[0], fs[1], METRIC, modulo="diff", **SHAPE_OPTIONS)
+    assert summary["distance"] == pytest.approx(float(res.distance), rel=1e-9)
+    assert summary["distance"] < summary["parametrized_distance"]
+    np.testing.assert_allclose(np.load(out / "registration.npz")["gamma"], res.gamma, atol=1e-9)
