@@ -455,8 +455,10 @@ def _run_distances(args, progress: Progress) -> dict:
     )
     start = time.perf_counter()
     batch_size = args.batch_size
-    if batch_size is None and args.strategy in ("auto", "loop") and default_strategy() == "loop":
-        batch_size = 1  # a loop gains nothing from big chunks; checkpoint after every pair
+    strategy = default_strategy() if args.strategy == "auto" else args.strategy
+    if batch_size is None and strategy in ("map", "loop"):
+        # Sequential strategies gain nothing from big chunks: checkpoint every few pairs.
+        batch_size = 1 if strategy == "loop" else 8
     matrix = np.asarray(
         distance_matrix(
             shapes,

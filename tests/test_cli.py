@@ -124,7 +124,9 @@ def test_distances_interrupted_then_resumed_equal_the_library(tmp_path, capsys, 
     capsys.readouterr()
     assert cli.main([*argv, "--resume"]) == 0
     summary = json.loads(capsys.readouterr().out)
-    expected = ej.distance_matrix(np.stack(fs), METRIC, modulo="rigid", **SHAPE_OPTIONS)
+    expected = ej.distance_matrix(
+        np.stack(fs), METRIC, modulo="rigid", strategy="loop", **SHAPE_OPTIONS
+    )
     np.testing.assert_allclose(summary["distances"], expected, rtol=1e-9)
     np.testing.assert_allclose(np.load(out / "distances.npz")["distances"], expected, rtol=1e-9)
     assert (out / "distances.png").exists() and (out / "distances.csv").exists()
