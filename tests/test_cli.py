@@ -162,3 +162,16 @@ def test_karcher_and_shape_geodesic_equal_the_library(tmp_path, capsys):
     assert summary["distance"] == pytest.approx(float(res.distance), rel=1e-9)
     assert summary["distance"] < summary["parametrized_distance"]
     np.testing.assert_allclose(np.load(out / "registration.npz")["gamma"], res.gamma, atol=1e-9)
+
+
+def test_bench_reports_the_library_distance(capsys, tmp_path):
+    argv = ["bench", *SMALL, "--repeat", "1", "--out", str(tmp_path)]
+    assert cli.main(argv) == 0
+    summary = json.loads(capsys.readouterr().out)
+    f1 = shapes.sample(shapes.bent_cylinder, M, N, curvature=0.0)
+    f2 = shapes.sample(shapes.bent_cylinder, M, N, curvature=0.6, half_length=1.2)
+    res = ej.geodesic(f1, f2, METRIC, degree=3, n_times=5)
+    solve = summary["geodesic_solve"]
+    assert solve["distance"] == pytest.approx(float(res.distance), rel=1e-12)
+    assert solve["num_steps"] == int(res.num_steps)
+    assert len(solve["runs_s"]) == 1 and summary["settings"]["grid"] == [M, N]
