@@ -246,18 +246,22 @@ def _write_path(out: pathlib.Path, path, settings: dict, progress: Progress) -> 
 # --------------------------------------------------------------------------- commands
 
 
+def _prepare_pair(args, progress: Progress, options_of: Callable, f1=None, f2=None):
+    """The two surfaces (read unless given), checked degrees, the metric and the options."""
+    if f1 is None:
+        f1, f2 = _load_all([args.source, args.target], args.grid, args.dtype, progress)
+    _check_degrees(args, *f1.shape[1:])
+    return f1, f2, _metric_from(args), options_of(args)
+
+
 def _run_geodesic(args, progress: Progress, f1=None, f2=None, label=None) -> dict:
     import jax
     import numpy as np
 
     from ._geodesic import geodesic
 
-    if f1 is None:
-        f1, f2 = _load_all([args.source, args.target], args.grid, args.dtype, progress)
+    f1, f2, metric, options = _prepare_pair(args, progress, _geodesic_options, f1, f2)
     m, n = f1.shape[1:]
-    _check_degrees(args, m, n)
-    metric = _metric_from(args)
-    options = _geodesic_options(args)
     progress(
         f"solving the geodesic on {m} x {n}, degree {args.degree}, N = {args.times} "
         "(the first call compiles)"
@@ -291,11 +295,8 @@ def _run_shape_geodesic(args, progress: Progress) -> dict:
     from ._atomic import save_npz_atomic
     from ._shape import shape_geodesic
 
-    f1, f2 = _load_all([args.source, args.target], args.grid, args.dtype, progress)
+    f1, f2, metric, options = _prepare_pair(args, progress, _shape_geodesic_options)
     m, n = f1.shape[1:]
-    _check_degrees(args, m, n)
-    metric = _metric_from(args)
-    options = _shape_geodesic_options(args)
     progress(
         f"registering and solving modulo {args.modulo} on {m} x {n}, "
         f"{args.outer_steps} outer steps (the first call compiles)"

@@ -442,6 +442,17 @@ def load_surface(path: str | os.PathLike, m: int | None = None, n: int | None = 
     return f
 
 
+def _checked_surfaces(x, name: str, layout: str) -> np.ndarray:
+    """``x`` as a floating numpy array that passed validate_surface and has ``layout``'s rank."""
+    x = np.asarray(x)
+    if not np.issubdtype(x.dtype, np.floating):
+        x = x.astype(np.float64)
+    validate_surface(x, name)
+    if x.ndim != layout.count(",") + 1:
+        raise ValueError(f"{name} must have shape {layout}; got shape {x.shape}")
+    return x
+
+
 def _export_mesh(mesh: trimesh.Trimesh, path: pathlib.Path) -> pathlib.Path:
     with atomic_path(path) as tmp:
         mesh.export(tmp, file_type=_suffix(path))
@@ -471,12 +482,7 @@ def save_surface(f, path: str | os.PathLike) -> pathlib.Path:
     kind = _suffix(path)
     if kind != "npz" and kind not in MESH_FORMATS:
         raise _unknown_suffix(path, "save", ("npz",) + MESH_FORMATS)
-    f = np.asarray(f)
-    if not np.issubdtype(f.dtype, np.floating):
-        f = f.astype(np.float64)
-    validate_surface(f, "f")
-    if f.ndim != 3:
-        raise ValueError(f"f must be one surface (3, m, n); got shape {f.shape}")
+    f = _checked_surfaces(f, "f", "(3, m, n)")
     if kind == "npz":
         return save_npz_atomic(path, f=f)
     return _export_mesh(grid_to_mesh(f), path)
@@ -522,12 +528,7 @@ def save_path(
     kind = str(format).lower().lstrip(".")
     if kind not in MESH_FORMATS:
         raise ValueError(f"unknown mesh format {format!r}; supported: {', '.join(MESH_FORMATS)}")
-    surfaces = np.asarray(path)
-    if not np.issubdtype(surfaces.dtype, np.floating):
-        surfaces = surfaces.astype(np.float64)
-    validate_surface(surfaces, "path")
-    if surfaces.ndim != 4:
-        raise ValueError(f"path must have shape (N, 3, m, n); got shape {surfaces.shape}")
+    surfaces = _checked_surfaces(path, "path", "(N, 3, m, n)")
     text = json.dumps({} if settings is None else dict(settings), default=_json_default)
     directory = pathlib.Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
