@@ -49,6 +49,7 @@ __all__ = [
     "mesh_to_grid",
     "save_path",
     "save_surface",
+    "star_center",
 ]
 
 #: Mesh formats that :func:`save_surface` and :func:`save_path` write and that load back.
@@ -194,6 +195,43 @@ def _crossings(
     return ray[new], t[new]
 
 
+def star_center(mesh: trimesh.Trimesh | trimesh.Scene) -> np.ndarray | None:
+    """A point the closed mesh is star-shaped about, or None when there is none.
+
+    The points a closed polyhedron is star-shaped about (its kernel) are those on the inner
+    side of every face's plane: n_T . (p - v_T) < 0 for each face T with outward normal n_T
+    and a vertex v_T. The linear program max s subject to n_T . (p - v_T) + s <= 0
+    (scipy.optimize.linprog, HiGHS) finds the point deepest inside that intersection of
+    half-spaces; the kernel is non-empty exactly when the optimal s is positive.
+
+    Args:
+        mesh: a closed, consistently oriented ``trimesh.Trimesh`` (or a Scene of one).
+
+    Returns:
+        ``(3,)`` float64, a point to pass as ``mesh_to_grid(..., center=...)``; None if the
+        mesh is star-shaped about no point (radial projection cannot parametrize it).
+    """
+    import scipy.optimize
+
+    mesh = _as_trimesh(mesh)
+    normals = np.asarray(mesh.face_normals, dtype=np.float64)
+    if mesh.volume < 0:  # inward-wound faces: their normals point inside
+        normals = -normals
+    corner = np.asarray(mesh.triangles[:, 0], dtype=np.float64)
+    size = float(np.ptp(np.asarray(mesh.vertices), axis=0).max())
+    res = scipy.optimize.linprog(
+        c=[0.0, 0.0, 0.0, -1.0],
+        A_ub=np.hstack([normals, np.ones((len(normals), 1))]),
+        b_ub=np.einsum("ij,ij->i", normals, corner),
+        bounds=[(None, None)] * 3 + [(None, size)],
+        method="highs",
+    )
+    # A margin relative to the mesh's size, so that rays from the point cross cleanly.
+    if res.status != 0 or res.x[3] <= 1e-9 * size:
+        return None
+    return np.asarray(res.x[:3], dtype=np.float64)
+
+
 def _direction_name(k: int, m: int, n: int, u: np.ndarray) -> str:
     if k == 0:
         where = "the north pole, row i=0"
@@ -233,7 +271,8 @@ def mesh_to_grid(
         mesh: a ``trimesh.Trimesh``, or a ``trimesh.Scene`` whose meshes are concatenated.
         m, n: grid size (n odd, both >= 5).
         center: the point the rays start from, ``(3,)``; default the area-weighted
-            centroid. Give one when the mesh is star-shaped about another point.
+            centroid. When the mesh is star-shaped about another point,
+            :func:`star_center` finds one (the error message says so).
 
     Returns:
         ``(3, m, n)`` float64 numpy array.
@@ -281,11 +320,25 @@ def mesh_to_grid(
             f"({origin[0]:.4g}, {origin[1]:.4g}, {origin[2]:.4g}): of {len(directions)} rays "
             f"from it, {missed} missed the mesh and {multiple} crossed it more than once "
             f"(up to {int(count.max())} times); the first, in direction "
-            f"{_direction_name(k, m, n, directions[k])}, {found}"
-            + ("" if center is not None else "; pass center= a point it is star-shaped about")
+            f"{_direction_name(k, m, n, directions[k])}, {found}" + _star_hint(mesh, center)
         )
     # One crossing per ray, sorted by ray: t lines up with the directions.
     return _from_distinct(origin + t[:, None] * directions, m, n)
+
+
+def _star_hint(mesh: trimesh.Trimesh, center) -> str:
+    kernel = star_center(mesh)
+    if kernel is None:
+        return (
+            "; it is star-shaped about no point at all (the inner half-spaces of its faces do "
+            "not intersect), so radial projection cannot parametrize it"
+        )
+    if center is not None:
+        return f"; it is star-shaped about {np.array2string(kernel, precision=4)} (star_center)"
+    return (
+        f"; it is star-shaped about {np.array2string(kernel, precision=4)}: pass "
+        "center=star_center(mesh)"
+    )
 
 
 def _grid_faces(m: int, n: int) -> np.ndarray:

@@ -10,6 +10,7 @@ import pytest
 import scipy.io
 import trimesh
 
+import elastic_jax as ej
 from elastic_jax import io, resample, shapes
 from elastic_jax._grid import _angles_np
 
@@ -165,6 +166,36 @@ def test_dumbbell_is_not_star_shaped():
     # Measured: 48 of the 266 rays cross three times, none misses.
     assert "0 missed the mesh and 48 crossed it more than once (up to 3 times)" in message
     assert "row i=1, column j=0" in message
+    assert "star-shaped about no point at all" in message
+    assert io.star_center(dumbbell) is None
+
+
+def test_star_center_is_the_deepest_kernel_point():
+    # A sphere's faces are tangent planes at equal distance from the centre: the deepest
+    # point of their intersection is the centre itself.
+    ico = trimesh.creation.icosphere(subdivisions=3)
+    assert np.linalg.norm(io.star_center(ico)) < 1e-9
+    flipped = trimesh.Trimesh(ico.vertices + [1.0, 2.0, 3.0], ico.faces[:, ::-1])  # inward
+    np.testing.assert_allclose(io.star_center(flipped), [1.0, 2.0, 3.0], atol=1e-9)
+
+
+def test_a_spike_moves_the_centroid_out_of_the_kernel_and_star_center_recovers():
+    # Radial about the origin, so star-shaped about it; a long thin spike along +x pulls
+    # the area centroid into the spike, from where four rays cross the surface 3 times.
+    x = np.asarray(ej.sphere_points(25, 49))
+    mesh = io.grid_to_mesh((1 + 5 * np.exp(30 * (x[0] - 1))) * x)
+    with pytest.raises(io.NotStarShapedError, match="pass center=star_center") as info:
+        io.mesh_to_grid(mesh, 13, 25)
+    assert "4 crossed it more than once" in str(info.value)
+    c = io.star_center(mesh)
+    normals, corners = mesh.face_normals, mesh.triangles[:, 0]
+    assert np.einsum("ij,ij->i", normals, c - corners).max() < 0  # inside every face plane
+    f = io.mesh_to_grid(mesh, 25, 49, center=c)
+    points = f.reshape(3, -1).T
+    _, distance, _ = trimesh.proximity.closest_point(mesh, points)
+    assert distance.max() < 1e-9  # every grid point lies on the mesh
+    u = (points - c) / np.linalg.norm(points - c, axis=1, keepdims=True)
+    np.testing.assert_allclose(u, np.asarray(ej.sphere_points(25, 49)).reshape(3, -1).T, atol=1e-9)
 
 
 def test_bent_tube_centroid_outside_misses():
