@@ -5,11 +5,15 @@ hand when ../shared/data is present, each scaled to unit area since the shape sp
 keeps scale), metric (1, 1, 0.1, 0), modulo="rigid", degree 5, vf degree 5, N = 7,
 scheme "central", 2 outer steps; one Karcher step per strategy ("vmap", "map" = lax.map
 in one jit, "loop" = Python loop of jitted solves), each in its own process so that its
-peak resident memory (ru_maxrss) is its own; then a 16-shape distance matrix. One JSON
-record per measurement: first call (with compilation) and a repeat.
+peak resident memory (ru_maxrss) is its own; then a 16-shape distance matrix (120 pairs,
+strategy "map" by default). One JSON record per measurement: first call (with
+compilation) and a repeat.
+
+Measured on 2 CPU cores (jax 0.10.2, float64), repeat after compilation: Karcher step
+map 17.7 s, loop 19.8 s, vmap 52.8 s; distance matrix map 140.5 s, loop 206 s.
 
 Run: python benchmarks/bench_karcher.py [--shapes 8] [--matrix-shapes 16]
-     [--strategies vmap,map,loop]
+     [--strategies vmap,map,loop] [--matrix-strategy map]   (--strategies "" skips them)
 """
 
 from __future__ import annotations
@@ -69,7 +73,7 @@ def main() -> None:
     parser.add_argument("--shapes", type=int, default=8)
     parser.add_argument("--matrix-shapes", type=int, default=16)
     parser.add_argument("--strategies", default="vmap,map,loop")
-    parser.add_argument("--matrix-strategy", default="loop")
+    parser.add_argument("--matrix-strategy", default="map")
     args = parser.parse_args()
     import pathlib
 
@@ -78,7 +82,7 @@ def main() -> None:
     from _common import emit, environment
 
     env = environment()
-    jobs = [("karcher", s, args.shapes) for s in args.strategies.split(",")]
+    jobs = [("karcher", s, args.shapes) for s in args.strategies.split(",") if s]
     if args.matrix_shapes:
         jobs.append(("distance_matrix", args.matrix_strategy, args.matrix_shapes))
     for task, strategy, k in jobs:
