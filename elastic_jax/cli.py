@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import platform
 import sys
@@ -62,6 +63,13 @@ def _metric(text: str) -> tuple[float, float, float, float]:
     return values  # type: ignore[return-value]
 
 
+def _default_cache_dir() -> pathlib.Path:
+    if os.environ.get("ELASTIC_JAX_CACHE"):
+        return pathlib.Path(os.environ["ELASTIC_JAX_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache"
+    return pathlib.Path(base) / "elastic-jax"
+
+
 def _common(parser: argparse.ArgumentParser, *, degree: int, times: int) -> None:
     parser.add_argument(
         "--metric",
@@ -91,6 +99,15 @@ def _common(parser: argparse.ArgumentParser, *, degree: int, times: int) -> None
     )
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("elastic-jax-out"))
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    parser.add_argument(
+        "--cache-dir",
+        type=pathlib.Path,
+        default=_default_cache_dir(),
+        help="JAX's persistent compilation cache, so that a second run skips compiling "
+        "(default: $ELASTIC_JAX_CACHE, else $XDG_CACHE_HOME/elastic-jax, else "
+        "~/.cache/elastic-jax)",
+    )
+    parser.add_argument("--no-cache", action="store_true", help="compile from scratch")
 
 
 def _shape_options(parser: argparse.ArgumentParser, *, modulo: str, outer: int) -> None:
@@ -615,6 +632,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         # The program chooses its precision (the library never changes JAX's global config);
         # float32 runs cast their inputs instead, so an in-process call changes nothing else.
         jax.config.update("jax_enable_x64", True)
+    if not args.no_cache and jax.config.jax_compilation_cache_dir is None:
+        # Solves compile for 5-60 s and a command runs once per process: keep the
+        # executables on disk (a program's choice; the library itself never sets this).
+        jax.config.update("jax_compilation_cache_dir", str(args.cache_dir))
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     import warnings
 
     from ._geodesic import ConvergenceWarning

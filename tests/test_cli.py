@@ -17,7 +17,7 @@ from elastic_jax import cli, io, shapes
 
 M, N = 13, 25
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
-SMALL = ["--grid", str(M), str(N), "--degree", "3", "--times", "5", "--quiet"]
+SMALL = ["--grid", str(M), str(N), "--degree", "3", "--times", "5", "--quiet", "--no-cache"]
 SHAPE = [*SMALL, "--vf-degree", "3", "--outer-steps", "1"]
 SHAPE_OPTIONS = dict(degree=3, vf_degree=3, n_times=5, outer_steps=1)
 
@@ -31,15 +31,17 @@ def _save(tmp_path, name, f):
 
 
 def test_demo_writes_what_it_promises_and_matches_the_library(tmp_path):
-    out = tmp_path / "demo"
-    run = subprocess.run(
-        [sys.executable, "-m", "elastic_jax", "demo", *SMALL, "--out", str(out)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert run.returncode == 0, run.stderr
-    summary = json.loads(run.stdout)
+    out, cache = tmp_path / "demo", tmp_path / "cache"
+    argv = [sys.executable, "-m", "elastic_jax", "demo", *SMALL[:-1], "--cache-dir", str(cache)]
+    runs = [
+        subprocess.run([*argv, "--out", str(d)], capture_output=True, text=True, timeout=300)
+        for d in (out, tmp_path / "again")
+    ]
+    assert [r.returncode for r in runs] == [0, 0], runs[0].stderr
+    summary, again = (json.loads(r.stdout) for r in runs)
+    # The second run reads the compiled solve from the persistent cache: same numbers.
+    assert len(list(cache.rglob("*"))) >= 1
+    assert again["distance"] == summary["distance"] and again["num_steps"] == summary["num_steps"]
     assert summary == json.loads((out / "summary.json").read_text())
     assert all(pathlib.Path(name).is_file() for name in summary["files"])
     names = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()}
@@ -84,13 +86,13 @@ def test_bad_input_and_non_convergence_have_their_own_exit_codes(tmp_path, capsy
         "metric": (["geodesic", good, good, "--metric", "1,-1,0,0"], "negative"),
     }
     for key, (argv, word) in cases.items():
-        code = cli.main([*argv, "--grid", str(M), str(N), "--quiet", "--out", out])
+        code = cli.main([*argv, "--grid", str(M), str(N), "--quiet", "--no-cache", "--out", out])
         err = capsys.readouterr().err
         assert code == cli.EXIT_BAD_INPUT, key
         assert "bad input" in err and word in err, (key, err)
         assert len(err.strip().splitlines()) == 1, key
     assert not pathlib.Path(out).exists()  # refused before any work or file
-    code = cli.main(["geodesic", good, good, "--grid", str(M), "24", "--out", out])
+    code = cli.main(["geodesic", good, good, "--grid", str(M), "24", "--no-cache", "--out", out])
     assert code == cli.EXIT_BAD_INPUT and "n must be odd" in capsys.readouterr().err
     # A step limit of 2: the files are written, the exit code says "not converged".
     f2 = _save(tmp_path, "big.npz", shapes.sample(shapes.bumpy, M, N))
