@@ -216,6 +216,13 @@ def karcher_mean(
     1/T; with few time points (N = 5) the average can cycle instead of vanishing. Use
     n_times >= 9 or scheme="central" (both converge in 3 steps on the package's tests).
 
+    On real shapes the sum of squared distances need not fall at every step: each step's
+    distances come from a non-convex registration (discrete initial rotation, a few outer
+    steps), so they carry a varying excess. Measured on cat1, cat2, horse0 at 25 x 49
+    (rigid, degree 5/5, N 9, central): 3.31, 2.54, 2.89, 1.66, 1.86, 1.56, 1.52 with
+    step_size 1; 3.31, 2.48, 1.92, 1.76, 1.81, 2.27, 1.64 with 0.5. ``history`` keeps
+    every value; the record holds the last mean.
+
     Args:
         shapes: ``(K, 3, m, n)`` surfaces on one grid.
         metric: split metric coefficients.

@@ -151,6 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
     _batch_options(p)
     p.add_argument("--karcher-steps", type=int, default=10)
     p.add_argument("--tol", type=float, default=1e-3)
+    p.add_argument("--step-size", type=float, default=1.0, help="fraction of the mean velocity")
     p.add_argument("--scheme", choices=("forward", "central"), default="central")
 
     p = sub.add_parser("distances", help="matrix of pairwise shape distances")
@@ -387,7 +388,9 @@ def _run_karcher(args, progress: Progress) -> dict:
     _check_degrees(args, m, n)
     metric = _metric_from(args)
     options, settings = _collection_settings(args, m, n)
-    settings.update(karcher_steps=args.karcher_steps, tol=args.tol, scheme=args.scheme)
+    settings.update(
+        karcher_steps=args.karcher_steps, tol=args.tol, step_size=args.step_size, scheme=args.scheme
+    )
     checkpoint = args.out / "karcher_checkpoint.npz"
 
     def report(info):
@@ -408,6 +411,7 @@ def _run_karcher(args, progress: Progress) -> dict:
         modulo=args.modulo,
         max_steps=args.karcher_steps,
         tol=args.tol,
+        step_size=args.step_size,
         batch_size=args.batch_size,
         strategy=args.strategy,
         checkpoint=checkpoint,
