@@ -25,6 +25,7 @@ from collections.abc import Callable, Sequence
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_NOT_CONVERGED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 DEFAULT_METRIC = (1.0, 1.0, 0.1, 0.0)
+SURFACE_FILE = "a surface: .npz (array f), .mat (the authors'), or a mesh trimesh reads"
 
 
 class BadInput(Exception):
@@ -74,9 +75,9 @@ def _common(parser: argparse.ArgumentParser, *, degree: int, times: int) -> None
     parser.add_argument(
         "--metric",
         type=_metric,
-        default=DEFAULT_METRIC,
+        default=",".join(f"{x:g}" for x in DEFAULT_METRIC),
         metavar="A,B,C,D",
-        help="split metric coefficients: shear, stretch, bending, rotation (default 1,1,0.1,0)",
+        help="split metric coefficients: shear, stretch, bending, rotation",
     )
     parser.add_argument(
         "--grid",
@@ -84,45 +85,88 @@ def _common(parser: argparse.ArgumentParser, *, degree: int, times: int) -> None
         nargs=2,
         metavar=("M", "N"),
         default=None,
-        help="resample every input onto this grid (default: the first input's grid; "
+        help="resample every input onto this grid (default: the first input's grid, "
         "50 99 for meshes)",
     )
-    parser.add_argument("--degree", type=int, default=degree, help="surface basis degree")
+    parser.add_argument(
+        "--degree", type=int, default=degree, help="spherical-harmonic degree of the path"
+    )
     parser.add_argument("--times", type=int, default=times, help="time points N, ends included")
-    parser.add_argument("--solver", choices=("bfgs", "lbfgs"), default="bfgs")
-    parser.add_argument("--max-steps", type=int, default=None, help="solver step limit")
+    parser.add_argument(
+        "--solver",
+        choices=("bfgs", "lbfgs"),
+        default="bfgs",
+        help="optimistix BFGS or jaxopt L-BFGS",
+    )
+    parser.add_argument(
+        "--max-steps", type=int, default=None, help="solver step limit (library default)"
+    )
     parser.add_argument(
         "--dtype",
         choices=("float64", "float32"),
         default="float64",
         help="precision (float64, the reference, is the default; float32 is faster on GPUs)",
     )
-    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("elastic-jax-out"))
+    parser.add_argument(
+        "--out",
+        type=pathlib.Path,
+        default=pathlib.Path("elastic-jax-out"),
+        help="output directory (created)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     parser.add_argument(
         "--cache-dir",
         type=pathlib.Path,
         default=_default_cache_dir(),
         help="JAX's persistent compilation cache, so that a second run skips compiling "
-        "(default: $ELASTIC_JAX_CACHE, else $XDG_CACHE_HOME/elastic-jax, else "
-        "~/.cache/elastic-jax)",
+        "(ELASTIC_JAX_CACHE or XDG_CACHE_HOME move it)",
     )
     parser.add_argument("--no-cache", action="store_true", help="compile from scratch")
 
 
 def _shape_options(parser: argparse.ArgumentParser, *, modulo: str, outer: int) -> None:
-    parser.add_argument("--modulo", choices=("diff", "rigid"), default=modulo)
-    parser.add_argument("--method", choices=("coordinate", "joint"), default="coordinate")
-    parser.add_argument("--vf-degree", type=int, default=None, help="Diff(S^2) basis degree")
-    parser.add_argument("--outer-steps", type=int, default=outer)
+    parser.add_argument(
+        "--modulo",
+        choices=("diff", "rigid"),
+        default=modulo,
+        help="reparametrizations, or reparametrizations and rigid motions",
+    )
+    parser.add_argument(
+        "--method",
+        choices=("coordinate", "joint"),
+        default="coordinate",
+        help="paper Algorithm 3 (coordinate) or 2 (joint)",
+    )
+    parser.add_argument(
+        "--vf-degree", type=int, default=None, help="Diff(S^2) basis degree (library default 7)"
+    )
+    parser.add_argument(
+        "--outer-steps", type=int, default=outer, help="registration rounds per geodesic"
+    )
 
 
 def _batch_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--strategy", choices=("auto", "vmap", "map", "loop"), default="auto")
-    parser.add_argument("--batch-size", type=int, default=None)
+    parser.add_argument(
+        "--strategy",
+        choices=("auto", "vmap", "map", "loop"),
+        default="auto",
+        help="batching: auto is lax.map on CPU, vmap on accelerators",
+    )
+    parser.add_argument(
+        "--batch-size", type=int, default=None, help="geodesics per batched call (bounds memory)"
+    )
     parser.add_argument(
         "--resume", action="store_true", help="continue from the checkpoint in --out"
     )
+
+
+class _DefaultsShown(argparse.ArgumentDefaultsHelpFormatter):
+    """Show defaults, except the None / False of options whose help says what happens."""
+
+    def _get_help_string(self, action):
+        if action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -132,40 +176,51 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Exit codes: 0 ok, 2 bad input, 3 not converged, 130 interrupted.",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    add = sub.add_parser
 
-    p = sub.add_parser("geodesic", help="geodesic between two parametrized surfaces")
-    p.add_argument("source")
-    p.add_argument("target")
+    def command(name: str, **kwargs) -> argparse.ArgumentParser:
+        return add(name, formatter_class=_DefaultsShown, **kwargs)
+
+    p = command("geodesic", help="geodesic between two parametrized surfaces")
+    p.add_argument("source", help=SURFACE_FILE)
+    p.add_argument("target", help=SURFACE_FILE)
     _common(p, degree=7, times=13)
 
-    p = sub.add_parser("shape-geodesic", help="geodesic between shapes (registration)")
-    p.add_argument("source")
-    p.add_argument("target")
+    p = command("shape-geodesic", help="geodesic between shapes (registration)")
+    p.add_argument("source", help=SURFACE_FILE)
+    p.add_argument("target", help=SURFACE_FILE)
     _common(p, degree=7, times=13)
     _shape_options(p, modulo="diff", outer=5)
 
-    p = sub.add_parser("karcher", help="Karcher mean of a collection of shapes")
-    p.add_argument("files", nargs="+")
+    p = command("karcher", help="Karcher mean of a collection of shapes")
+    p.add_argument("files", nargs="+", help=SURFACE_FILE)
     _common(p, degree=5, times=9)
     _shape_options(p, modulo="rigid", outer=2)
     _batch_options(p)
-    p.add_argument("--karcher-steps", type=int, default=10)
-    p.add_argument("--tol", type=float, default=1e-3)
+    p.add_argument("--karcher-steps", type=int, default=10, help="Karcher iterations at most")
+    p.add_argument(
+        "--tol", type=float, default=1e-3, help="stop when |mean velocity| < tol x RMS distance"
+    )
     p.add_argument("--step-size", type=float, default=1.0, help="fraction of the mean velocity")
-    p.add_argument("--scheme", choices=("forward", "central"), default="central")
+    p.add_argument(
+        "--scheme",
+        choices=("forward", "central"),
+        default="central",
+        help="time differences; central gives accurate initial velocities",
+    )
 
-    p = sub.add_parser("distances", help="matrix of pairwise shape distances")
-    p.add_argument("files", nargs="+")
+    p = command("distances", help="matrix of pairwise shape distances")
+    p.add_argument("files", nargs="+", help=SURFACE_FILE)
     _common(p, degree=5, times=9)
     _shape_options(p, modulo="rigid", outer=2)
     _batch_options(p)
 
-    p = sub.add_parser("demo", help="a geodesic between two built-in surfaces, with figures")
+    p = command("demo", help="a geodesic between two built-in surfaces, with figures")
     _common(p, degree=7, times=10)
 
-    p = sub.add_parser("bench", help="time the energy gradient and a geodesic solve (JSON)")
+    p = command("bench", help="time the energy gradient and a geodesic solve (JSON)")
     _common(p, degree=7, times=13)
-    p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--repeat", type=int, default=3, help="timed calls after the first")
     return parser
 
 
