@@ -374,7 +374,9 @@ def grid_to_mesh(f) -> trimesh.Trimesh:
     fan of n - 1 triangles at each pole and two triangles per grid quad between interior
     rows, wrapping across the seam: 2 (n - 1)(m - 2) faces. Faces are oriented along
     e_phi x e_theta, which is outward for the grid's own parametrisation of the sphere, so
-    ``grid_to_mesh(sample(sphere, m, n))`` has positive volume and outward normals. The
+    ``grid_to_mesh(sample(sphere, m, n))`` has positive volume and outward normals; for an
+    orientation-reversing parametrization (negative signed volume) every face is turned, so
+    the triangles always face outward. The
     result is closed with Euler characteristic 2; ``process=False``, so trimesh merges no
     vertices even where the surface touches itself.
 
@@ -396,7 +398,11 @@ def grid_to_mesh(f) -> trimesh.Trimesh:
     vertices = np.concatenate(
         [f[:, 0, :1].T, f[:, 1:-1, :-1].reshape(3, -1).T, f[:, -1, :1].T], axis=0
     )
-    return trimesh.Trimesh(vertices=vertices, faces=_grid_faces(m, n), process=False)
+    mesh = trimesh.Trimesh(vertices=vertices, faces=_grid_faces(m, n), process=False)
+    if mesh.volume < 0:
+        # An orientation-reversing parametrization (a mirror image): turn every face.
+        mesh = trimesh.Trimesh(vertices=vertices, faces=mesh.faces[:, ::-1], process=False)
+    return mesh
 
 
 def _check_exists(path: pathlib.Path) -> None:

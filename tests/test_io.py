@@ -210,6 +210,15 @@ def test_bent_tube_centroid_outside_misses():
 # --- grid_to_mesh -------------------------------------------------------------------
 
 
+def test_grid_to_mesh_faces_outward_for_a_mirrored_parametrization():
+    f = np.asarray(shapes.sample(shapes.ellipsoid, 13, 25))
+    mirrored = f * np.asarray([-1.0, 1.0, 1.0])[:, None, None]  # reverses the orientation
+    a, b = io.grid_to_mesh(f), io.grid_to_mesh(mirrored)
+    assert b.volume == pytest.approx(a.volume, rel=1e-12) and a.volume > 0
+    outward = np.einsum("ij,ij->i", b.face_normals, b.triangles_center)
+    assert outward.min() > 0
+
+
 def test_grid_to_mesh_sphere_is_closed_outward_and_second_order_in_volume():
     deficits = []
     for m, n in ((13, 25), (25, 49)):
