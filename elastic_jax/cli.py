@@ -252,6 +252,8 @@ def _load_all(files: Sequence[str], grid, dtype, progress: Progress):
             f = io.load_surface(name, m=m, n=n)
         except (OSError, ValueError, KeyError) as err:
             raise BadInput(f"{name}: {err}") from err
+        except Exception as err:  # a file trimesh or scipy cannot parse is still bad input
+            raise BadInput(f"{name}: cannot be read ({type(err).__name__}: {err})") from err
         if m is None:
             m, n = f.shape[1:]
         out.append(f)

@@ -77,6 +77,8 @@ def test_bad_input_and_non_convergence_have_their_own_exit_codes(tmp_path, capsy
     np.savez(nan_file, f=bad)  # not through save_surface, which refuses it
     torus = str(tmp_path / "torus.ply")
     trimesh.creation.torus(1.0, 0.3).export(torus)
+    garbage = str(tmp_path / "garbage.ply")
+    pathlib.Path(garbage).write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 9\n")
     out = str(tmp_path / "out")
     cases = {  # argv, a word the one-line message must contain
         "missing": (["geodesic", good, str(tmp_path / "absent.npz")], "absent.npz"),
@@ -84,6 +86,7 @@ def test_bad_input_and_non_convergence_have_their_own_exit_codes(tmp_path, capsy
         "genus": (["geodesic", good, torus], "genus"),
         "degree": (["geodesic", good, good, "--degree", "40"], "--degree 40"),
         "metric": (["geodesic", good, good, "--metric", "1,-1,0,0"], "negative"),
+        "garbage": (["geodesic", good, garbage], "garbage.ply"),
     }
     for key, (argv, word) in cases.items():
         code = cli.main([*argv, "--grid", str(M), str(N), "--quiet", "--no-cache", "--out", out])
