@@ -28,3 +28,17 @@ def test_ci_runs_the_readme_test_command():
     test_command = ci_lines[-1]
     assert test_command.startswith("python -m pytest")
     assert test_command in readme.split("# run the tests")[1].splitlines()[1]
+
+
+def test_readme_first_command_is_the_installed_demo():
+    import importlib
+    import tomllib
+
+    readme = (ROOT / "README.md").read_text()
+    first = readme.split("```bash\n")[1].splitlines()
+    install = next(line for line in first if line.startswith("python -m pip install"))
+    assert install.endswith("elastic-jax demo --out demo")
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    module, name = scripts["elastic-jax"].split(":")
+    main = getattr(importlib.import_module(module), name)
+    assert "demo" in main.__globals__["COMMANDS"]
