@@ -247,6 +247,40 @@ def upsample_coefficients(
     return lifted.reshape(new_n_times - 2, 3 * k1)
 
 
+def _check_pair(f1, f2) -> tuple[Array, Array]:
+    """Two single surfaces on one grid with one dtype (geodesic and shape_geodesic)."""
+    f1 = as_surface(f1, "f1")
+    f2 = as_surface(f2, "f2")
+    for name, f in (("f1", f1), ("f2", f2)):
+        if f.ndim != 3:
+            raise ValueError(
+                f"{name} must be one surface (3, m, n); got {f.shape}. Batch with jax.vmap."
+            )
+    if f1.shape != f2.shape or f1.dtype != f2.dtype:
+        raise ValueError(
+            "f1 and f2 must share grid and dtype (the same grid, the same dtype); got "
+            f"{f1.shape} {f1.dtype} and {f2.shape} {f2.dtype}"
+        )
+    return f1, f2
+
+
+def _check_solve_options(n_times, solver, max_steps, tol, scheme, dtype) -> float:
+    """Validate the inner solves' options; returns tol (its default depends on the dtype)."""
+    check_solver(solver)
+    _check_scheme(scheme)
+    if not isinstance(n_times, int) or n_times < 3:
+        raise ValueError(
+            f"n_times must be an integer >= 3 (one free time point at least); got {n_times!r}"
+        )
+    if not isinstance(max_steps, int) or max_steps < 1:
+        raise ValueError(f"max_steps must be a positive integer; got {max_steps!r}")
+    if tol is None:
+        tol = 1e-6 if dtype == jnp.float64 else 1e-4
+    if not tol > 0:
+        raise ValueError(f"tol must be positive; got {tol!r}")
+    return float(tol)
+
+
 def geodesic(
     f1: Float[ArrayLike, "3 m n"],
     f2: Float[ArrayLike, "3 m n"],
@@ -298,31 +332,10 @@ def geodesic(
         >>> bool(res.energy < res.straight_energy)
         True
     """
-    f1 = as_surface(f1, "f1")
-    f2 = as_surface(f2, "f2")
-    for name, f in (("f1", f1), ("f2", f2)):
-        if f.ndim != 3:
-            raise ValueError(
-                f"{name} must be one surface (3, m, n); got {f.shape}. Batch with jax.vmap."
-            )
-    if f1.shape != f2.shape:
-        raise ValueError(f"f1 and f2 must be on the same grid; got {f1.shape} and {f2.shape}")
-    if f1.dtype != f2.dtype:
-        raise ValueError(f"f1 and f2 must have the same dtype; got {f1.dtype} and {f2.dtype}")
+    f1, f2 = _check_pair(f1, f2)
     m, n = f1.shape[-2:]
     check_degree(degree, m, n)
-    check_solver(solver)
-    _check_scheme(scheme)
-    if not isinstance(n_times, int) or n_times < 3:
-        raise ValueError(
-            f"n_times must be an integer >= 3 (one free time point at least); got {n_times!r}"
-        )
-    if not isinstance(max_steps, int) or max_steps < 1:
-        raise ValueError(f"max_steps must be a positive integer; got {max_steps!r}")
-    if tol is None:
-        tol = 1e-6 if f1.dtype == jnp.float64 else 1e-4
-    if not tol > 0:
-        raise ValueError(f"tol must be positive; got {tol!r}")
+    tol = _check_solve_options(n_times, solver, max_steps, tol, scheme, f1.dtype)
     size = 3 * ((degree + 1) ** 2 - 1)
     if init is None:
         init = jnp.zeros((n_times - 2, size), f1.dtype)

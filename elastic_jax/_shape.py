@@ -17,10 +17,12 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._differential import area_element, interior_frame
-from ._energy import _check_scheme, frame_energy
+from ._energy import frame_energy
 from ._geodesic import (
     ConvergenceWarning,
     _basis_np,
+    _check_pair,
+    _check_solve_options,
     _frames_between,
     _perturbed_frames,
     _scaling,
@@ -31,9 +33,8 @@ from ._harmonics import _harmonics_np, _vector_fields_np, check_degree
 from ._metric import SplitMetric
 from ._reparam import _jacobian_determinant, _reparametrize
 from ._so3 import _icosahedral_np, _so3_exp
-from ._solvers import check_solver, minimize
+from ._solvers import minimize
 from ._srnf import _center
-from ._validation import as_surface
 
 MODULI = ("diff", "rigid")
 ALGORITHMS = ("coordinate", "joint")
@@ -160,6 +161,10 @@ def _shape_solve(metric, f1, f2, values, dframe, fields, field_scale, fields0, s
     def registered(gamma):
         return _reparametrize(f1, gamma, method=cfg.interpolation)
 
+    def stepped(gamma, x, basis, scale):
+        """f1 o gamma o Proj(Id + sum x_k v_k): f1 registered after one more Diff step."""
+        return registered(_compose(gamma, _step_field(x, basis, scale, e1), cfg.interpolation))
+
     def straight_energy(f_start, f_end):
         # Ranking and refining straight lines needs no time resolution: 3 time points
         # (4.5x cheaper than N = 10) order the candidates the same way.
@@ -203,9 +208,7 @@ def _shape_solve(metric, f1, f2, values, dframe, fields, field_scale, fields0, s
 
         # Then a low-degree Diff step on the straight-line energy.
         def diff_objective(y):
-            start = registered(
-                _compose(gamma, _step_field(y, fields0, scale0, e1), cfg.interpolation)
-            )
+            start = stepped(gamma, y, fields0, scale0)
             return straight_energy(start, _rotate(rotation, f2)) / reference
 
         y0 = jnp.zeros(fields0.shape[0], dtype)
@@ -244,11 +247,7 @@ def _shape_solve(metric, f1, f2, values, dframe, fields, field_scale, fields0, s
         # (f1 o gamma o gamma_x, and R f2) to lower the energy of the end segments.
         def objective(y):
             x, r_step = registration_variables(y)
-            start = interior_frame(
-                registered(
-                    _compose(gamma, _step_field(x, fields, field_scale, e1), cfg.interpolation)
-                )
-            )
+            start = interior_frame(stepped(gamma, x, fields, field_scale))
             end = interior_frame(_rotate(r_step @ rotation, f2))
             frames = [
                 jnp.concatenate([s[None], i, e[None]])
@@ -275,12 +274,8 @@ def _shape_solve(metric, f1, f2, values, dframe, fields, field_scale, fields0, s
         def objective(variables):
             z, y = variables
             x, r_step = registration_variables(y)
-            start = interior_frame(
-                registered(
-                    _compose(gamma, _step_field(x, fields, field_scale, e1), cfg.interpolation)
-                )
-            )
-            end = [jnp.einsum("ij,j...->i...", r_step, a) for a in interior_frame(f_end)]
+            start = interior_frame(stepped(gamma, x, fields, field_scale))
+            end = [_rotate(r_step, a) for a in interior_frame(f_end)]
             straight = _frames_between(start, end, cfg.n_times)
             frames = _perturbed_frames(straight, scaling.coefficients(z), dframe)
             return frame_energy(metric, *frames, cfg.scheme) / scaling.energy_scale
@@ -391,31 +386,14 @@ def shape_geodesic(
             raise ValueError(f"{name} must be one of {allowed}; got {value!r}")
     if interpolation not in ("bilinear", "bicubic"):
         raise ValueError(f"interpolation must be 'bilinear' or 'bicubic'; got {interpolation!r}")
-    f1 = as_surface(f1, "f1")
-    f2 = as_surface(f2, "f2")
-    for name, f in (("f1", f1), ("f2", f2)):
-        if f.ndim != 3:
-            raise ValueError(
-                f"{name} must be one surface (3, m, n); got {f.shape}. Batch with jax.vmap."
-            )
-    if f1.shape != f2.shape or f1.dtype != f2.dtype:
-        raise ValueError(
-            f"f1 and f2 must share grid and dtype; got {f1.shape} {f1.dtype}, {f2.shape} {f2.dtype}"
-        )
+    f1, f2 = _check_pair(f1, f2)
     m, n = f1.shape[-2:]
     check_degree(degree, m, n)
     check_degree(vf_degree, m, n, "vf_degree")
     check_degree(init_degree, m, n, "init_degree")
-    check_solver(solver)
-    _check_scheme(scheme)
-    if not isinstance(n_times, int) or n_times < 3:
-        raise ValueError(f"n_times must be an integer >= 3; got {n_times!r}")
+    tol = _check_solve_options(n_times, solver, max_steps, tol, scheme, f1.dtype)
     if not isinstance(outer_steps, int) or outer_steps < 0:
         raise ValueError(f"outer_steps must be an integer >= 0; got {outer_steps!r}")
-    if not isinstance(max_steps, int) or max_steps < 1:
-        raise ValueError(f"max_steps must be a positive integer; got {max_steps!r}")
-    if tol is None:
-        tol = 1e-6 if f1.dtype == jnp.float64 else 1e-4
     cfg = _Config(
         rigid=modulo == "rigid",
         joint=method == "joint",

@@ -270,16 +270,15 @@ def _metric_from(args):
 
 
 def _check_degrees(args, m: int, n: int) -> None:
-    from ._harmonics import max_degree
+    from ._harmonics import check_degree
 
-    top = max_degree(m, n)
     for name in ("degree", "vf_degree"):
         value = getattr(args, name, None)
-        if value is not None and not 1 <= value <= top:
-            raise BadInput(
-                f"--{name.replace('_', '-')} {value} is out of range for the {m} x {n} grid "
-                f"(1 .. {top})"
-            )
+        if value is not None:
+            try:
+                check_degree(value, m, n, name)
+            except ValueError as err:
+                raise BadInput(f"--{name.replace('_', '-')} {value}: {err}") from err
     if args.times < 3:
         raise BadInput(f"--times must be at least 3; got {args.times}")
 
@@ -321,21 +320,22 @@ def _write_path(out: pathlib.Path, path, settings: dict, progress: Progress) -> 
 # --------------------------------------------------------------------------- commands
 
 
-def _prepare_pair(args, progress: Progress, options_of: Callable, f1=None, f2=None):
-    """The two surfaces (read unless given), checked degrees, the metric and the options."""
-    if f1 is None:
-        f1, f2 = _load_all([args.source, args.target], args.grid, args.dtype, progress)
-    _check_degrees(args, *f1.shape[1:])
-    return f1, f2, _metric_from(args), options_of(args)
+def _prepare(args, progress: Progress, files, options_of: Callable, surfaces=None):
+    """The surfaces ``(K, 3, m, n)`` (read unless given), checked degrees, metric, options."""
+    if surfaces is None:
+        surfaces = _load_all(files, args.grid, args.dtype, progress)
+    _check_degrees(args, *surfaces.shape[-2:])
+    return surfaces, _metric_from(args), options_of(args)
 
 
-def _run_geodesic(args, progress: Progress, f1=None, f2=None, label=None) -> dict:
+def _run_geodesic(args, progress: Progress, surfaces=None, label=None) -> dict:
     import jax
     import numpy as np
 
     from ._geodesic import geodesic
 
-    f1, f2, metric, options = _prepare_pair(args, progress, _geodesic_options, f1, f2)
+    files = [args.source, args.target] if surfaces is None else []
+    (f1, f2), metric, options = _prepare(args, progress, files, _geodesic_options, surfaces)
     m, n = f1.shape[1:]
     progress(
         f"solving the geodesic on {m} x {n}, degree {args.degree}, N = {args.times} "
@@ -370,7 +370,8 @@ def _run_shape_geodesic(args, progress: Progress) -> dict:
     from ._atomic import save_npz_atomic
     from ._shape import shape_geodesic
 
-    f1, f2, metric, options = _prepare_pair(args, progress, _shape_geodesic_options)
+    files = [args.source, args.target]
+    (f1, f2), metric, options = _prepare(args, progress, files, _shape_geodesic_options)
     m, n = f1.shape[1:]
     progress(
         f"registering and solving modulo {args.modulo} on {m} x {n}, "
@@ -419,9 +420,8 @@ def _run_shape_geodesic(args, progress: Progress) -> dict:
     }
 
 
-def _collection_settings(args, m: int, n: int) -> tuple[dict, dict]:
-    options = _shape_geodesic_options(args)
-    settings = {
+def _collection_settings(args, m: int, n: int, options: dict) -> dict:
+    return {
         "metric": list(args.metric),
         "grid": [m, n],
         "modulo": args.modulo,
@@ -430,7 +430,6 @@ def _collection_settings(args, m: int, n: int) -> tuple[dict, dict]:
         **options,
         "dtype": args.dtype,
     }
-    return options, settings
 
 
 def _run_karcher(args, progress: Progress) -> dict:
@@ -440,11 +439,9 @@ def _run_karcher(args, progress: Progress) -> dict:
     from ._atomic import save_npz_atomic
     from ._karcher import karcher_mean
 
-    shapes = _load_all(args.files, args.grid, args.dtype, progress)
+    shapes, metric, options = _prepare(args, progress, args.files, _shape_geodesic_options)
     m, n = shapes.shape[2:]
-    _check_degrees(args, m, n)
-    metric = _metric_from(args)
-    options, settings = _collection_settings(args, m, n)
+    settings = _collection_settings(args, m, n, options)
     settings.update(
         karcher_steps=args.karcher_steps, tol=args.tol, step_size=args.step_size, scheme=args.scheme
     )
@@ -517,13 +514,11 @@ def _run_distances(args, progress: Progress) -> dict:
 
     from . import plot
     from ._atomic import save_npz_atomic, write_text_atomic
-    from ._karcher import default_strategy, distance_matrix
+    from ._karcher import distance_matrix
 
-    shapes = _load_all(args.files, args.grid, args.dtype, progress)
+    shapes, metric, options = _prepare(args, progress, args.files, _shape_geodesic_options)
     k, m, n = shapes.shape[0], *shapes.shape[2:]
-    _check_degrees(args, m, n)
-    metric = _metric_from(args)
-    options, settings = _collection_settings(args, m, n)
+    settings = _collection_settings(args, m, n, options)
     checkpoint = args.out / "distances_checkpoint.npz"
 
     def report(info):
@@ -533,17 +528,12 @@ def _run_distances(args, progress: Progress) -> dict:
         f"{k * (k - 1) // 2} shape geodesics modulo {args.modulo} on {m} x {n} (the first compiles)"
     )
     start = time.perf_counter()
-    batch_size = args.batch_size
-    strategy = default_strategy() if args.strategy == "auto" else args.strategy
-    if batch_size is None and strategy in ("map", "loop"):
-        # Sequential strategies gain nothing from big chunks: checkpoint every few pairs.
-        batch_size = 1 if strategy == "loop" else 8
     matrix = np.asarray(
         distance_matrix(
             shapes,
             metric,
             modulo=args.modulo,
-            batch_size=batch_size,
+            batch_size=args.batch_size,
             strategy=args.strategy,
             checkpoint=checkpoint,
             resume=args.resume,
@@ -584,23 +574,27 @@ def _run_distances(args, progress: Progress) -> dict:
     }
 
 
-def _run_demo(args, progress: Progress) -> dict:
+def _builtin_pair(m: int, n: int, dtype: str):
+    """The demo's and bench's surfaces ``(2, 3, m, n)``: a straight and a bent cylinder."""
     import numpy as np
 
-    from . import io, shapes
+    from . import shapes
 
-    m, n = args.grid or (25, 49)
-    dtype = np.dtype(args.dtype)
-    f1 = np.asarray(shapes.sample(shapes.bent_cylinder, m, n, curvature=0.0), dtype)
-    f2 = np.asarray(
-        shapes.sample(shapes.bent_cylinder, m, n, curvature=0.6, half_length=1.2), dtype
-    )
+    straight = shapes.sample(shapes.bent_cylinder, m, n, curvature=0.0)
+    bent = shapes.sample(shapes.bent_cylinder, m, n, curvature=0.6, half_length=1.2)
+    return np.stack([straight, bent]).astype(dtype)
+
+
+def _run_demo(args, progress: Progress) -> dict:
+    from . import io
+
+    f1, f2 = pair = _builtin_pair(*(args.grid or (25, 49)), args.dtype)
     args.out.mkdir(parents=True, exist_ok=True)
     inputs = [
         str(io.save_surface(f1, args.out / "straight_cylinder.npz")),
         str(io.save_surface(f2, args.out / "bent_cylinder.npz")),
     ]
-    summary = _run_geodesic(args, progress, f1, f2, label=inputs)
+    summary = _run_geodesic(args, progress, pair, label=inputs)
     summary["files"] = inputs + summary["files"]
     return summary
 
@@ -609,38 +603,33 @@ def _run_bench(args, progress: Progress) -> dict:
     import jax
     import numpy as np
 
-    from . import shapes
     from ._energy import path_energy, straight_path
     from ._geodesic import geodesic
 
     m, n = args.grid or (50, 99)
-    _check_degrees(args, m, n)
-    metric = _metric_from(args)
-    dtype = np.dtype(args.dtype)
-    f1 = np.asarray(shapes.sample(shapes.bent_cylinder, m, n, curvature=0.0), dtype)
-    f2 = np.asarray(
-        shapes.sample(shapes.bent_cylinder, m, n, curvature=0.6, half_length=1.2), dtype
-    )
+    pair = _builtin_pair(m, n, args.dtype)
+    (f1, f2), metric, options = _prepare(args, progress, [], _geodesic_options, pair)
     path = straight_path(f1, f2, args.times)
     grad = jax.jit(jax.value_and_grad(lambda p: path_energy(metric, p)))
 
-    def timed(call: Callable) -> dict:
-        start = time.perf_counter()
-        jax.block_until_ready(call())
-        first = time.perf_counter() - start
+    def timed(call: Callable) -> tuple[dict, object]:
+        """Times of the first call and of ``repeat`` more; and the last call's output."""
         runs = []
-        for _ in range(args.repeat):
+        for _ in range(args.repeat + 1):
             start = time.perf_counter()
-            jax.block_until_ready(call())
+            out = jax.block_until_ready(call())
             runs.append(time.perf_counter() - start)
-        return {"first_call_s": first, "median_s": float(np.median(runs)), "runs_s": runs}
+        stats = {
+            "first_call_s": runs[0],
+            "median_s": float(np.median(runs[1:])),
+            "runs_s": runs[1:],
+        }
+        return stats, out
 
     progress(f"energy value and gradient, {m} x {n}, N = {args.times}")
-    energy = timed(lambda: grad(path))
-    options = _geodesic_options(args)
+    energy, _ = timed(lambda: grad(path))
     progress(f"geodesic solve, degree {args.degree}")
-    solve = timed(lambda: geodesic(f1, f2, metric, **options))
-    res = geodesic(f1, f2, metric, **options)
+    solve, res = timed(lambda: geodesic(f1, f2, metric, **options))
     return {
         "command": "bench",
         "settings": {

@@ -390,10 +390,7 @@ def grid_to_mesh(f) -> trimesh.Trimesh:
         ValueError: ``f`` is not a single well-formed surface on the grid.
     """
     # Validate a float64 copy: validate_surface returns a JAX array, float32 without x64.
-    f = np.asarray(f, dtype=np.float64)
-    validate_surface(f, "f")
-    if f.ndim != 3:
-        raise ValueError(f"f must be one surface (3, m, n); got shape {f.shape}")
+    f = _checked_surfaces(np.asarray(f, dtype=np.float64), "f", "(3, m, n)")
     m, n = f.shape[1:]
     vertices = np.concatenate(
         [f[:, 0, :1].T, f[:, 1:-1, :-1].reshape(3, -1).T, f[:, -1, :1].T], axis=0
@@ -497,7 +494,8 @@ def load_surface(path: str | os.PathLike, m: int | None = None, n: int | None = 
             # Keep float64 whatever the caller's JAX precision setting.
             with jax.enable_x64(True):
                 f = np.asarray(resample(f, m, n), dtype=np.float64)
-    validate_surface(f, f"the surface read from {str(path)!r}")
+    # Checked once: a valid grid resamples to a valid grid, and mesh_to_grid builds exact
+    # pole rows and seams.
     return f
 
 
