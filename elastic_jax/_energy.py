@@ -11,9 +11,8 @@ from jaxtyping import Array, ArrayLike, Float
 from ._differential import interior_frame
 from ._grid import integrate_interior
 from ._metric import SplitMetric, _split_bilinear
+from ._options import SCHEMES
 from ._validation import as_surface
-
-SCHEMES = ("forward", "central")
 
 
 def frame_speeds2(metric: SplitMetric, a1: Array, a2: Array, scheme: str) -> tuple[Array, Array]:
@@ -24,11 +23,17 @@ def frame_speeds2(metric: SplitMetric, a1: Array, a2: Array, scheme: str) -> tup
     forward: v_k = T (f_{k+1} - f_k) at f_k, k = 0..T-1, weights 1/T.
     central: v_k = T (f_{k+1} - f_{k-1}) / 2 at interior k, one-sided at the two ends,
     trapezoid weights (1/2, 1, ..., 1, 1/2) / T: symmetric under reversing the path.
+    midpoint: v_k = T (f_{k+1} - f_k) at (f_k + f_{k+1}) / 2, weights 1/T: the midpoint
+    rule for the energy of the piecewise-linear path through the frames.
     """
     n_times = a1.shape[-4]
     t = n_times - 1
-    if scheme == "forward":
-        base1, base2 = a1[..., :-1, :, :, :], a2[..., :-1, :, :, :]
+    if scheme in ("forward", "midpoint"):
+        if scheme == "forward":
+            base1, base2 = a1[..., :-1, :, :, :], a2[..., :-1, :, :, :]
+        else:
+            base1 = 0.5 * (a1[..., 1:, :, :, :] + a1[..., :-1, :, :, :])
+            base2 = 0.5 * (a2[..., 1:, :, :, :] + a2[..., :-1, :, :, :])
         v1 = t * (a1[..., 1:, :, :, :] - a1[..., :-1, :, :, :])
         v2 = t * (a2[..., 1:, :, :, :] - a2[..., :-1, :, :, :])
         weights = jnp.full((t,), 1.0 / t, dtype=a1.dtype)

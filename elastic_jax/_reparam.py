@@ -204,17 +204,16 @@ def _sample_bicubic(f, phi, theta):
     row = jnp.clip(jnp.floor(x), 0, m - 2)
     y = jnp.mod(theta * ((n - 1) / (2.0 * np.pi)), n - 1.0)
     col = jnp.floor(y)
-    lead = (1,) * (f.ndim - 2)
-    wr = [w.astype(f.dtype).reshape(lead + w.shape) for w in _cubic_weights(x - row)]
-    wc = [w.astype(f.dtype).reshape(lead + w.shape) for w in _cubic_weights(y - col)]
+    weights_r = jnp.stack(_cubic_weights(x - row), axis=-1).astype(f.dtype)
+    weights_c = jnp.stack(_cubic_weights(y - col), axis=-1).astype(f.dtype)
     i0, j0 = row.astype(jnp.int32), col.astype(jnp.int32)
-    out = 0.0
-    for a in range(4):
-        line = 0.0
-        for b in range(4):
-            line = line + wc[b] * ext[..., i0 + a, jnp.mod(j0 + b - 1, n - 1)]
-        out = out + wr[a] * line
-    return out
+    offsets = jnp.arange(4, dtype=jnp.int32)
+    rows = i0[..., None, None] + offsets[:, None]
+    cols = jnp.mod(j0[..., None, None] + offsets[None, :] - 1, n - 1)
+    # One gather of every 4 x 4 stencil (16 separate gathers compile and differentiate
+    # several times slower).
+    patch = ext[..., rows, cols]  # (..., *points, 4, 4)
+    return jnp.einsum("...ab,...a,...b->...", patch, weights_r, weights_c)
 
 
 @functools.partial(jax.jit, static_argnames=("method",))

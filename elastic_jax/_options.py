@@ -1,0 +1,151 @@
+"""One validated, hashable record of the options of a solve between shapes.
+
+Plain Python and numpy only (no JAX), so that every module and the command line can
+import it. The record is frozen and hashable: it is the static configuration of the
+jitted solves, so equal options never recompile.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+
+SOLVERS = ("bfgs", "lbfgs")
+SCHEMES = ("forward", "central", "midpoint")
+METHODS = ("joint", "coordinate")
+INITS = ("moebius", "icosahedral", "none")
+INTERPOLATIONS = ("bilinear", "bicubic")
+
+
+def check_choice(name: str, value, allowed: tuple[str, ...]) -> str:
+    """``value`` if it is one of ``allowed``; else a ValueError that names both."""
+    if not isinstance(value, str) or value not in allowed:
+        raise ValueError(f"{name} must be one of {allowed}; got {value!r}")
+    return value
+
+
+def check_int(name: str, value, minimum: int) -> int:
+    """A Python int >= minimum (numpy integers accepted; bools, floats and strings refused)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
+    return int(value)
+
+
+def check_positive(name: str, value) -> float:
+    """A finite float > 0 (ints accepted; NaN, inf, zero, negatives and non-numbers refused)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} must be a positive finite number; got {value!r}")
+    value = float(value)
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a positive finite number; got {value!r}")
+    return value
+
+
+@dataclasses.dataclass(frozen=True)
+class ShapeOptions:
+    """Options of a geodesic between shapes: its path, its registration, its checks.
+
+    One record travels from :func:`shape_geodesic` to :func:`karcher_mean`,
+    :func:`distance_matrix` and the command line; every field is checked when the record
+    is made (a ValueError names the field). Grid-dependent limits (a degree too high for
+    the grid) are checked when it is used. Change fields with ``options.replace(...)``.
+
+    The path (parametrized geodesics, paper Algorithm 1, MATH.md 4 and 7):
+        degree: spherical-harmonic degree of the path perturbations.
+        n_times: N >= 3 time points, end points included.
+        solver: ``"bfgs"`` (optimistix) or ``"lbfgs"`` (jaxopt), for every inner solve.
+        max_steps: step limit of each inner solve.
+        tol: inner tolerance on the scaled problems; None: 1e-6 in float64, 1e-4 in float32.
+        scheme: time discretization. ``"midpoint"`` (default): each step's metric is
+            taken at the middle of the step, so the energy is the midpoint rule for the
+            energy of the piecewise-linear path; second order, symmetric, and it cannot
+            be lowered by large steps. ``"forward"`` (the paper's) weighs a step at its
+            start and ``"central"`` has an odd-even mode: registration exploits both
+            (README, "What the distance means").
+
+    The registration (paper sections 4.2-4.3):
+        method: ``"joint"`` (Algorithm 2: path and reparametrization together, default)
+            or ``"coordinate"`` (alternate: the reparametrization with the path's
+            perturbation held, then the path).
+        vf_degree: degree of the vector fields of a Diff step.
+        outer_steps: most registration rounds; the loop stops earlier once a round
+            changes the energy by at most outer_tol (E + outer_tol E_0).
+        outer_tol: that relative change (E_0: the parametrized energy).
+        init: ``"moebius"`` (default: the 60 icosahedral rotations ranked, the best
+            ``init_candidates`` refined over the whole Moebius group of S^2),
+            ``"icosahedral"`` (the paper's Remark 4: rotations only) or ``"none"``;
+            then one Diff step of degree init_degree.
+        init_degree: degree of that first Diff step.
+        init_candidates: how many ranked rotations are refined over the Moebius group.
+        interpolation: ``"bicubic"`` (default) or ``"bilinear"`` (the paper's) for f o gamma.
+
+    The checks:
+        refinement: re-evaluate the result with every time step halved and on the
+            (2m - 1) x (2n - 1) grid (:class:`Refinement`).
+        saddle_checks: at most this many escapes from saddle points of the final
+            geodesic solve (0: none).
+    """
+
+    degree: int = 7
+    n_times: int = 13
+    solver: str = "bfgs"
+    max_steps: int = 500
+    tol: float | None = None
+    scheme: str = "midpoint"
+    method: str = "joint"
+    vf_degree: int = 7
+    outer_steps: int = 10
+    outer_tol: float = 1e-3
+    init: str = "moebius"
+    init_degree: int = 2
+    init_candidates: int = 4
+    interpolation: str = "bicubic"
+    refinement: bool = True
+    saddle_checks: int = 2
+
+    def __post_init__(self):
+        ints = {
+            "degree": 1,
+            "n_times": 3,
+            "max_steps": 1,
+            "vf_degree": 1,
+            "outer_steps": 0,
+            "init_degree": 1,
+            "init_candidates": 1,
+            "saddle_checks": 0,
+        }
+        for name, minimum in ints.items():
+            object.__setattr__(self, name, check_int(name, getattr(self, name), minimum))
+        if self.init_candidates > 60:
+            raise ValueError(
+                f"init_candidates must be at most 60 (the icosahedral rotations); "
+                f"got {self.init_candidates}"
+            )
+        choices = {
+            "solver": SOLVERS,
+            "scheme": SCHEMES,
+            "method": METHODS,
+            "init": INITS,
+            "interpolation": INTERPOLATIONS,
+        }
+        for name, allowed in choices.items():
+            check_choice(name, getattr(self, name), allowed)
+        if self.tol is not None:
+            object.__setattr__(self, "tol", check_positive("tol", self.tol))
+        object.__setattr__(self, "outer_tol", check_positive("outer_tol", self.outer_tol))
+        if not isinstance(self.refinement, bool):
+            raise ValueError(f"refinement must be True or False; got {self.refinement!r}")
+
+    def replace(self, **changes) -> ShapeOptions:
+        """A copy with some fields changed (validated again)."""
+        unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(self)})
+        if unknown:
+            raise TypeError(f"ShapeOptions has no field(s) {unknown}")
+        return dataclasses.replace(self, **changes)
+
+    def as_dict(self) -> dict:
+        """The fields as a plain dict (for summaries and checkpoint fingerprints)."""
+        return dataclasses.asdict(self)
