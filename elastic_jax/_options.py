@@ -77,8 +77,8 @@ class ShapeOptions:
         init: ``"moebius"`` (default: the 60 icosahedral rotations ranked, the best
             ``init_candidates`` refined over the whole Moebius group of S^2),
             ``"icosahedral"`` (the paper's Remark 4: rotations only) or ``"none"``;
-            then one Diff step of degree init_degree.
-        init_degree: degree of that first Diff step.
+            then registration rounds on the straight line (coarse in time) before the
+            rounds with the whole path.
         init_candidates: how many ranked rotations are refined over the Moebius group.
         interpolation: ``"bicubic"`` (default) or ``"bilinear"`` (the paper's) for f o gamma.
 
@@ -100,7 +100,6 @@ class ShapeOptions:
     outer_steps: int = 10
     outer_tol: float = 1e-3
     init: str = "moebius"
-    init_degree: int = 2
     init_candidates: int = 4
     interpolation: str = "bicubic"
     refinement: bool = True
@@ -113,7 +112,6 @@ class ShapeOptions:
             "max_steps": 1,
             "vf_degree": 1,
             "outer_steps": 0,
-            "init_degree": 1,
             "init_candidates": 1,
             "saddle_checks": 0,
         }
