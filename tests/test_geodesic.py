@@ -156,11 +156,15 @@ def _refined_in_time(path, times):
     return path
 
 
-def test_saddle_checks_zero_reports_the_saddle(saddle, escaped):
+def test_saddle_checks_zero_reports_the_saddle(saddle_pair, saddle, escaped):
     # The old answer, a stationary point with a direction of strongly negative curvature.
     assert float(saddle.energy) == pytest.approx(27.8115, rel=1e-5)
     assert float(saddle.min_curvature) < -1.0
     assert bool(saddle.converged)  # 0 reports the estimate only
+    unchecked = ej.geodesic(*saddle_pair, METRIC, saddle_checks=None, **SADDLE)
+    assert float(unchecked.energy) == float(saddle.energy)
+    assert int(unchecked.num_steps) == int(saddle.num_steps)
+    assert bool(jnp.isnan(unchecked.min_curvature))
     # Why escaping is not the default: the lower minimum exploits the coarse time steps.
     # Refined to 4x the time points (the continuum's side), the saddle path drops to 24.59
     # (N = 17 solves give 24.23) and the escaped one rises to 28.54.
@@ -265,7 +269,7 @@ def test_errors(cylinders):
     with pytest.raises(ValueError, match=r"init must have shape \(n_times - 2, L\) = \(11, 189\)"):
         ej.geodesic(f1, f2, METRIC, init=jnp.zeros((3, 3)))
     for bad in (-1, 1.5, True):
-        with pytest.raises(ValueError, match="saddle_checks must be an integer >= 0"):
+        with pytest.raises(ValueError, match="saddle_checks must be None or an integer >= 0"):
             ej.geodesic(f1, f2, METRIC, saddle_checks=bad)
     with pytest.raises(ValueError, match="one surface"):
         ej.geodesic(jnp.stack([f1, f1]), jnp.stack([f2, f2]), METRIC)
