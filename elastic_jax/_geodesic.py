@@ -27,7 +27,7 @@ from ._grid import integrate_interior
 from ._harmonics import _harmonics_np, check_degree
 from ._interp import resample
 from ._metric import SplitMetric, _split_bilinear
-from ._solvers import check_solver, minimize, result_message
+from ._solvers import check_solver, lanczos_smallest, minimize, result_message
 from ._validation import as_surface
 
 
@@ -44,11 +44,18 @@ class GeodesicResult(NamedTuple):
         energy: ``()`` the path energy (MATH.md 4) of ``path``.
         straight_energy: ``()`` the energy of the straight line (the starting point).
         coefficients: ``(N - 2, L)`` C of the interior frames in :func:`surface_basis` order.
-        num_steps: ``()`` solver steps taken.
-        converged: ``()`` whether the solver met its tolerance within max_steps.
+        num_steps: ``()`` solver steps taken, over all minimizations (the first and
+            those after each saddle escape).
+        converged: ``()`` whether the solver met its tolerance within max_steps and, when
+            saddle escapes were asked for (``saddle_checks >= 1``), the end point is not a
+            saddle (``min_curvature >= saddle_threshold(dtype)``).
         result: the solver's result code (``optimistix.RESULTS``; jaxopt's outcome mapped to it).
         grad_norm: ``()`` 2-norm of the gradient of the scaled objective at the end
             (energy / straight_energy in whitened coefficients, where its Hessian is ~2 I).
+        min_curvature: ``()`` Lanczos estimate of the smallest eigenvalue of that scaled
+            objective's Hessian at the end: an upper bound of it (Ritz value), positive
+            at a strict minimum, negative at a saddle (whose direction the solver never
+            explored). NaN where it is not estimated (the inner solves of shape_geodesic).
     """
 
     path: Float[Array, "N 3 m n"]
@@ -60,11 +67,18 @@ class GeodesicResult(NamedTuple):
     converged: Array
     result: optx.RESULTS
     grad_norm: Float[Array, ""]
+    min_curvature: Float[Array, ""]
 
     @property
     def message(self) -> str:
         """Why the solver stopped, in its own words ('' when it converged)."""
-        return result_message(self.result)
+        message = result_message(self.result)
+        if not message and not self.converged:
+            message = (
+                f"ended at a saddle point (smallest Hessian eigenvalue "
+                f"{float(self.min_curvature):.3g}); raise saddle_checks"
+            )
+        return message
 
 
 @functools.cache
@@ -185,18 +199,117 @@ def _scaling(metric, f1, f2, dframe, n_times, scheme) -> _Scaling:
     return _Scaling(energy_scale, straight, a, b, a_inv, b_inv)
 
 
-def _solve(metric, f1, f2, init, values, dframe, *, n_times, solver, max_steps, tol, scheme):
-    """One parametrized geodesic (traceable; the jitted entry point is ``_geodesic``)."""
+def saddle_threshold(dtype) -> float:
+    """Curvature below which a stationary point of the scaled objective counts as a saddle.
+
+    The scaled objective is energy / straight-line energy in whitened coordinates, where
+    the Hessian is about 2 I. A unit step along an eigenvector of eigenvalue -1e-3
+    lowers it by 5e-4, far above the solver's tolerance in float64 (1e-6), while the
+    Lanczos estimate itself is exact to ~1e-10 there: -1e-3 in float64. In float32 the
+    estimate scatters by ~5e-5 (rounding of the Hessian-vector products), but the solver
+    stops about 100 times farther from the stationary point (tol 1e-4, gradient ~5e-4),
+    which moved the estimate by 2e-3 on the sphere -> bent cylinder pair: -1e-2 keeps a
+    factor 5 above that, so that a float32 minimum is not called a saddle.
+    """
+    return -1e-3 if jnp.dtype(dtype) == jnp.float64 else -1e-2
+
+
+# Lanczos steps of the saddle check (one Hessian-vector product each): enough to resolve
+# a negative eigenvalue separated from a spectrum near 2 by O(1).
+_LANCZOS_ITERATIONS = 24
+# Trial lengths along the unit negative-curvature direction, in whitened coordinates: the
+# straight line has scaled energy 1 and the Hessian is ~2 I, so a unit step changes the
+# energy by O(1), as much as the whole bend from the straight line to a geodesic; the
+# lengths go from a small move to most of that.
+_ESCAPE_LENGTHS = (0.05, 0.1, 0.2, 0.4, 0.8)
+
+
+def _solve(
+    metric,
+    f1,
+    f2,
+    init,
+    values,
+    dframe,
+    *,
+    n_times,
+    solver,
+    max_steps,
+    tol,
+    scheme,
+    saddle_checks=None,
+):
+    """One parametrized geodesic (traceable; the jitted entry point is ``_geodesic``).
+
+    saddle_checks (static): None minimizes only (min_curvature is NaN; the inner solves
+    of shape_geodesic). 0 also estimates the smallest Hessian eigenvalue of the scaled
+    objective at the result (Lanczos). k >= 1 then, while that estimate is below
+    ``saddle_threshold`` and fewer than k escapes were made, steps along its eigenvector
+    (the lowest of f(x), f(x +- s v) over a few lengths s) and minimizes again: a start in
+    a symmetric subspace keeps BFGS there, where it can stop at a saddle (MATH.md 9).
+    """
     scaling = _scaling(metric, f1, f2, dframe, n_times, scheme)
     straight = _straight_frames(f1, f2, n_times)
+    dtype = f1.dtype
+    threshold = saddle_threshold(dtype)
 
     def objective(z):
         frames = _perturbed_frames(straight, scaling.coefficients(z), dframe)
         return frame_energy(metric, *frames, scheme) / scaling.energy_scale
 
-    found = minimize(objective, scaling.whitened(init), solver=solver, max_steps=max_steps, tol=tol)
-    value, grad = jax.value_and_grad(objective)(found.x)
-    coefficients = scaling.coefficients(found.x)
+    x0 = scaling.whitened(init)
+    # A fixed random start: deterministic, and with probability one not inside the
+    # symmetric subspace that the solver's iterates (and a structured vector) keep to.
+    # Drawn by numpy at trace time (the shape is static): a constant, no RNG to compile.
+    lanczos_start = jnp.asarray(np.random.default_rng(0).standard_normal(x0.shape), dtype)
+
+    def checked_minimum(start):
+        """Minimize from start; the Lanczos estimate (value, vector) of the end's curvature."""
+        found = minimize(objective, start, solver=solver, max_steps=max_steps, tol=tol)
+        # H v = d/de grad(x + e v): the jvp of grad, linearized once so that each Lanczos
+        # step runs only the tangent part, not the gradient at x again.
+        _, hessian_vector = jax.linearize(jax.grad(objective), found.x)
+        curvature, direction = lanczos_smallest(
+            hessian_vector, lanczos_start, iterations=_LANCZOS_ITERATIONS
+        )
+        return found, curvature, direction
+
+    def escape(x, direction):
+        # The lowest of f(x) and f(x +- s v): never uphill.
+        lengths = jnp.asarray(_ESCAPE_LENGTHS, dtype)
+        trials = jnp.concatenate([jnp.zeros(1, dtype), lengths, -lengths])
+        energies = jax.lax.map(lambda s: objective(x + s * direction), trials)
+        return x + trials[jnp.argmin(energies)] * direction
+
+    def solve_round(state):
+        x, direction, _, steps, _, rounds = state
+        # One loop for the first solve and the escapes, so that the solver and the
+        # Hessian-vector product are compiled once.
+        start = jax.lax.cond(rounds > 0, escape, lambda x, _: x, x, direction)
+        found, curvature, direction = checked_minimum(start)
+        return found.x, direction, curvature, steps + found.num_steps, found.result, rounds + 1
+
+    def again(state):
+        curvature, rounds = state[2], state[5]
+        return (rounds == 0) | ((rounds <= saddle_checks) & (curvature < threshold))
+
+    if saddle_checks is None:
+        found = minimize(objective, x0, solver=solver, max_steps=max_steps, tol=tol)
+        x, num_steps, result = found.x, found.num_steps, found.result
+        curvature = jnp.full((), jnp.nan, dtype)
+    elif saddle_checks == 0:
+        found, curvature, _ = checked_minimum(x0)
+        x, num_steps, result = found.x, found.num_steps, found.result
+    else:
+        zero = jnp.zeros((), jnp.int32)
+        state = (x0, jnp.zeros_like(x0), jnp.zeros((), dtype), zero, optx.RESULTS.successful, zero)
+        x, _, curvature, num_steps, result, _ = jax.lax.while_loop(again, solve_round, state)
+    converged = result == optx.RESULTS.successful
+    if saddle_checks:
+        # Escapes were asked for: a saddle still at the end is a failed solve.
+        converged = converged & (curvature >= threshold)
+    value, grad = jax.value_and_grad(objective)(x)
+    coefficients = scaling.coefficients(x)
     energy = value * scaling.energy_scale
     return GeodesicResult(
         path=_path(f1, f2, coefficients, values, n_times),
@@ -204,14 +317,17 @@ def _solve(metric, f1, f2, init, values, dframe, *, n_times, solver, max_steps, 
         energy=energy,
         straight_energy=scaling.straight,
         coefficients=coefficients,
-        num_steps=found.num_steps,
-        converged=found.result == optx.RESULTS.successful,
-        result=found.result,
+        num_steps=num_steps,
+        converged=converged,
+        result=result,
         grad_norm=jnp.linalg.norm(grad),
+        min_curvature=curvature,
     )
 
 
-_geodesic = jax.jit(_solve, static_argnames=("n_times", "solver", "max_steps", "tol", "scheme"))
+_geodesic = jax.jit(
+    _solve, static_argnames=("n_times", "solver", "max_steps", "tol", "scheme", "saddle_checks")
+)
 
 
 def upsample_coefficients(
@@ -294,6 +410,7 @@ def geodesic(
     init: Float[ArrayLike, "N-2 L"] | None = None,
     scheme: str = "forward",
     schedule: Sequence[tuple[int, ...]] = (),
+    saddle_checks: int | None = 0,
 ) -> GeodesicResult:
     """Geodesic between two parametrized surfaces under a split metric (paper Algorithm 1).
 
@@ -319,6 +436,22 @@ def geodesic(
             Table 3); a level with a grid solves on f1, f2 resampled bilinearly, e.g.
             ``[(4, 5, 25, 49), (7, 7)]``. Spherical-harmonic coefficients do not depend
             on the grid, so they carry over unchanged.
+        saddle_checks: after the minimization, the smallest eigenvalue of the scaled
+            objective's Hessian is estimated by 24 Lanczos steps (Hessian-vector products,
+            reported as ``min_curvature``). With ``saddle_checks = k >= 1``, an end point
+            whose estimate is below ``saddle_threshold`` (-1e-3 in float64, -1e-2 in
+            float32; the Hessian is ~2 I there) is left along its eigenvector and the path
+            minimized again, at most k times; one still a saddle after that has
+            ``converged=False``. 0 (the default) only reports the estimate; None skips it
+            (``min_curvature`` is NaN): the 24 products cost about as much as 35 to 70
+            BFGS steps at degree 7, N = 13 on 25 x 49 and 50 x 99. A start in a
+            symmetric subspace (mirror-symmetric pairs, concentric spheres) keeps BFGS in
+            it, where it can stop at a saddle (MATH.md 9), but at coarse n_times the
+            lower minima off that subspace can exploit the time discretization: sphere ->
+            bent cylinder at N = 5 escapes from E = 27.81 to 26.50, yet these paths
+            refined to 4 times the time points have energies 24.59 and 28.54, and both
+            solves at N = 9 or 17 end at the same symmetric minimum. Check an escaped
+            path by refining it in time (MATH.md 9).
 
     Returns:
         :class:`GeodesicResult`.
@@ -336,6 +469,10 @@ def geodesic(
     m, n = f1.shape[-2:]
     check_degree(degree, m, n)
     tol = _check_solve_options(n_times, solver, max_steps, tol, scheme, f1.dtype)
+    if saddle_checks is not None and (
+        isinstance(saddle_checks, bool) or not isinstance(saddle_checks, int) or saddle_checks < 0
+    ):
+        raise ValueError(f"saddle_checks must be None or an integer >= 0; got {saddle_checks!r}")
     size = 3 * ((degree + 1) ** 2 - 1)
     if init is None:
         init = jnp.zeros((n_times - 2, size), f1.dtype)
@@ -352,6 +489,7 @@ def geodesic(
                 max_steps=max_steps,
                 tol=tol,
                 scheme=scheme,
+                saddle_checks=saddle_checks,
             )
             init = upsample_coefficients(coarse.coefficients, level_degree, degree, n_times)
     else:
@@ -376,11 +514,15 @@ def geodesic(
         max_steps=max_steps,
         tol=float(tol),
         scheme=scheme,
+        saddle_checks=saddle_checks,
     )
     if not isinstance(result.converged, jax.core.Tracer) and not bool(result.converged):
+        if result.result == optx.RESULTS.successful:
+            reason = f"and {saddle_checks} saddle escapes: {result.message}"
+        else:
+            reason = f"without meeting tol={tol:g}: {result.message}"
         warnings.warn(
-            f"geodesic: {solver} stopped after {int(result.num_steps)} steps without meeting "
-            f"tol={tol:g}: {result.message}",
+            f"geodesic: {solver} stopped after {int(result.num_steps)} steps {reason}",
             ConvergenceWarning,
             stacklevel=2,
         )

@@ -81,6 +81,72 @@ def _run(fun, x0, *, solver, max_steps, tol) -> Minimum:
     return Minimum(x, result, jnp.asarray(state.iter_num, jnp.int32))
 
 
+def lanczos_smallest(
+    matvec: Callable[[Array], Array], start: Array, *, iterations: int
+) -> tuple[Array, Array]:
+    """Smallest eigenvalue and unit eigenvector of a symmetric operator, by Lanczos.
+
+    k = min(iterations, n) steps (static) of the Lanczos recurrence from ``start``,
+    q_0 = start / |start|, beta_j q_{j+1} = H q_j - alpha_j q_j - beta_{j-1} q_{j-1},
+    alpha_j = q_j . H q_j, with full reorthogonalization of each new vector against all
+    earlier ones (applied twice, "twice is enough"); the smallest eigenpair (theta, y) of
+    the tridiagonal T = tridiag(beta, alpha, beta) gives the Ritz pair (theta, Q^T y).
+    theta >= lambda_min(H) (Cauchy interlacing), with equality up to rounding once k = n;
+    the extreme eigenvalues converge first, fastest when lambda_min is separated from
+    the rest of the spectrum. k operator products; memory (k + 1) n.
+
+    Args:
+        matvec: v -> H v on arrays shaped like ``start`` (e.g. a Hessian-vector product).
+        start: nonzero start vector, any shape (flattened inside); it should not lie in an
+            invariant subspace of H (a random vector does not).
+        iterations: number of Lanczos steps (static).
+
+    Returns:
+        ``(theta, v)``: ``()`` the smallest Ritz value and ``v`` (shape of ``start``) its
+        unit Ritz vector. Traceable and vmappable.
+    """
+    shape, dtype = start.shape, start.dtype
+    n = start.size
+    k = min(iterations, n)
+    q0 = start.reshape(n) / jnp.linalg.norm(start)
+    eps, tiny = jnp.finfo(dtype).eps, jnp.finfo(dtype).tiny
+
+    def step(j, carry):
+        basis, alpha, beta = carry
+        w = matvec(basis[j].reshape(shape)).reshape(n)
+        alpha = alpha.at[j].set(basis[j] @ w)
+        # Rows j + 1.. of basis are still zero, so projecting on all rows is harmless; it
+        # subtracts alpha_j q_j and beta_{j-1} q_{j-1} and the rounding drift at once.
+        w = w - basis.T @ (basis @ w)
+        w = w - basis.T @ (basis @ w)
+        norm = jnp.linalg.norm(w)
+        # Breakdown (w is rounding noise of |H q_j|): the Krylov space is invariant and T
+        # already has H's eigenvalues on it; go on from a new direction orthogonal to it,
+        # decoupled (beta = 0), instead of normalizing noise or dividing by zero.
+        scale = jnp.abs(alpha[j]) + norm
+        # The coordinate axis least represented in the span has |projection|^2 <= (j+1)/n
+        # < 1, so its orthogonal part is never zero before k = n.
+        axis = jnp.argmin(jnp.sum(basis * basis, axis=0))
+        fresh = jnp.zeros(n, dtype).at[axis].set(1.0)
+        fresh = fresh - basis.T @ (basis @ fresh)
+        fresh = fresh - basis.T @ (basis @ fresh)
+        broke = norm <= 100 * eps * scale
+        w = jnp.where(broke, fresh, w)
+        beta = beta.at[j].set(jnp.where(broke, 0.0, norm))
+        # After k = n steps even the fresh direction is zero; row k is never used.
+        basis = basis.at[j + 1].set(w / jnp.maximum(jnp.linalg.norm(w), tiny))
+        return basis, alpha, beta
+
+    basis = jnp.zeros((k + 1, n), dtype).at[0].set(q0)
+    carry = (basis, jnp.zeros(k, dtype), jnp.zeros(k, dtype))
+    basis, alpha, beta = jax.lax.fori_loop(0, k, step, carry)
+    off = beta[: k - 1]
+    tridiagonal = jnp.diag(alpha) + jnp.diag(off, 1) + jnp.diag(off, -1)
+    theta, y = jnp.linalg.eigh(tridiagonal)
+    vector = basis[:k].T @ y[:, 0]
+    return theta[0], (vector / jnp.linalg.norm(vector)).reshape(shape)
+
+
 def result_message(result: optx.RESULTS) -> str:
     """The solver's words for a (concrete, unbatched) result code; '' on success."""
     return optx.RESULTS[result] if result != optx.RESULTS.successful else ""

@@ -5,6 +5,8 @@ import pytest
 
 import elastic_jax as ej
 from elastic_jax import shapes
+from elastic_jax._energy import frame_energy
+from elastic_jax._geodesic import _basis_np, _perturbed_frames, _scaling, _straight_frames
 
 from .conftest import relerr
 
@@ -112,6 +114,119 @@ def test_warm_start_and_multiresolution(cylinders, forward):
     assert relerr(coarse_grid.energy, forward.energy) < 1e-5
 
 
+# Mirror-symmetric pair: BFGS from the straight line stays in the symmetric subspace and
+# stops at a saddle of the discrete energy (MATH.md 9).
+SADDLE = {"degree": 3, "n_times": 5}
+
+
+@pytest.fixture(scope="module")
+def saddle_pair():
+    return shapes.sample(shapes.sphere, 13, 25), shapes.sample(shapes.bent_cylinder, 13, 25)
+
+
+@pytest.fixture(scope="module")
+def saddle(saddle_pair):
+    return ej.geodesic(*saddle_pair, METRIC, saddle_checks=0, **SADDLE)
+
+
+@pytest.fixture(scope="module")
+def escaped(saddle_pair):
+    return ej.geodesic(*saddle_pair, METRIC, saddle_checks=2, **SADDLE)
+
+
+def _scaled_objective(f1, f2, degree, n_times):
+    """The whitened objective the solver minimizes, and the map coefficients -> its z."""
+    m, n = f1.shape[-2:]
+    dframe = jnp.asarray(_basis_np(m, n, degree)[1], f1.dtype)
+    scaling = _scaling(METRIC, f1, f2, dframe, n_times, "forward")
+    straight = _straight_frames(f1, f2, n_times)
+
+    def objective(z):
+        frames = _perturbed_frames(straight, scaling.coefficients(z), dframe)
+        return frame_energy(METRIC, *frames, "forward") / scaling.energy_scale
+
+    return objective, scaling.whitened
+
+
+def _refined_in_time(path, times):
+    """The path with each time step halved `times` times (linear interpolation)."""
+    for _ in range(times):
+        steps = jnp.stack([path[:-1], 0.5 * (path[:-1] + path[1:])], axis=1)
+        path = jnp.concatenate([steps.reshape(-1, *path.shape[1:]), path[-1:]])
+    return path
+
+
+def test_saddle_checks_zero_reports_the_saddle(saddle_pair, saddle, escaped):
+    # The old answer, a stationary point with a direction of strongly negative curvature.
+    assert float(saddle.energy) == pytest.approx(27.8115, rel=1e-5)
+    assert float(saddle.min_curvature) < -1.0
+    assert bool(saddle.converged)  # 0 reports the estimate only
+    unchecked = ej.geodesic(*saddle_pair, METRIC, saddle_checks=None, **SADDLE)
+    assert float(unchecked.energy) == float(saddle.energy)
+    assert int(unchecked.num_steps) == int(saddle.num_steps)
+    assert bool(jnp.isnan(unchecked.min_curvature))
+    # Why escaping is not the default: the lower minimum exploits the coarse time steps.
+    # Refined to 4x the time points (the continuum's side), the saddle path drops to 24.59
+    # (N = 17 solves give 24.23) and the escaped one rises to 28.54.
+    refined_saddle = float(ej.path_energy(METRIC, _refined_in_time(saddle.path, 3)))
+    refined_escaped = float(ej.path_energy(METRIC, _refined_in_time(escaped.path, 3)))
+    assert refined_saddle == pytest.approx(24.591, rel=1e-3)
+    assert refined_escaped == pytest.approx(28.542, rel=1e-3)
+
+
+def test_saddle_escape_reaches_the_minimum(saddle_pair, saddle, escaped):
+    assert float(escaped.energy) == pytest.approx(26.5019, rel=1e-3)
+    assert bool(escaped.converged) and float(escaped.min_curvature) > 0
+    assert float(escaped.grad_norm) < 1e-4
+    # num_steps counts every minimization: the first one alone is the saddle solve.
+    assert int(escaped.num_steps) > int(saddle.num_steps)
+    f1, f2 = (f.astype(jnp.float32) for f in saddle_pair)
+    single = ej.geodesic(f1, f2, METRIC, saddle_checks=2, **SADDLE)
+    assert single.energy.dtype == jnp.float32 and bool(single.converged)
+    assert relerr(single.distance, escaped.distance) < 1e-3
+    # Batched: every item escapes (or not) on its own; f1 = f2 stays exactly 0.
+    f1, f2 = saddle_pair
+    batched = jax.vmap(lambda g: ej.geodesic(f1, g, METRIC, saddle_checks=2, **SADDLE))(
+        jnp.stack([f2, f1])
+    )
+    assert relerr(batched.energy[0], escaped.energy) < 1e-9
+    assert float(batched.distance[1]) == 0.0 and bool(batched.converged.all())
+    same = ej.geodesic(f1, f1, METRIC, saddle_checks=2, **SADDLE)
+    assert float(same.distance) == 0.0 and bool(same.converged)
+
+
+def test_a_saddle_left_after_the_checks_is_not_converged(saddle_pair, monkeypatch):
+    # Without trial lengths an escape cannot move: the saddle stays after every check.
+    monkeypatch.setattr("elastic_jax._geodesic._ESCAPE_LENGTHS", ())
+    with pytest.warns(ej.ConvergenceWarning, match="2 saddle escapes: ended at a saddle point"):
+        # max_steps=999: a configuration of its own, not one compiled with the real lengths.
+        res = ej.geodesic(*saddle_pair, METRIC, saddle_checks=2, max_steps=999, **SADDLE)
+    assert not bool(res.converged)
+    assert float(res.energy) == pytest.approx(27.8115, rel=1e-5)
+    assert float(res.min_curvature) < -1.0
+
+
+def test_min_curvature_matches_the_dense_hessian(saddle_pair, saddle, escaped):
+    @jax.jit
+    def dense_hessian(coefficients):
+        objective, whitened = _scaled_objective(*saddle_pair, **SADDLE)
+        z = whitened(coefficients)
+        return jax.hessian(objective)(z).reshape(z.size, z.size)
+
+    for res in (saddle, escaped):
+        lowest = float(np.linalg.eigvalsh(np.asarray(dense_hessian(res.coefficients)))[0])
+        error = float(res.min_curvature) - lowest
+        # A Ritz value bounds the smallest eigenvalue from above (up to rounding).
+        assert error > -1e-9
+        if lowest < 0:
+            # -2.108, separated from the next (-1.506): 24 steps resolve it to rounding.
+            assert error < 1e-8
+        else:
+            # 0.0763 at the low end of a cluster (0.20, 0.24, ...) of a spectrum reaching
+            # 28 (135 variables): 24 steps leave 5e-3, 0.25 percent of the Hessian's ~2.
+            assert error < 1e-2
+
+
 def test_upsampling_keeps_the_perturbation():
     rng = np.random.default_rng(0)
     coarse = jnp.asarray(rng.standard_normal((3, 3 * 15)))  # degree 3, N = 5
@@ -153,5 +268,8 @@ def test_errors(cylinders):
         ej.geodesic(f1, f2, METRIC, solver="newton")
     with pytest.raises(ValueError, match=r"init must have shape \(n_times - 2, L\) = \(11, 189\)"):
         ej.geodesic(f1, f2, METRIC, init=jnp.zeros((3, 3)))
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="saddle_checks must be None or an integer >= 0"):
+            ej.geodesic(f1, f2, METRIC, saddle_checks=bad)
     with pytest.raises(ValueError, match="one surface"):
         ej.geodesic(jnp.stack([f1, f1]), jnp.stack([f2, f2]), METRIC)
