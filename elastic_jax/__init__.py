@@ -36,11 +36,14 @@ from ._interp import resample as resample
 from ._karcher import KarcherResult as KarcherResult
 from ._karcher import distance_matrix as distance_matrix
 from ._karcher import karcher_mean as karcher_mean
+from ._options import ShapeOptions as ShapeOptions
 from ._reparam import diffeomorphism as diffeomorphism
 from ._reparam import diffeomorphism_bound as diffeomorphism_bound
 from ._reparam import jacobian_determinant as jacobian_determinant
+from ._reparam import moebius as moebius
 from ._reparam import reparametrize as reparametrize
 from ._reparam import rotate_parametrization as rotate_parametrization
+from ._shape import Refinement as Refinement
 from ._shape import ShapeGeodesicResult as ShapeGeodesicResult
 from ._shape import shape_geodesic as shape_geodesic
 from ._so3 import hat as hat

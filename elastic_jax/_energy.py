@@ -83,18 +83,22 @@ def _check_scheme(scheme: str) -> None:
 
 
 def path_energy(
-    metric: SplitMetric, path: Float[ArrayLike, "*batch N 3 m n"], scheme: str = "forward"
+    metric: SplitMetric, path: Float[ArrayLike, "*batch N 3 m n"], scheme: str = "midpoint"
 ) -> Float[Array, "*batch"]:
     """Discrete energy of a path of surfaces (MATH.md 4; paper eq. (4.4)).
 
-    forward (default, the paper's): E = (1/T) sum_{k=0}^{T-1} G_{f_k}(T (f_{k+1} - f_k)),
-    T = N - 1. central: velocities by central differences at interior times (one-sided at
-    the ends) and the trapezoid rule in time. The geodesic distance is sqrt(min E).
+    midpoint (default): E = (1/T) sum_{k=0}^{T-1} G_{(f_k + f_{k+1})/2}(T (f_{k+1} - f_k)),
+    T = N - 1: the midpoint rule for the energy of the piecewise-linear path through the
+    frames; second order and symmetric under reversal. forward (MATH.md 4, the paper's):
+    the metric at f_k instead; first order, and its minimizers exploit large steps
+    (README, "What the distance means"). central: velocities by central differences at
+    interior times (one-sided at the ends) and the trapezoid rule in time; it cannot see
+    an odd-even zigzag of the frames. The geodesic distance is sqrt(min E).
 
     Args:
         metric: the split metric coefficients.
         path: ``(..., N, 3, m, n)`` surfaces f_0 .. f_{N-1} at t_k = k / (N - 1), N >= 2.
-        scheme: ``"forward"`` or ``"central"``.
+        scheme: ``"midpoint"``, ``"forward"`` or ``"central"``.
 
     Returns:
         ``(...)`` energies.
@@ -111,17 +115,18 @@ def path_energy(
 
 
 def path_length(
-    metric: SplitMetric, path: Float[ArrayLike, "*batch N 3 m n"], scheme: str = "forward"
+    metric: SplitMetric, path: Float[ArrayLike, "*batch N 3 m n"], scheme: str = "midpoint"
 ) -> Float[Array, "*batch"]:
     """Discrete length of a path of surfaces (MATH.md 4).
 
-    forward: L = (1/T) sum_{k=0}^{T-1} sqrt(G_{f_k}(T (f_{k+1} - f_k))); central as in
-    :func:`path_energy`. L^2 <= E with equality for constant speed.
+    L = (1/T) sum_{k=0}^{T-1} sqrt(G_{b_k}(T (f_{k+1} - f_k))) with b_k = (f_k + f_{k+1})/2
+    (midpoint, default) or f_k (forward); central as in :func:`path_energy`.
+    L^2 <= E with equality for constant speed.
 
     Args:
         metric: the split metric coefficients.
         path: ``(..., N, 3, m, n)``, N >= 2.
-        scheme: ``"forward"`` or ``"central"``.
+        scheme: ``"midpoint"``, ``"forward"`` or ``"central"``.
 
     Returns:
         ``(...)`` lengths.

@@ -408,9 +408,9 @@ def geodesic(
     max_steps: int = 1000,
     tol: float | None = None,
     init: Float[ArrayLike, "N-2 L"] | None = None,
-    scheme: str = "forward",
+    scheme: str = "midpoint",
     schedule: Sequence[tuple[int, ...]] = (),
-    saddle_checks: int | None = 0,
+    saddle_checks: int | None = 1,
 ) -> GeodesicResult:
     """Geodesic between two parametrized surfaces under a split metric (paper Algorithm 1).
 
@@ -430,7 +430,16 @@ def geodesic(
         tol: solver tolerance on the scaled problem (default 1e-6 in float64, 1e-4 in float32);
             see ``minimize`` in ``_solvers.py`` for what each solver compares with it.
         init: ``(N - 2, L)`` coefficients of an earlier solve (warm start); zeros by default.
-        scheme: ``"forward"`` (the paper's) or ``"central"`` time differences.
+        scheme: ``"midpoint"`` (default), ``"forward"`` (the paper's) or ``"central"``
+            (see :func:`path_energy`). The forward scheme's discrete energy has minima
+            that exploit large time steps, and its symmetric solutions are often saddles:
+            sphere -> bent cylinder (13 x 25, degree 3, N = 5) ends at a saddle with
+            E = 27.81 whose escape reaches 26.50, and that path refined to 2 and 4 times
+            the time points has 28.83 and 28.85; the concentric spheres' straight line is
+            a forward saddle (eigenvalue -3.9 at N = 7, 25 x 49) whose escape has 16.6
+            against the closed form 25.0, and 60.1 when refined. The midpoint solutions
+            are minima (eigenvalues 0.61 and 1.99) at 23.27 and the closed form, and
+            move by 1.6 % and 0 under the same refinement.
         schedule: coarser levels ``(degree, n_times)`` or ``(degree, n_times, m, n)`` solved
             first, each warm-starting the next (multiresolution, paper remark after
             Table 3); a level with a grid solves on f1, f2 resampled bilinearly, e.g.
@@ -438,20 +447,15 @@ def geodesic(
             on the grid, so they carry over unchanged.
         saddle_checks: after the minimization, the smallest eigenvalue of the scaled
             objective's Hessian is estimated by 24 Lanczos steps (Hessian-vector products,
-            reported as ``min_curvature``). With ``saddle_checks = k >= 1``, an end point
-            whose estimate is below ``saddle_threshold`` (-1e-3 in float64, -1e-2 in
-            float32; the Hessian is ~2 I there) is left along its eigenvector and the path
-            minimized again, at most k times; one still a saddle after that has
-            ``converged=False``. 0 (the default) only reports the estimate; None skips it
+            reported as ``min_curvature``). With ``saddle_checks = k >= 1`` (default 1), an
+            end point whose estimate is below ``saddle_threshold`` (-1e-3 in float64,
+            -1e-2 in float32; the Hessian is ~2 I there) is left along its eigenvector and
+            the path minimized again, at most k times; one still a saddle after that has
+            ``converged=False``. 0 only reports the estimate; None skips it
             (``min_curvature`` is NaN): the 24 products cost about as much as 35 to 70
             BFGS steps at degree 7, N = 13 on 25 x 49 and 50 x 99. A start in a
-            symmetric subspace (mirror-symmetric pairs, concentric spheres) keeps BFGS in
-            it, where it can stop at a saddle (MATH.md 9), but at coarse n_times the
-            lower minima off that subspace can exploit the time discretization: sphere ->
-            bent cylinder at N = 5 escapes from E = 27.81 to 26.50, yet these paths
-            refined to 4 times the time points have energies 24.59 and 28.54, and both
-            solves at N = 9 or 17 end at the same symmetric minimum. Check an escaped
-            path by refining it in time (MATH.md 9).
+            symmetric subspace (mirror-symmetric pairs) keeps BFGS in it, where it can
+            stop at a saddle (MATH.md 9).
 
     Returns:
         :class:`GeodesicResult`.

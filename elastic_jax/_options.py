@@ -75,11 +75,12 @@ class ShapeOptions:
             changes the energy by at most outer_tol (E + outer_tol E_0).
         outer_tol: that relative change (E_0: the parametrized energy).
         init: ``"moebius"`` (default: the 60 icosahedral rotations ranked, the best
-            ``init_candidates`` refined over the whole Moebius group of S^2),
-            ``"icosahedral"`` (the paper's Remark 4: rotations only) or ``"none"``;
-            then registration rounds on the straight line (coarse in time) before the
-            rounds with the whole path.
-        init_candidates: how many ranked rotations are refined over the Moebius group.
+            ``init_candidates`` refined over rotations and, as further starts, over the
+            whole Moebius group of S^2), ``"icosahedral"`` (the paper's Remark 4:
+            rotations only) or ``"none"``. Every start goes through registration rounds
+            on the straight line (coarse in time: an L2 match, then the energy); the
+            lowest goes on to the rounds with the whole path.
+        init_candidates: how many of the ranked rotations become starts.
         interpolation: ``"bicubic"`` (default) or ``"bilinear"`` (the paper's) for f o gamma.
 
     The checks:
@@ -100,10 +101,10 @@ class ShapeOptions:
     outer_steps: int = 10
     outer_tol: float = 1e-3
     init: str = "moebius"
-    init_candidates: int = 4
+    init_candidates: int = 3
     interpolation: str = "bicubic"
     refinement: bool = True
-    saddle_checks: int = 2
+    saddle_checks: int = 1
 
     def __post_init__(self):
         ints = {

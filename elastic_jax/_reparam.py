@@ -181,6 +181,41 @@ def _angles_of(points: Array) -> tuple[Array, Array]:
     return phi, theta
 
 
+def moebius(x: Float[Array, "3 ..."], a: Float[Array, " 3"]) -> Float[Array, "3 ..."]:
+    """The Moebius map phi_a(x) = (1 - |a|^2)(x - a) / |x - a|^2 - a of S^2 (MATH.md 9).
+
+    |a| < 1; a = 0 is the identity and phi_a's inverse is phi_{-a}. It fixes +-a/|a|,
+    stretches areas near a/|a| by ((1 + |a|) / (1 - |a|))^2 and shrinks them near -a/|a|
+    by the inverse (16x both ways at |a| = 0.6); with the rotations these maps are the
+    whole Moebius (conformal) group of the sphere. d(f, f o phi_a) = 0 for every shape f.
+
+    Args:
+        x: ``(3, ...)`` unit vectors (e.g. :func:`sphere_points`).
+        a: ``(3,)`` a point of the open unit ball.
+
+    Returns:
+        ``(3, ...)`` unit vectors.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> from elastic_jax import moebius, sphere_points
+        >>> x = sphere_points(13, 25)
+        >>> y = moebius(x, jnp.asarray([0.0, 0.3, 0.4]))
+        >>> bool(jnp.allclose(moebius(y, -jnp.asarray([0.0, 0.3, 0.4])), x))
+        True
+    """
+    x = jnp.asarray(x)
+    a = jnp.asarray(a, x.dtype)
+    if x.shape[:1] != (3,) or a.shape != (3,):
+        raise ValueError(f"moebius needs x (3, ...) and a (3,); got {x.shape} and {a.shape}")
+    if not isinstance(a, jax.core.Tracer) and not float(jnp.linalg.norm(a)) < 1.0:
+        raise ValueError(f"moebius needs |a| < 1; got |a| = {float(jnp.linalg.norm(a))}")
+    a = a.reshape((3,) + (1,) * (x.ndim - 1))
+    d = x - a
+    d2 = jnp.sum(d * d, axis=0, keepdims=True)
+    return (1.0 - jnp.sum(a * a)) * d / d2 - a
+
+
 def _cubic_weights(t: Array) -> tuple[Array, Array, Array, Array]:
     """Catmull-Rom (cubic convolution, a = -1/2) weights of the 4 nodes around t in [0, 1)."""
     t2, t3 = t * t, t * t * t
@@ -207,9 +242,10 @@ def _sample_bicubic(f, phi, theta):
     weights_r = jnp.stack(_cubic_weights(x - row), axis=-1).astype(f.dtype)
     weights_c = jnp.stack(_cubic_weights(y - col), axis=-1).astype(f.dtype)
     i0, j0 = row.astype(jnp.int32), col.astype(jnp.int32)
+    lead = (1,) * i0.ndim
     offsets = jnp.arange(4, dtype=jnp.int32)
-    rows = i0[..., None, None] + offsets[:, None]
-    cols = jnp.mod(j0[..., None, None] + offsets[None, :] - 1, n - 1)
+    rows = i0[..., None, None] + offsets.reshape(lead + (4, 1))
+    cols = jnp.mod(j0[..., None, None] + offsets.reshape(lead + (1, 4)) - 1, n - 1)
     # One gather of every 4 x 4 stencil (16 separate gathers compile and differentiate
     # several times slower).
     patch = ext[..., rows, cols]  # (..., *points, 4, 4)

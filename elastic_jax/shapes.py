@@ -89,21 +89,29 @@ def sample(
     n: int,
     rotation: Float[Array, "3 3"] | None = None,
     dtype=None,
+    moebius: Float[Array, " 3"] | None = None,
     **params,
 ) -> Float[Array, "3 m n"]:
-    """Sample ``shape`` on the m x n grid, composed with the rotation h(x) = R x if given.
+    """Sample ``shape`` on the m x n grid, composed with h(x) = R phi_a(x) if given.
 
     Args:
         shape: one of this module's surfaces (or any F: S^2 -> R^3 with the same layout).
         m, n: grid size (MATH.md 1).
         rotation: optional ``(3, 3)`` rotation R; the result is F(R e1(phi_i, theta_j)).
         dtype: floating dtype of the result.
+        moebius: optional ``(3,)`` a, |a| < 1: the Moebius map phi_a
+            (:func:`elastic_jax.moebius`) is applied before the rotation, so that
+            F(R phi_a(x)) is sampled exactly.
         **params: passed to ``shape``.
 
     Returns:
         ``(3, m, n)`` with exactly constant pole rows and an exact seam column.
     """
     x = sphere_points(m, n, dtype=dtype)
+    if moebius is not None:
+        from ._reparam import moebius as moebius_map
+
+        x = moebius_map(x, jnp.asarray(moebius, dtype=x.dtype))
     if rotation is not None:
         x = jnp.einsum("ij,jmn->imn", jnp.asarray(rotation, dtype=x.dtype), x)
     f = shape(x, **params)

@@ -44,27 +44,36 @@ def test_table1_on_a_smooth_path():
 
     The SRNF polyline sum ||q_{k+1} - q_k|| is a midpoint rule in time; the forward length
     evaluates each speed at the left end, so their gap is first order with the known
-    constant (s_0 - s_1) / (2 T L). The central scheme removes it.
+    constant (s_0 - s_1) / (2 T L). The central and midpoint schemes remove it.
     """
     f1, f2 = shapes.sample(shapes.ellipsoid, 25, 49), shapes.sample(shapes.bumpy, 25, 49)
     v = f2 - f1
     s0 = float(jnp.sqrt(ej.metric_inner(SRNF, f1, v, v)))
     s1 = float(jnp.sqrt(ej.metric_inner(SRNF, f2, v, v)))
-    gaps, central_gaps, residuals = [], [], []
+    gaps, central_gaps, midpoint_gaps, residuals = [], [], [], []
     for n_times in (13, 20, 99):
         path = ej.straight_path(f1, f2, n_times)
         srnf_length = float(ej.srnf_path_length(path))
-        forward = float(ej.path_length(SRNF, path))
+        forward = float(ej.path_length(SRNF, path, scheme="forward"))
         central = float(ej.path_length(SRNF, path, scheme="central"))
+        midpoint = float(ej.path_length(SRNF, path, scheme="midpoint"))
         gap = (forward - srnf_length) / srnf_length
         first_order = (s0 - s1) / (2 * (n_times - 1) * srnf_length)
         gaps.append(abs(gap))
         central_gaps.append(abs(central - srnf_length) / srnf_length)
+        midpoint_gaps.append(abs(midpoint - srnf_length) / srnf_length)
         residuals.append(abs(gap - first_order))
     assert gaps[0] > gaps[1] > gaps[2]
     assert central_gaps[0] > central_gaps[1] > central_gaps[2]
     assert central_gaps[2] < 1e-4
     assert residuals[2] < 1e-4 and residuals[2] < 0.01 * gaps[2]
+    # Midpoint: second order, 2.6e-5, 1.0e-5, 3.9e-7 (ratios (19/12)^2 and (98/19)^2).
+    for (t0, g0), (t1, g1) in zip(
+        ((12, midpoint_gaps[0]), (19, midpoint_gaps[1])),
+        ((19, midpoint_gaps[1]), (98, midpoint_gaps[2])),
+        strict=True,
+    ):
+        assert g0 / g1 == pytest.approx((t1 / t0) ** 2, rel=0.05)
 
 
 @pytest.mark.data
@@ -73,7 +82,7 @@ def test_table1_on_the_cats(cats, capsys):
     for n_times in (13, 20, 99):
         path = ej.straight_path(*cats, n_times)
         srnf_length = float(ej.srnf_path_length(path))
-        length = float(ej.path_length(SRNF, path))
+        length = float(ej.path_length(SRNF, path, scheme="forward"))
         rows.append((n_times, length, srnf_length, abs(length - srnf_length) / srnf_length))
     with capsys.disabled():
         print("\nTable 1, cat1 -> cat2 (50 x 99): N, (0,1/2,1,0) length, SRNF L2 length, rel. gap")
