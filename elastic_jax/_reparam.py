@@ -208,8 +208,10 @@ def _sample_bicubic(f, phi, theta):
     weights_c = jnp.stack(_cubic_weights(y - col), axis=-1).astype(f.dtype)
     i0, j0 = row.astype(jnp.int32), col.astype(jnp.int32)
     offsets = jnp.arange(4, dtype=jnp.int32)
-    rows = i0[..., None, None] + offsets[:, None]
-    cols = jnp.mod(j0[..., None, None] + offsets[None, :] - 1, n - 1)
+    # Offsets at the stencil's full rank: strict rank promotion refuses (4, 1) + (..., 1, 1).
+    lead = (1,) * i0.ndim
+    rows = i0[..., None, None] + offsets.reshape(lead + (4, 1))
+    cols = jnp.mod(j0[..., None, None] + offsets.reshape(lead + (1, 4)) - 1, n - 1)
     # One gather of every 4 x 4 stencil (16 separate gathers compile and differentiate
     # several times slower).
     patch = ext[..., rows, cols]  # (..., *points, 4, 4)
