@@ -27,10 +27,13 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._atomic import save_npz_atomic
 from ._geodesic import ConvergenceWarning, geodesic
+from ._grid import sphere_points
+from ._harmonics import _vector_fields_np
 from ._metric import SplitMetric, _metric_inner
 from ._options import ShapeOptions, check_choice, check_int, check_positive
+from ._reparam import _reparametrize
 from ._shape import check_grid_options, resolve_options, shape_geodesic
-from ._srnf import _center, _srnf
+from ._srnf import _center
 from ._validation import as_surface
 
 MODULI = ("rigid", "diff", "none")
@@ -288,25 +291,67 @@ class _Solved(NamedTuple):
     converged: Array
 
 
-def _normal_part(mean: Array, v: Array) -> Array:
-    """(v . n) n, n the unit normal of ``mean`` (the SRNF's direction, poles included).
+@functools.partial(jax.jit, static_argnames=("interpolation", "rigid"))
+def _horizontal_part(metric, mean, v, fields, *, interpolation, rigid):
+    """v minus its G_mean-orthogonal projection on the vertical directions at the mean.
 
-    A tangential field df(X) moves a surface along its own reparametrizations: to first
-    order f + s df(X) = f o (Id + s X), the same shape. Dropped from the mean velocity, it
-    cannot drift the mean's parametrization toward grids the discretization favours.
+    The vertical directions are those the registration moves the mean along without
+    changing its shape: df(X_j) for the Diff step's vector fields X_j (d/de of
+    mean o Proj(Id + e X_j), through the same interpolation), and for rigid also the
+    rotations w x mean. In the continuum the gradient of the sum of squared distances
+    has no vertical part; in the discrete one it has a small one that drifts the mean's
+    parametrization toward grids the discretization favours. An orthogonal projection
+    never raises the norm: G(v_h, v_h) = G(v, v) - b^T c.
     """
-    q = _srnf(mean)
-    normal = q / jnp.linalg.norm(q, axis=0, keepdims=True)
-    return jnp.sum(v * normal, axis=0, keepdims=True) * normal
+    m, n = mean.shape[-2:]
+    e1 = sphere_points(m, n, mean.dtype)
+
+    def sampled(gamma):
+        return _reparametrize(mean, gamma, method=interpolation)
+
+    directions = jax.vmap(lambda x: jax.jvp(sampled, (e1,), (x,))[1])(fields)
+    if rigid:
+        centered = _center(mean)
+        turns = [jnp.cross(jnp.eye(3, dtype=mean.dtype)[i], centered, axis=0) for i in range(3)]
+        directions = jnp.concatenate([directions, jnp.stack(turns)])
+
+    def combined(c):
+        return jnp.einsum("k,kimn->imn", c, directions)
+
+    zero = jnp.zeros(directions.shape[0], mean.dtype)
+    gram = jax.hessian(lambda c: 0.5 * _metric_inner(metric, mean, combined(c), combined(c)))(zero)
+    b = jax.grad(lambda c: _metric_inner(metric, mean, combined(c), v))(zero)
+    values, vectors = jnp.linalg.eigh(gram)
+    # Pseudo-inverse: directions the metric cannot tell apart carry no weight.
+    keep = values > jnp.finfo(mean.dtype).eps ** 0.5 * jnp.max(values)
+    inverse = jnp.where(keep, 1.0 / jnp.where(keep, values, 1.0), 0.0)
+    c = vectors @ (inverse * (vectors.T @ b))
+    return v - combined(c)
 
 
-def _mean_velocity(metric, mean, solved: _Solved, modulo: str) -> tuple[Array, float, float]:
-    """(mean velocity v, sqrt(G_mean(v, v)), sum of squared distances)."""
+class _Direction(NamedTuple):
+    """The step direction at one mean and the numbers the iteration tests."""
+
+    velocity: Array  # the mean velocity (its horizontal part, modulo "rigid" / "diff")
+    norm: float  # sqrt(G_mean(v, v))
+    sum_sq: float  # sum of squared distances
+
+
+def _direction(metric, mean, solved: _Solved, modulo: str, options: ShapeOptions) -> _Direction:
     average = solved.velocities.mean(axis=0)
     if modulo != "none":
-        average = _normal_part(mean, average)
+        m, n = mean.shape[-2:]
+        fields = jnp.asarray(_vector_fields_np(m, n, options.vf_degree), mean.dtype)
+        average = _horizontal_part(
+            metric,
+            mean,
+            average,
+            fields,
+            interpolation=options.interpolation,
+            rigid=modulo == "rigid",
+        )
     norm = float(jnp.sqrt(_metric_inner(metric, mean, average, average)))
-    return average, norm, float(jnp.sum(solved.distances**2))
+    return _Direction(average, norm, float(jnp.sum(solved.distances**2)))
 
 
 def karcher_mean(
@@ -333,11 +378,12 @@ def karcher_mean(
     parametrization) and the K geodesics from the shapes to the mean are solved. Their
     initial velocities at the mean, v_k = T (-3 f_0 + 4 f_1 - f_2) / 2 read from the mean
     (second order, :func:`initial_velocity`), average to v = -grad SSD / (2K); modulo
-    "rigid" or "diff" v keeps only its normal part (v . n) n, as a tangential part only
-    reparametrizes the mean. A trial mean mu + s v (s = step_size first) is accepted only
-    if its SSD, from K new solves, is finite and not larger; otherwise s is halved, at
-    most 4 times. The accepted trial's geodesics serve the next step, so a step that
-    does not backtrack costs K solves.
+    "rigid" or "diff" v loses its vertical part (G_mu-orthogonal projection off the
+    directions that only reparametrize or rotate the mean, :func:`_horizontal_part`).
+    A trial mean mu + s v (s = step_size first) is accepted only if its SSD, from K new
+    solves, is finite and not larger; otherwise s is halved, at most 4 times. The
+    accepted trial's geodesics serve the next step, so a step that does not backtrack
+    costs K solves.
 
     Stops converged when sqrt(G_mu(v, v)) <= tol x RMS distance ("mean_velocity_small")
     or when a full step lowers the SSD by less than tol relative ("sum_sq_stalled"); stops
@@ -428,15 +474,16 @@ def karcher_mean(
         history = [tuple(row) for row in saved["history"].tolist()]
         num_solves = int(saved["num_solves"])
         solved = _Solved(*(jnp.asarray(saved[f"solved_{k}"]) for k in _Solved._fields))
+        direction = _direction(metric, mean, solved, modulo, options)
     else:
         step, num_solves = 0, 1
         solved = solve_at(mean)
-        _, norm, sum_sq = _mean_velocity(metric, mean, solved, modulo)
-        history = [(sum_sq, norm, 0.0)]
+        direction = _direction(metric, mean, solved, modulo, options)
+        history = [(direction.sum_sq, direction.norm, 0.0)]
         save(step)
 
     while True:
-        sum_sq, norm = history[-1][:2]
+        sum_sq, norm = direction.sum_sq, direction.norm
         rms = np.sqrt(sum_sq / shapes.shape[0])
         if not np.isfinite(sum_sq):
             result = "not_finite"
@@ -447,10 +494,9 @@ def karcher_mean(
         if step >= max_steps:
             result = "max_steps_reached"
             break
-        average = _mean_velocity(metric, mean, solved, modulo)[0]
         s = step_size
         for _ in range(_HALVINGS + 1):
-            trial_mean = mean + s * average
+            trial_mean = mean + s * direction.velocity
             trial = solve_at(trial_mean)
             num_solves += 1
             trial_sum_sq = float(jnp.sum(trial.distances**2))
@@ -462,8 +508,8 @@ def karcher_mean(
             result = "line_search_failed"
             break
         mean, solved, step = trial_mean, trial, step + 1
-        _, norm, sum_sq_new = _mean_velocity(metric, mean, solved, modulo)
-        history.append((sum_sq_new, norm, s))
+        direction = _direction(metric, mean, solved, modulo, options)
+        history.append((direction.sum_sq, direction.norm, s))
         save(step)
         if progress is not None:
             progress(
