@@ -155,7 +155,7 @@ def _shape_options(parser: argparse.ArgumentParser, *, modulo: str, inner: str =
         degree=d.degree,
         times=d.n_times,
         max_steps=d.max_steps,
-        max_steps_help=f"step limit of each inner solve (BFGS steps){inner}",
+        max_steps_help=f"step limit of each inner solve (solver steps){inner}",
     )
     parser.add_argument(
         "--modulo",
@@ -167,7 +167,7 @@ def _shape_options(parser: argparse.ArgumentParser, *, modulo: str, inner: str =
         "--scheme",
         choices=SCHEMES,
         default=d.scheme,
-        help="time discretization of the path energy (README, 'What the distance means')",
+        help="time discretization of the path energy (see ShapeOptions)",
     )
     parser.add_argument(
         "--method",
