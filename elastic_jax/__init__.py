@@ -33,6 +33,7 @@ from ._harmonics import real_sph_harm as real_sph_harm
 from ._harmonics import surface_basis as surface_basis
 from ._harmonics import vector_field_basis as vector_field_basis
 from ._interp import resample as resample
+from ._karcher import DistanceMatrixResult as DistanceMatrixResult
 from ._karcher import KarcherResult as KarcherResult
 from ._karcher import distance_matrix as distance_matrix
 from ._karcher import karcher_mean as karcher_mean

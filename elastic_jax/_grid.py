@@ -96,6 +96,11 @@ def sphere_points(m: int, n: int, dtype=None) -> Float[Array, "3 m n"]:
     Returns:
         ``(3, m, n)``.
     """
+    return jnp.asarray(sphere_points_np(m, n), dtype=dtype)
+
+
+def sphere_points_np(m: int, n: int) -> np.ndarray:
+    """:func:`sphere_points` in float64 numpy (usable while an outer jit traces)."""
     phi, theta = _angles_np(m, n)
     sp, cp = np.sin(phi)[:, None], np.cos(phi)[:, None]
     ct, st = np.cos(theta)[None, :], np.sin(theta)[None, :]
@@ -104,4 +109,4 @@ def sphere_points(m: int, n: int, dtype=None) -> Float[Array, "3 m n"]:
     x[:, 0, :] = np.array([0.0, 0.0, 1.0])[:, None]
     x[:, -1, :] = np.array([0.0, 0.0, -1.0])[:, None]
     x[:, :, -1] = x[:, :, 0]
-    return jnp.asarray(x, dtype=dtype)
+    return x

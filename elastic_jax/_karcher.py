@@ -3,7 +3,9 @@
 Batch jobs: every step solves K independent geodesics, batched by one of three
 strategies ("vmap", "map": lax.map in one jit, "loop": a Python loop of jitted solves),
 sharded across devices when there are several, and checkpointed atomically after each
-finished step or chunk so that a killed job resumes where it stopped.
+finished step or chunk so that a killed job resumes where it stopped. The inner solves'
+options travel as one :class:`ShapeOptions` record; the Karcher iteration's own limits
+(max_steps, tol, step_size) are separate arguments.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import hashlib
 import json
 import os
 import pathlib
+import warnings
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -20,39 +23,90 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._atomic import save_npz_atomic
-from ._geodesic import geodesic
+from ._geodesic import ConvergenceWarning, geodesic
+from ._grid import sphere_points
+from ._harmonics import _vector_fields_np
 from ._metric import SplitMetric, _metric_inner
-from ._shape import shape_geodesic
+from ._options import ShapeOptions, check_choice, check_int, check_positive
+from ._reparam import _reparametrize
+from ._shape import check_grid_options, resolve_options, shape_geodesic
 from ._srnf import _center
 from ._validation import as_surface
 
 MODULI = ("rigid", "diff", "none")
 STRATEGIES = ("auto", "vmap", "map", "loop")
+# Halvings of a Karcher step that raised the sum of squared distances before giving up.
+_HALVINGS = 4
+
+# Why a Karcher iteration stopped: result code -> words (KarcherResult.message).
+_MESSAGES = {
+    "mean_velocity_small": "converged: the mean velocity's norm is at most tol x RMS distance",
+    "sum_sq_stalled": "converged: a full step lowered the sum of squared distances by less "
+    "than tol (relative)",
+    "line_search_failed": "stopped: line search failed: no step along the mean velocity "
+    f"(halved up to {_HALVINGS} times) gave a finite sum of squared distances that was not larger",
+    "max_steps_reached": "stopped: max_steps Karcher steps taken",
+    "not_finite": "stopped: the distances at the mean are not finite",
+}
+_CONVERGED = ("mean_velocity_small", "sum_sq_stalled")
 
 
 class KarcherResult(NamedTuple):
-    """A Karcher mean and the registered collection.
+    """A Karcher mean, the registered collection and how the iteration went.
 
     Attributes:
         mean: ``(3, m, n)`` the mean shape (keeps its parametrization).
         distances: ``(K,)`` distances from the mean to each shape.
         registered: ``(K, 3, m, n)`` each shape reparametrized (and rotated) onto the mean.
-        velocities: ``(K, 3, m, n)`` initial velocities T (f(t_1) - f(t_0)) at the mean.
-        history: ``(steps, 2)`` per step: sum of squared distances, norm of the mean velocity.
-        converged: whether the mean velocity's norm fell below tol x RMS distance.
-        num_steps: Karcher steps taken.
+        velocities: ``(K, 3, m, n)`` initial velocities of the geodesics at the mean
+            (second-order one-sided differences, :func:`initial_velocity`).
+        geodesics_converged: ``(K,)`` whether each inner solve at the mean converged.
+        history: ``(steps + 1, 3)`` per mean visited (the start first): sum of squared
+            distances (non-increasing), norm of the mean velocity sqrt(G_mean(v, v)), and
+            the step size that led there (0 for the start; step_size / 2^j after j halvings).
+        converged: ``result`` is "mean_velocity_small" or "sum_sq_stalled".
+        num_steps: Karcher steps taken (accepted updates of the mean).
+        num_solves: batches of K geodesics solved, rejected line-search trials included.
+        result: why the iteration stopped: ``"mean_velocity_small"``, ``"sum_sq_stalled"``
+            (both converged), ``"line_search_failed"``, ``"max_steps_reached"`` or
+            ``"not_finite"``.
     """
 
     mean: Array
     distances: Array
     registered: Array
     velocities: Array
+    geodesics_converged: Array
     history: np.ndarray
     converged: bool
     num_steps: int
+    num_solves: int
+    result: str
+
+    @property
+    def message(self) -> str:
+        """Why the iteration stopped, in words."""
+        return _MESSAGES[self.result]
+
+
+class DistanceMatrixResult(NamedTuple):
+    """Pairwise shape distances and the status of each pair's solve.
+
+    Attributes:
+        distances: ``(K, K)`` symmetric, zero diagonal.
+        converged: ``(K, K)`` bool: whether the pair's solve converged (diagonal True).
+        refinement_change: ``(K, K)`` each pair's
+            ``ShapeGeodesicResult.refinement.relative_change`` (how far the distance moves
+            with halved time steps or on the finer grid); 0 on the diagonal, NaN for
+            modulo="none" or ``options.refinement=False``.
+    """
+
+    distances: Float[Array, "K K"]
+    converged: Bool[Array, "K K"]
+    refinement_change: Float[Array, "K K"]
 
 
 def default_strategy() -> str:
@@ -67,42 +121,64 @@ def default_strategy() -> str:
     return "map" if jax.default_backend() == "cpu" else "vmap"
 
 
+def initial_velocity(path: Float[Array, "N 3 m n"]) -> Float[Array, "3 m n"]:
+    """Initial velocity of a discrete path: T (-3 f_0 + 4 f_1 - f_2) / 2, T = N - 1.
+
+    The second-order one-sided difference. The forward difference T (f_1 - f_0) is the
+    velocity at t = 1 / (2T), off by f''(0) / (2T); the Karcher iteration's fixed point
+    moves with it, away from the minimum of the (second-order, midpoint) discrete sum of
+    squared distances, and the line search stalls there (README, "Karcher means").
+    """
+    t = path.shape[0] - 1
+    return t * (-3.0 * path[0] + 4.0 * path[1] - path[2]) / 2.0
+
+
+def _geodesic_kwargs(options: ShapeOptions) -> dict:
+    """The options :func:`geodesic` takes (modulo="none")."""
+    return {
+        "degree": options.degree,
+        "n_times": options.n_times,
+        "solver": options.solver,
+        "max_steps": options.max_steps,
+        "tol": options.tol,
+        "scheme": options.scheme,
+    }
+
+
 def _one_geodesic(mean, shape, metric, modulo, options):
-    """Distance, registered shape and initial velocity at the mean, for one shape."""
+    """Distance, registered shape, initial velocity at the mean and status, for one shape.
+
+    Every geodesic runs from the shape to the mean, as shape_geodesic must (it
+    reparametrizes its first surface and rotates its second), also for modulo="none", so
+    that a one-sided scheme ("forward") treats the mean alike for every modulo.
+    """
     if modulo == "none":
-        res = geodesic(mean, shape, metric, **options)
-        path = res.path
-        return res.distance, shape, (path.shape[0] - 1) * (path[1] - path[0])
-    res = shape_geodesic(shape, mean, metric, modulo=modulo, **options)
-    # The path runs from shape o gamma to R (mean); turn it by R^T so that it ends at the
-    # mean as parametrized and placed (rigid centers both), and read it backwards.
-    back = jnp.einsum("ji,tj...->ti...", res.rotation, res.path)
-    shift = (mean - back[-1]).mean(axis=(-2, -1), keepdims=True)
-    back = back + shift[None]
-    return res.distance, back[0], (back.shape[0] - 1) * (back[-2] - back[-1])
+        res = geodesic(shape, mean, metric, **_geodesic_kwargs(options))
+        back = res.path
+    else:
+        res = shape_geodesic(shape, mean, metric, modulo=modulo, options=options)
+        # The path runs from shape o gamma to R (mean); turn it by R^T so that it ends at
+        # the mean as parametrized and placed (rigid centers both).
+        back = jnp.einsum("ji,tj...->ti...", res.rotation, res.path)
+        back = back + (mean - back[-1]).mean(axis=(-2, -1), keepdims=True)[None]
+    return res.distance, back[0], initial_velocity(back[::-1]), res.converged
 
 
 def _pair_distance(a, b, metric, modulo, options):
+    """Distance, status and refinement change of one pair."""
     if modulo == "none":
-        return (geodesic(a, b, metric, **options).distance,)
-    return (shape_geodesic(a, b, metric, modulo=modulo, **options).distance,)
-
-
-def _freeze(value):
-    """Options as a hashable static key (lists, e.g. a schedule, become tuples)."""
-    if isinstance(value, dict):
-        return tuple(sorted((k, _freeze(v)) for k, v in value.items()))
-    if isinstance(value, list | tuple):
-        return tuple(_freeze(v) for v in value)
-    return value
+        res = geodesic(a, b, metric, **_geodesic_kwargs(options))
+        return res.distance, res.converged, jnp.full_like(res.distance, jnp.nan)
+    res = shape_geodesic(a, b, metric, modulo=modulo, options=options)
+    return res.distance, res.converged, res.refinement.relative_change
 
 
 # Module-level jitted batch solves: the mean and the metric are arguments and the options
-# a static key, so consecutive Karcher steps reuse one compilation.
+# (a frozen ShapeOptions) a static key, so consecutive Karcher steps reuse one compilation.
 @functools.partial(jax.jit, static_argnames=("modulo", "options", "mode"))
 def _velocities_batch(mean, batch, metric, *, modulo, options, mode):
     def one(shape):
-        return _one_geodesic(mean, shape, metric, modulo, dict(options))
+        return _one_geodesic(mean, shape, metric, modulo, options)
 
     return jax.lax.map(one, batch) if mode == "map" else jax.vmap(one)(batch)
 
@@ -110,7 +186,7 @@ def _velocities_batch(mean, batch, metric, *, modulo, options, mode):
 @functools.partial(jax.jit, static_argnames=("modulo", "options", "mode"))
 def _distances_batch(pairs, metric, *, modulo, options, mode):
     def one(pair):
-        return _pair_distance(pair[0], pair[1], metric, modulo, dict(options))
+        return _pair_distance(pair[0], pair[1], metric, modulo, options)
 
     return jax.lax.map(one, pairs) if mode == "map" else jax.vmap(one)(pairs)
 
@@ -174,20 +250,108 @@ def _load_checkpoint(path: pathlib.Path, fingerprint: str) -> dict | None:
         return {k: data[k] for k in data.files}
 
 
-def _check_options(modulo: str, strategy: str) -> str:
-    """Validate modulo and strategy; resolve "auto" to this backend's strategy."""
-    if modulo not in MODULI:
-        raise ValueError(f"modulo must be one of {MODULI}; got {modulo!r}")
-    if strategy not in STRATEGIES:
-        raise ValueError(f"strategy must be one of {STRATEGIES}; got {strategy!r}")
+def _check_batch(modulo: str, strategy: str, batch_size) -> str:
+    """Validate modulo, strategy and batch_size; resolve "auto" to this backend's strategy."""
+    check_choice("modulo", modulo, MODULI)
+    check_choice("strategy", strategy, STRATEGIES)
+    if batch_size is not None:
+        check_int("batch_size", batch_size, 1)
     return default_strategy() if strategy == "auto" else strategy
 
 
-def _check_collection(shapes, name="shapes") -> Array:
+def _check_collection(shapes, options: ShapeOptions | None, name="shapes"):
+    """The collection ``(K, 3, m, n)`` and its options, checked on its grid, tol resolved."""
     shapes = as_surface(shapes, name)
     if shapes.ndim != 4 or shapes.shape[0] < 2:
         raise ValueError(f"{name} must have shape (K, 3, m, n) with K >= 2; got {shapes.shape}")
-    return shapes
+    options = resolve_options(options, {})
+    check_grid_options(options, *shapes.shape[-2:])
+    if options.tol is None:
+        # Resolved here, as the solves would: one static key for every call, and a
+        # fingerprint that names the tolerance used.
+        options = options.replace(tol=1e-6 if shapes.dtype == jnp.float64 else 1e-4)
+    return shapes, options
+
+
+def _settings(metric, modulo, options: ShapeOptions, **more) -> dict:
+    return {
+        "metric": [float(x) for x in jax.tree_util.tree_leaves(metric)],
+        "modulo": modulo,
+        "options": options.as_dict(),
+        **more,
+    }
+
+
+class _Solved(NamedTuple):
+    """The K geodesics from one mean."""
+
+    distances: Array
+    registered: Array
+    velocities: Array
+    converged: Array
+
+
+@functools.partial(jax.jit, static_argnames=("interpolation", "rigid"))
+def _horizontal_part(metric, mean, v, fields, *, interpolation, rigid):
+    """v minus its G_mean-orthogonal projection on the vertical directions at the mean.
+
+    The vertical directions are those the registration moves the mean along without
+    changing its shape: df(X_j) for the Diff step's vector fields X_j (d/de of
+    mean o Proj(Id + e X_j), through the same interpolation), and for rigid also the
+    rotations w x mean. In the continuum the gradient of the sum of squared distances
+    has no vertical part; in the discrete one it has a small one that drifts the mean's
+    parametrization toward grids the discretization favours. An orthogonal projection
+    never raises the norm: G(v_h, v_h) = G(v, v) - b^T c.
+    """
+    m, n = mean.shape[-2:]
+    e1 = sphere_points(m, n, mean.dtype)
+
+    def sampled(gamma):
+        return _reparametrize(mean, gamma, method=interpolation)
+
+    directions = jax.vmap(lambda x: jax.jvp(sampled, (e1,), (x,))[1])(fields)
+    if rigid:
+        centered = _center(mean)
+        turns = [jnp.cross(jnp.eye(3, dtype=mean.dtype)[i], centered, axis=0) for i in range(3)]
+        directions = jnp.concatenate([directions, jnp.stack(turns)])
+
+    def combined(c):
+        return jnp.einsum("k,kimn->imn", c, directions)
+
+    zero = jnp.zeros(directions.shape[0], mean.dtype)
+    gram = jax.hessian(lambda c: 0.5 * _metric_inner(metric, mean, combined(c), combined(c)))(zero)
+    b = jax.grad(lambda c: _metric_inner(metric, mean, combined(c), v))(zero)
+    values, vectors = jnp.linalg.eigh(gram)
+    # Pseudo-inverse: directions the metric cannot tell apart carry no weight.
+    keep = values > jnp.finfo(mean.dtype).eps ** 0.5 * jnp.max(values)
+    inverse = jnp.where(keep, 1.0 / jnp.where(keep, values, 1.0), 0.0)
+    c = vectors @ (inverse * (vectors.T @ b))
+    return v - combined(c)
+
+
+class _Direction(NamedTuple):
+    """The step direction at one mean and the numbers the iteration tests."""
+
+    velocity: Array  # the mean velocity (its horizontal part, modulo "rigid" / "diff")
+    norm: float  # sqrt(G_mean(v, v))
+    sum_sq: float  # sum of squared distances
+
+
+def _direction(metric, mean, solved: _Solved, modulo: str, options: ShapeOptions) -> _Direction:
+    average = solved.velocities.mean(axis=0)
+    if modulo != "none":
+        m, n = mean.shape[-2:]
+        fields = jnp.asarray(_vector_fields_np(m, n, options.vf_degree), mean.dtype)
+        average = _horizontal_part(
+            metric,
+            mean,
+            average,
+            fields,
+            interpolation=options.interpolation,
+            rigid=modulo == "rigid",
+        )
+    norm = float(jnp.sqrt(_metric_inner(metric, mean, average, average)))
+    return _Direction(average, norm, float(jnp.sum(solved.distances**2)))
 
 
 def karcher_mean(
@@ -195,6 +359,7 @@ def karcher_mean(
     metric: SplitMetric,
     *,
     modulo: str = "rigid",
+    options: ShapeOptions | None = None,
     init: Float[ArrayLike, "3 m n"] | None = None,
     max_steps: int = 10,
     tol: float = 1e-3,
@@ -204,106 +369,182 @@ def karcher_mean(
     checkpoint: str | os.PathLike | None = None,
     resume: bool = False,
     progress: Callable[[dict], None] | None = None,
-    **geodesic_options,
 ) -> KarcherResult:
     """Karcher (Frechet) mean of a collection of surfaces (paper section 4.1, MATH.md 7).
 
-    Each step registers every shape to the current mean (the shape is reparametrized and,
-    for modulo="rigid", rotated; the mean keeps its parametrization), solves the K
-    geodesics from the mean, averages their initial velocities v_k = T (f_k(t_1) - mean)
-    and moves the mean by step_size times the average. Stops when the average's norm
-    sqrt(G_mean(v, v)) is below tol times the RMS distance.
+    Minimizes the sum of squared distances SSD(mu) = sum_k d(mu, f_k)^2 by gradient
+    steps with backtracking. At the current mean every shape is registered to it (the
+    shape is reparametrized and, for modulo="rigid", rotated; the mean keeps its
+    parametrization) and the K geodesics from the shapes to the mean are solved. Their
+    initial velocities at the mean, v_k = T (-3 f_0 + 4 f_1 - f_2) / 2 read from the mean
+    (second order, :func:`initial_velocity`), average to v = -grad SSD / (2K); modulo
+    "rigid" or "diff" v loses its vertical part (G_mu-orthogonal projection off the
+    directions that only reparametrize or rotate the mean, :func:`_horizontal_part`).
+    A trial mean mu + s v (s = step_size first) is accepted only if its SSD, from K new
+    solves, is finite and not larger; otherwise s is halved, at most 4 times. The
+    accepted trial's geodesics serve the next step, so a step that does not backtrack
+    costs K solves.
 
-    The forward difference T (f_1 - f_0) is the initial velocity only to first order in
-    1/T; with few time points (N = 5) the average can cycle instead of vanishing. Use
-    n_times >= 9 or scheme="central" (both converge in 3 steps on the package's tests).
-
-    On real shapes the sum of squared distances need not fall at every step: each step's
-    distances come from a non-convex registration (discrete initial rotation, a few outer
-    steps), so they carry a varying excess. Measured on cat1, cat2, horse0 at 25 x 49
-    (rigid, degree 5/5, N 9, central): 3.31, 2.54, 2.89, 1.66, 1.86, 1.56, 1.52 with
-    step_size 1; 3.31, 2.48, 1.92, 1.76, 1.81, 2.27, 1.64 with 0.5. ``history`` keeps
-    every value; the record holds the last mean.
+    Stops converged when sqrt(G_mu(v, v)) <= tol x RMS distance ("mean_velocity_small")
+    or when a full step lowers the SSD by less than tol relative ("sum_sq_stalled"); stops
+    not converged when no halving lowers the SSD ("line_search_failed"), after max_steps
+    steps ("max_steps_reached"), or when the distances at the mean are not finite
+    ("not_finite"). ``result`` and ``message`` say which.
 
     Args:
         shapes: ``(K, 3, m, n)`` surfaces on one grid.
         metric: split metric coefficients.
-        modulo: ``"rigid"``, ``"diff"`` (:func:`shape_geodesic`) or ``"none"`` (:func:`geodesic`).
+        modulo: ``"rigid"``, ``"diff"`` (:func:`shape_geodesic`) or ``"none"``
+            (:func:`geodesic` with the options' degree, n_times, solver, max_steps, tol
+            and scheme).
+        options: :class:`ShapeOptions` of the inner solves (its defaults when None).
         init: starting mean (default: the first shape).
-        max_steps, tol, step_size: the iteration.
+        max_steps: most Karcher steps (accepted updates of the mean); 0 only evaluates.
+        tol: the two convergence tests above.
+        step_size: the first trial step, in units of the mean velocity.
         batch_size: shapes per batched call (bounds memory); default all.
         strategy: ``"vmap"``, ``"map"``, ``"loop"`` or ``"auto"`` (:func:`default_strategy`).
-        checkpoint: path of an .npz written atomically after every finished step.
+        checkpoint: path of an .npz written atomically after the first solves and after
+            every accepted step (the mean and its geodesics).
         resume: continue from ``checkpoint`` (refused if it belongs to other inputs).
-        progress: called after each step with a dict (step, sum of squared distances, ...).
-        **geodesic_options: passed to :func:`geodesic` / :func:`shape_geodesic`.
+        progress: called after each accepted step with a dict (step, sum_sq_distances,
+            mean_velocity_norm, step_size, num_solves).
 
     Returns:
-        :class:`KarcherResult`.
+        :class:`KarcherResult`. One that did not converge also warns
+        (:class:`ConvergenceWarning`); the inner solves' own warnings are folded into
+        ``geodesics_converged``.
+
+    Example:
+        >>> import numpy as np
+        >>> import elastic_jax as ej
+        >>> from elastic_jax import shapes
+        >>> spheres = np.stack([shapes.sample(shapes.sphere, 13, 25, radius=r) for r in (1, 2)])
+        >>> res = ej.karcher_mean(spheres, ej.SplitMetric(1.0, 1.0, 0.1, 0.0), modulo="none",
+        ...                       options=ej.ShapeOptions(degree=3, n_times=5))
+        >>> res.converged, round(float(res.mean[2, 0, 0]), 6)  # the sphere of radius 1.5
+        (True, 1.5)
     """
-    strategy = _check_options(modulo, strategy)
-    shapes = _check_collection(shapes)
+    strategy = _check_batch(modulo, strategy, batch_size)
+    shapes, options = _check_collection(shapes, options)
+    max_steps = check_int("max_steps", max_steps, 0)
+    tol = check_positive("tol", tol)
+    step_size = check_positive("step_size", step_size)
     mean = shapes[0] if init is None else as_surface(init, "init")
+    if mean.shape != shapes.shape[1:] or mean.dtype != shapes.dtype:
+        raise ValueError(
+            f"init must be one surface {shapes.shape[1:]} {shapes.dtype} like the shapes; "
+            f"got {mean.shape} {mean.dtype}"
+        )
     if modulo == "rigid":
         mean = _center(mean)
-    settings = {
-        "metric": [float(x) for x in jax.tree_util.tree_leaves(metric)],
-        "modulo": modulo,
-        "step_size": step_size,
-        "tol": tol,
-        "options": geodesic_options,
-    }
+    settings = _settings(metric, modulo, options, step_size=step_size, tol=tol)
     fingerprint = _fingerprint(shapes, mean, **settings)
     path = None if checkpoint is None else pathlib.Path(checkpoint)
-    history: list[tuple[float, float]] = []
-    start = 0
-    if path is not None and resume:
-        saved = _load_checkpoint(path, fingerprint)
-        if saved is not None:
-            mean, start = jnp.asarray(saved["mean"]), int(saved["step"])
-            history = [tuple(row) for row in saved["history"].tolist()]
 
-    frozen = _freeze(geodesic_options)
-
-    def solve_all():
+    def solve_at(at) -> _Solved:
         def batch_call(batch, mode):
-            return _velocities_batch(mean, batch, metric, modulo=modulo, options=frozen, mode=mode)
+            return _velocities_batch(at, batch, metric, modulo=modulo, options=options, mode=mode)
 
         def single_call(shape):
-            return _one_geodesic(mean, shape, metric, modulo, geodesic_options)
+            return _one_geodesic(at, shape, metric, modulo, options)
 
         chunks = _chunks(shapes.shape[0], batch_size)
-        parts = [_batched(batch_call, single_call, shapes[a:b], strategy) for a, b in chunks]
-        return tuple(jnp.concatenate(p) for p in zip(*parts, strict=True))
+        with warnings.catch_warnings():
+            # Reported per shape in geodesics_converged.
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            parts = [_batched(batch_call, single_call, shapes[a:b], strategy) for a, b in chunks]
+        return _Solved(*(jnp.concatenate(p) for p in zip(*parts, strict=True)))
 
-    converged = False
-    step = start
-    for step in range(start, max_steps + 1):
-        distances, registered, velocities = solve_all()
-        average = velocities.mean(axis=0)
-        norm = float(jnp.sqrt(_metric_inner(metric, mean, average, average)))
-        rms = float(jnp.sqrt(jnp.mean(distances**2)))
-        converged = norm <= tol * max(rms, np.finfo(np.float64).tiny)
-        if converged or step == max_steps:
-            break
-        history.append((float(jnp.sum(distances**2)), norm))
-        mean = mean + step_size * average
+    def save(step):
         if path is not None:
             save_npz_atomic(
                 path,
                 mean=np.asarray(mean),
-                step=step + 1,
+                step=step,
                 history=np.asarray(history),
+                num_solves=num_solves,
                 fingerprint=fingerprint,
+                **{f"solved_{k}": np.asarray(v) for k, v in solved._asdict().items()},
             )
+
+    saved = _load_checkpoint(path, fingerprint) if path is not None and resume else None
+    if saved is not None:
+        mean, step = jnp.asarray(saved["mean"]), int(saved["step"])
+        history = [tuple(row) for row in saved["history"].tolist()]
+        num_solves = int(saved["num_solves"])
+        solved = _Solved(*(jnp.asarray(saved[f"solved_{k}"]) for k in _Solved._fields))
+        direction = _direction(metric, mean, solved, modulo, options)
+    else:
+        step, num_solves = 0, 1
+        solved = solve_at(mean)
+        direction = _direction(metric, mean, solved, modulo, options)
+        history = [(direction.sum_sq, direction.norm, 0.0)]
+        save(step)
+
+    while True:
+        sum_sq, norm = direction.sum_sq, direction.norm
+        rms = np.sqrt(sum_sq / shapes.shape[0])
+        if not np.isfinite(sum_sq):
+            result = "not_finite"
+            break
+        if norm <= tol * max(rms, np.finfo(np.float64).tiny):
+            result = "mean_velocity_small"
+            break
+        if step >= max_steps:
+            result = "max_steps_reached"
+            break
+        s = step_size
+        for _ in range(_HALVINGS + 1):
+            trial_mean = mean + s * direction.velocity
+            trial = solve_at(trial_mean)
+            num_solves += 1
+            trial_sum_sq = float(jnp.sum(trial.distances**2))
+            # NaN compares False: a non-finite trial is never accepted.
+            if trial_sum_sq <= sum_sq:
+                break
+            s *= 0.5
+        else:
+            result = "line_search_failed"
+            break
+        mean, solved, step = trial_mean, trial, step + 1
+        direction = _direction(metric, mean, solved, modulo, options)
+        history.append((direction.sum_sq, direction.norm, s))
+        save(step)
         if progress is not None:
             progress(
-                {"step": step + 1, "sum_sq_distances": history[-1][0], "mean_velocity_norm": norm}
+                {
+                    "step": step,
+                    "sum_sq_distances": history[-1][0],
+                    "mean_velocity_norm": history[-1][1],
+                    "step_size": s,
+                    "num_solves": num_solves,
+                }
             )
-    history.append((float(jnp.sum(distances**2)), norm))
-    return KarcherResult(
-        mean, distances, registered, velocities, np.asarray(history), bool(converged), step
+        if s == step_size and sum_sq - trial_sum_sq <= tol * sum_sq:
+            result = "sum_sq_stalled"
+            break
+
+    res = KarcherResult(
+        mean=mean,
+        distances=solved.distances,
+        registered=solved.registered,
+        velocities=solved.velocities,
+        geodesics_converged=solved.converged,
+        history=np.asarray(history),
+        converged=result in _CONVERGED,
+        num_steps=step,
+        num_solves=num_solves,
+        result=result,
     )
+    if not res.converged:
+        warnings.warn(
+            f"karcher_mean: {res.message} (sum of squared distances "
+            f"{res.history[:, 0].round(6).tolist()})",
+            ConvergenceWarning,
+            stacklevel=2,
+        )
+    return res
 
 
 def distance_matrix(
@@ -311,56 +552,53 @@ def distance_matrix(
     metric: SplitMetric,
     *,
     modulo: str = "rigid",
+    options: ShapeOptions | None = None,
     batch_size: int | None = None,
     strategy: str = "auto",
     checkpoint: str | os.PathLike | None = None,
     resume: bool = False,
     progress: Callable[[dict], None] | None = None,
-    **geodesic_options,
-) -> Float[Array, "K K"]:
-    """Symmetric matrix of pairwise shape distances: K(K-1)/2 geodesics, batched (MATH.md 7).
+) -> DistanceMatrixResult:
+    """Pairwise shape distances: K(K-1)/2 geodesics, batched (MATH.md 7).
 
     Pair (i, j), i < j, uses shape_geodesic(shapes[i], shapes[j]) (or geodesic for
-    modulo="none"); the matrix is symmetrized from the upper triangle and has a zero
-    diagonal. With ``checkpoint`` every finished chunk of pairs is saved atomically;
-    ``resume=True`` skips the chunks already done.
+    modulo="none"); the record is symmetrized from the upper triangle. With
+    ``checkpoint`` every finished chunk of pairs is saved atomically; ``resume=True``
+    skips the chunks already done.
 
     Args:
         shapes: ``(K, 3, m, n)`` surfaces on one grid; metric: split metric coefficients.
-        modulo, strategy, checkpoint, resume, progress, **geodesic_options: as in
-            :func:`karcher_mean` (progress gets pairs done and pairs in all).
+        modulo, options, strategy, checkpoint, resume: as in :func:`karcher_mean`.
+        progress: called after each chunk with pairs done and pairs in all.
         batch_size: pairs per chunk (one batched call, one checkpoint); default all pairs
             for "vmap", 8 for "map" and 1 for "loop", which gain nothing from big chunks.
 
     Returns:
-        ``(K, K)``.
+        :class:`DistanceMatrixResult`. If some pair did not converge it also warns
+        (:class:`ConvergenceWarning`) once, naming the pairs.
     """
-    strategy = _check_options(modulo, strategy)
-    shapes = _check_collection(shapes)
+    strategy = _check_batch(modulo, strategy, batch_size)
+    shapes, options = _check_collection(shapes, options)
     k = shapes.shape[0]
     rows, cols = np.triu_indices(k, 1)
-    settings = {
-        "metric": [float(x) for x in jax.tree_util.tree_leaves(metric)],
-        "modulo": modulo,
-        "options": geodesic_options,
-        "batch_size": batch_size,
-    }
+    settings = _settings(metric, modulo, options, batch_size=batch_size)
     fingerprint = _fingerprint(shapes, **settings)
     path = None if checkpoint is None else pathlib.Path(checkpoint)
     values = np.full(rows.size, np.nan)
+    converged = np.zeros(rows.size, bool)
+    change = np.full(rows.size, np.nan)
     done = np.zeros(rows.size, bool)
-    if path is not None and resume:
-        saved = _load_checkpoint(path, fingerprint)
-        if saved is not None:
-            values, done = saved["values"], saved["done"]
-
-    frozen = _freeze(geodesic_options)
+    saved = _load_checkpoint(path, fingerprint) if path is not None and resume else None
+    if saved is not None:
+        values, converged, change, done = (
+            saved[key] for key in ("values", "converged", "refinement_change", "done")
+        )
 
     def batch_call(batch, mode):
-        return _distances_batch(batch, metric, modulo=modulo, options=frozen, mode=mode)
+        return _distances_batch(batch, metric, modulo=modulo, options=options, mode=mode)
 
     def single_call(pair):
-        return _pair_distance(pair[0], pair[1], metric, modulo, geodesic_options)
+        return _pair_distance(pair[0], pair[1], metric, modulo, options)
 
     chunk_size = _default_chunk(strategy) if batch_size is None else batch_size
     for a, b in _chunks(rows.size, chunk_size):
@@ -368,12 +606,42 @@ def distance_matrix(
             continue
         # Index per chunk: all K(K-1)/2 pairs at once would copy every surface K - 1 times.
         chunk_pairs = (shapes[rows[a:b]], shapes[cols[a:b]])
-        (chunk,) = _batched(batch_call, single_call, chunk_pairs, strategy)
-        values[a:b], done[a:b] = np.asarray(chunk), True
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)  # reported in `converged`
+            chunk = _batched(batch_call, single_call, chunk_pairs, strategy)
+        values[a:b], converged[a:b], change[a:b] = (np.asarray(c) for c in chunk)
+        done[a:b] = True
         if path is not None:
-            save_npz_atomic(path, values=values, done=done, fingerprint=fingerprint)
+            save_npz_atomic(
+                path,
+                values=values,
+                converged=converged,
+                refinement_change=change,
+                done=done,
+                fingerprint=fingerprint,
+            )
         if progress is not None:
             progress({"pairs_done": int(done.sum()), "pairs": int(rows.size)})
-    matrix = np.zeros((k, k))
-    matrix[rows, cols] = values
-    return jnp.asarray(matrix + matrix.T, dtype=shapes.dtype)
+
+    def symmetric(upper, diagonal, dtype):
+        matrix = np.zeros((k, k), dtype)
+        matrix[rows, cols] = upper
+        matrix = matrix + matrix.T if dtype is not bool else matrix | matrix.T
+        np.fill_diagonal(matrix, diagonal)
+        return matrix
+
+    result = DistanceMatrixResult(
+        distances=jnp.asarray(symmetric(values, 0.0, np.float64), dtype=shapes.dtype),
+        converged=jnp.asarray(symmetric(converged, True, bool)),
+        refinement_change=jnp.asarray(symmetric(change, 0.0, np.float64), dtype=shapes.dtype),
+    )
+    if not converged.all():
+        failed = [
+            (int(i), int(j)) for i, j, ok in zip(rows, cols, converged, strict=True) if not ok
+        ]
+        warnings.warn(
+            f"distance_matrix: {len(failed)} of {rows.size} pairs did not converge: {failed}",
+            ConvergenceWarning,
+            stacklevel=2,
+        )
+    return result

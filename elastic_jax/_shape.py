@@ -37,7 +37,7 @@ from ._geodesic import (
     _solve,
     upsample_coefficients,
 )
-from ._grid import _interior_weights_np, interior_weights, sphere_points
+from ._grid import _interior_weights_np, interior_weights, sphere_points, sphere_points_np
 from ._harmonics import _harmonics_np, _vector_fields_np, check_degree
 from ._metric import SplitMetric
 from ._options import ShapeOptions, check_choice
@@ -188,7 +188,7 @@ def _resolution_np(m: int, n: int) -> tuple[float, float]:
     (1 - 5 eps_id) of the identity's discrete area, eps_id = 1 - A_grid(e1) / (4 pi); the
     boost |a| of the initial Moebius search is bounded to where a Moebius map keeps it.
     """
-    e1 = np.asarray(sphere_points(m, n, dtype=np.float64))
+    e1 = sphere_points_np(m, n)
     area_id = _grid_area_np(e1)
     floor = area_id * (1.0 - _RESOLUTION_FACTOR * (1.0 - area_id / (4.0 * np.pi)))
     # A direction that no grid symmetry favours.
@@ -728,7 +728,7 @@ def _bases(m: int, n: int, cfg: ShapeOptions, dtype) -> _Bases:
         fields=_vector_fields_np(m, n, cfg.vf_degree),
         field_scale=_field_scale_np(m, n, cfg.vf_degree),
         ico=_icosahedral_np(),
-        fine_points=np.asarray(sphere_points(*fine, dtype=np.float64)),
+        fine_points=sphere_points_np(*fine),
         fine_dframe=fine_dframe,
         area_floor=np.asarray(_resolution_np(m, n)[0]),
         max_boost=np.asarray(_resolution_np(m, n)[1]),

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import pathlib
 import platform
@@ -23,9 +24,26 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 
+from ._options import INITS, METHODS, SCHEMES, SOLVERS, ShapeOptions
+
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_NOT_CONVERGED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 DEFAULT_METRIC = (1.0, 1.0, 0.1, 0.0)
 SURFACE_FILE = "a surface: .npz (array f), .mat (the authors'), or a mesh trimesh reads"
+SHAPE_COMMANDS = ("shape-geodesic", "karcher", "distances")
+_SHAPE_DEFAULTS = ShapeOptions()
+# ShapeOptions field -> (argparse destination, flag): one record is built from these.
+SHAPE_FLAGS = {
+    "degree": ("degree", "--degree"),
+    "n_times": ("times", "--times"),
+    "solver": ("solver", "--solver"),
+    "max_steps": ("max_steps", "--max-steps"),
+    "scheme": ("scheme", "--scheme"),
+    "method": ("method", "--method"),
+    "vf_degree": ("vf_degree", "--vf-degree"),
+    "outer_steps": ("outer_steps", "--outer-steps"),
+    "init": ("init", "--init"),
+    "refinement": ("refinement", "--no-refinement"),
+}
 
 
 class BadInput(Exception):
@@ -71,7 +89,14 @@ def _default_cache_dir() -> pathlib.Path:
     return pathlib.Path(base) / "elastic-jax"
 
 
-def _common(parser: argparse.ArgumentParser, *, degree: int, times: int) -> None:
+def _common(
+    parser: argparse.ArgumentParser,
+    *,
+    degree: int,
+    times: int,
+    max_steps: int | None = None,
+    max_steps_help: str = "solver step limit (library default)",
+) -> None:
     parser.add_argument(
         "--metric",
         type=_metric,
@@ -94,13 +119,11 @@ def _common(parser: argparse.ArgumentParser, *, degree: int, times: int) -> None
     parser.add_argument("--times", type=int, default=times, help="time points N, ends included")
     parser.add_argument(
         "--solver",
-        choices=("bfgs", "lbfgs"),
+        choices=SOLVERS,
         default="bfgs",
         help="optimistix BFGS or jaxopt L-BFGS",
     )
-    parser.add_argument(
-        "--max-steps", type=int, default=None, help="solver step limit (library default)"
-    )
+    parser.add_argument("--max-steps", type=int, default=max_steps, help=max_steps_help)
     parser.add_argument(
         "--dtype",
         choices=("float64", "float32"),
@@ -124,7 +147,16 @@ def _common(parser: argparse.ArgumentParser, *, degree: int, times: int) -> None
     parser.add_argument("--no-cache", action="store_true", help="compile from scratch")
 
 
-def _shape_options(parser: argparse.ArgumentParser, *, modulo: str, outer: int) -> None:
+def _shape_options(parser: argparse.ArgumentParser, *, modulo: str, inner: str = "") -> None:
+    """The options of shape geodesics (one ShapeOptions record; the library's defaults)."""
+    d = _SHAPE_DEFAULTS
+    _common(
+        parser,
+        degree=d.degree,
+        times=d.n_times,
+        max_steps=d.max_steps,
+        max_steps_help=f"step limit of each inner solve (solver steps){inner}",
+    )
     parser.add_argument(
         "--modulo",
         choices=("diff", "rigid"),
@@ -132,16 +164,27 @@ def _shape_options(parser: argparse.ArgumentParser, *, modulo: str, outer: int) 
         help="reparametrizations, or reparametrizations and rigid motions",
     )
     parser.add_argument(
+        "--scheme",
+        choices=SCHEMES,
+        default=d.scheme,
+        help="time discretization of the path energy (see ShapeOptions)",
+    )
+    parser.add_argument(
         "--method",
-        choices=("coordinate", "joint"),
-        default="coordinate",
-        help="paper Algorithm 3 (coordinate) or 2 (joint)",
+        choices=METHODS,
+        default=d.method,
+        help="registration: paper Algorithm 2 (joint) or alternating (coordinate)",
     )
+    parser.add_argument("--vf-degree", type=int, default=d.vf_degree, help="Diff(S^2) basis degree")
     parser.add_argument(
-        "--vf-degree", type=int, default=None, help="Diff(S^2) basis degree (library default 7)"
+        "--outer-steps", type=int, default=d.outer_steps, help="most registration rounds"
     )
+    parser.add_argument("--init", choices=INITS, default=d.init, help="initial registration search")
     parser.add_argument(
-        "--outer-steps", type=int, default=outer, help="registration rounds per geodesic"
+        "--no-refinement",
+        dest="refinement",
+        action="store_false",
+        help="skip re-evaluating each distance at halved time steps and on a finer grid",
     )
 
 
@@ -161,10 +204,10 @@ def _batch_options(parser: argparse.ArgumentParser) -> None:
 
 
 class _DefaultsShown(argparse.ArgumentDefaultsHelpFormatter):
-    """Show defaults, except the None / False of options whose help says what happens."""
+    """Show defaults, except None and those of flags, whose help says what happens."""
 
     def _get_help_string(self, action):
-        if action.default is None or action.default is False:
+        if action.default is None or action.nargs == 0:  # flags: their help says it
             return action.help
         return super()._get_help_string(action)
 
@@ -189,30 +232,36 @@ def build_parser() -> argparse.ArgumentParser:
     p = command("shape-geodesic", help="geodesic between shapes (registration)")
     p.add_argument("source", help=SURFACE_FILE)
     p.add_argument("target", help=SURFACE_FILE)
-    _common(p, degree=7, times=13)
-    _shape_options(p, modulo="diff", outer=5)
+    _shape_options(p, modulo="diff")
 
     p = command("karcher", help="Karcher mean of a collection of shapes")
     p.add_argument("files", nargs="+", help=SURFACE_FILE)
-    _common(p, degree=5, times=9)
-    _shape_options(p, modulo="rigid", outer=2)
+    _shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
     _batch_options(p)
-    p.add_argument("--karcher-steps", type=int, default=10, help="Karcher iterations at most")
     p.add_argument(
-        "--tol", type=float, default=1e-3, help="stop when |mean velocity| < tol x RMS distance"
+        "--karcher-steps",
+        type=int,
+        default=10,
+        help="most Karcher steps (accepted updates of the mean)",
     )
-    p.add_argument("--step-size", type=float, default=1.0, help="fraction of the mean velocity")
     p.add_argument(
-        "--scheme",
-        choices=("forward", "central"),
-        default="central",
-        help="time differences; central gives accurate initial velocities",
+        "--tol",
+        type=float,
+        default=1e-3,
+        help="Karcher convergence: |mean velocity| <= tol x RMS distance, or a full step "
+        "lowers the sum of squared distances by less than tol (relative)",
+    )
+    p.add_argument(
+        "--step-size",
+        type=float,
+        default=1.0,
+        help="first trial step along the mean velocity (halved while it raises the sum "
+        "of squared distances)",
     )
 
     p = command("distances", help="matrix of pairwise shape distances")
     p.add_argument("files", nargs="+", help=SURFACE_FILE)
-    _common(p, degree=5, times=9)
-    _shape_options(p, modulo="rigid", outer=2)
+    _shape_options(p, modulo="rigid")
     _batch_options(p)
 
     p = command("demo", help="a geodesic between two built-in surfaces, with figures")
@@ -290,12 +339,22 @@ def _geodesic_options(args) -> dict:
     return options
 
 
-def _shape_geodesic_options(args) -> dict:
-    options = _geodesic_options(args)
-    options.update(method=args.method, outer_steps=args.outer_steps)
-    if args.vf_degree is not None:
-        options["vf_degree"] = args.vf_degree
-    return options
+def shape_options_from(args) -> ShapeOptions:
+    """One validated ShapeOptions from the shape commands' arguments.
+
+    A bad value is BadInput naming the flag, e.g. ``--times 2: n_times must be ...``.
+    """
+    values = {field: getattr(args, dest) for field, (dest, _) in SHAPE_FLAGS.items()}
+    try:
+        return ShapeOptions(**values)
+    except ValueError as err:
+        field = str(err).split()[0]
+        flag = SHAPE_FLAGS.get(field, (field, f"--{field}"))[1]
+        raise BadInput(f"{flag} {values.get(field)}: {err}") from err
+
+
+def _shape_geodesic_options(args) -> ShapeOptions:
+    return args.shape_options
 
 
 def _write_summary(out: pathlib.Path, summary: dict) -> None:
@@ -375,20 +434,21 @@ def _run_shape_geodesic(args, progress: Progress) -> dict:
     m, n = f1.shape[1:]
     progress(
         f"registering and solving modulo {args.modulo} on {m} x {n}, "
-        f"{args.outer_steps} outer steps (the first call compiles)"
+        f"at most {options.outer_steps} registration rounds (the first call compiles)"
     )
     start = time.perf_counter()
-    res = jax.block_until_ready(shape_geodesic(f1, f2, metric, modulo=args.modulo, **options))
+    res = jax.block_until_ready(shape_geodesic(f1, f2, metric, modulo=args.modulo, options=options))
     seconds = time.perf_counter() - start
     progress(
         f"shape distance {float(res.distance):.6g} "
-        f"(parametrized {float(res.parametrized_distance):.6g})"
+        f"(parametrized {float(res.parametrized_distance):.6g}) "
+        f"after {int(res.rounds)} rounds"
     )
     settings = {
         "metric": list(args.metric),
         "grid": [m, n],
         "modulo": args.modulo,
-        **options,
+        **options.as_dict(),
         "dtype": args.dtype,
     }
     files = _write_path(args.out, np.asarray(res.path), settings, progress)
@@ -403,7 +463,9 @@ def _run_shape_geodesic(args, progress: Progress) -> dict:
             )
         )
     )
-    fig = plot.plot_energy({"path energy": np.asarray(res.energy_history)})
+    history = np.asarray(res.energy_history)
+    # Rounds not taken are NaN in the record; the figure shows the rounds taken.
+    fig = plot.plot_energy({"path energy": history[np.isfinite(history)]})
     files.append(str(plot.save_figure(fig, args.out / "energy.png")))
     return {
         "command": args.command,
@@ -412,22 +474,49 @@ def _run_shape_geodesic(args, progress: Progress) -> dict:
         "distance": float(res.distance),
         "parametrized_distance": float(res.parametrized_distance),
         "energy": float(res.energy),
+        "energy_history": _json_floats(res.energy_history),
+        "rounds": int(res.rounds),
         "num_steps": int(res.num_steps),
         "converged": bool(res.converged),
+        "result": res.message or "converged",
+        "grad_norm": float(res.grad_norm),
+        "refinement": {
+            "distance_time": _json_float(res.refinement.distance_time),
+            "distance_grid": _json_float(res.refinement.distance_grid),
+            "relative_change": _json_float(res.refinement.relative_change),
+        },
         "seconds": seconds,
         "files": files,
         "environment": _environment(),
     }
 
 
-def _collection_settings(args, m: int, n: int, options: dict) -> dict:
+def _json_float(x) -> float | None:
+    """A float for JSON; NaN and inf (not JSON) become null."""
+    import math
+
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _json_floats(values) -> list:
+    """Nested lists of floats for JSON, NaN and inf as null."""
+    import numpy as np
+
+    values = np.asarray(values)
+    if values.ndim == 0:
+        return _json_float(values)
+    return [_json_floats(v) for v in values]
+
+
+def _collection_settings(args, m: int, n: int, options: ShapeOptions) -> dict:
     return {
         "metric": list(args.metric),
         "grid": [m, n],
         "modulo": args.modulo,
         "strategy": args.strategy,
         "batch_size": args.batch_size,
-        **options,
+        **options.as_dict(),
         "dtype": args.dtype,
     }
 
@@ -442,16 +531,14 @@ def _run_karcher(args, progress: Progress) -> dict:
     shapes, metric, options = _prepare(args, progress, args.files, _shape_geodesic_options)
     m, n = shapes.shape[2:]
     settings = _collection_settings(args, m, n, options)
-    settings.update(
-        karcher_steps=args.karcher_steps, tol=args.tol, step_size=args.step_size, scheme=args.scheme
-    )
+    settings.update(karcher_steps=args.karcher_steps, tol=args.tol, step_size=args.step_size)
     checkpoint = args.out / "karcher_checkpoint.npz"
 
     def report(info):
         progress(
             f"Karcher step {info['step']}/{args.karcher_steps}: sum of squared distances "
-            f"{info['sum_sq_distances']:.6g}, mean velocity {info['mean_velocity_norm']:.3g}"
-            f" (checkpoint {checkpoint.name})"
+            f"{info['sum_sq_distances']:.6g}, mean velocity {info['mean_velocity_norm']:.3g}, "
+            f"step {info['step_size']:g} (checkpoint {checkpoint.name})"
         )
 
     progress(
@@ -463,6 +550,7 @@ def _run_karcher(args, progress: Progress) -> dict:
         shapes,
         metric,
         modulo=args.modulo,
+        options=options,
         max_steps=args.karcher_steps,
         tol=args.tol,
         step_size=args.step_size,
@@ -471,8 +559,6 @@ def _run_karcher(args, progress: Progress) -> dict:
         checkpoint=checkpoint,
         resume=args.resume,
         progress=report,
-        scheme=args.scheme,
-        **options,
     )
     seconds = time.perf_counter() - start
     mean = np.asarray(res.mean)
@@ -501,8 +587,17 @@ def _run_karcher(args, progress: Progress) -> dict:
         "settings": settings,
         "distances": [float(d) for d in np.asarray(res.distances)],
         "sum_sq_distances": float(np.sum(np.asarray(res.distances) ** 2)),
+        "history": {
+            "sum_sq_distances": _json_floats(history[:, 0]),
+            "mean_velocity_norm": _json_floats(history[:, 1]),
+            "step_size": _json_floats(history[:, 2]),
+        },
         "num_steps": int(res.num_steps),
+        "num_solves": int(res.num_solves),
         "converged": bool(res.converged),
+        "result": res.result,
+        "message": res.message,
+        "geodesics_converged": [bool(c) for c in np.asarray(res.geodesics_converged)],
         "seconds": seconds,
         "files": files,
         "environment": _environment(),
@@ -528,26 +623,30 @@ def _run_distances(args, progress: Progress) -> dict:
         f"{k * (k - 1) // 2} shape geodesics modulo {args.modulo} on {m} x {n} (the first compiles)"
     )
     start = time.perf_counter()
-    matrix = np.asarray(
-        distance_matrix(
-            shapes,
-            metric,
-            modulo=args.modulo,
-            batch_size=args.batch_size,
-            strategy=args.strategy,
-            checkpoint=checkpoint,
-            resume=args.resume,
-            progress=report,
-            **options,
-        )
+    res = distance_matrix(
+        shapes,
+        metric,
+        modulo=args.modulo,
+        options=options,
+        batch_size=args.batch_size,
+        strategy=args.strategy,
+        checkpoint=checkpoint,
+        resume=args.resume,
+        progress=report,
     )
     seconds = time.perf_counter() - start
+    matrix = np.asarray(res.distances)
+    converged = np.asarray(res.converged)
+    if not converged.all():
+        progress(f"{int((~converged).sum()) // 2} pairs did not converge (summary: converged)")
     names = [pathlib.Path(f).stem for f in args.files]
     files = [
         str(
             save_npz_atomic(
                 args.out / "distances.npz",
                 distances=matrix,
+                converged=converged,
+                refinement_change=np.asarray(res.refinement_change),
                 files=np.asarray(args.files),
                 settings=json.dumps(settings),
             )
@@ -566,8 +665,10 @@ def _run_distances(args, progress: Progress) -> dict:
         "inputs": list(args.files),
         "settings": settings,
         "distances": matrix.tolist(),
-        # distance_matrix reports no per-pair convergence; the CLI does not claim it.
-        "converged": None,
+        "converged": bool(converged.all()),
+        "pairs_converged": converged.tolist(),
+        # Each pair's relative change under refinement (null: not computed).
+        "refinement_change": _json_floats(res.refinement_change),
         "seconds": seconds,
         "files": files,
         "environment": _environment(),
@@ -661,6 +762,16 @@ def _preflight(args) -> None:
             check_grid_shape((3, *args.grid), "--grid")
         except ValueError as err:
             raise BadInput(str(err)) from err
+    if args.command in SHAPE_COMMANDS:
+        args.shape_options = shape_options_from(args)
+    if args.command == "karcher":
+        if args.karcher_steps < 0:
+            raise BadInput(f"--karcher-steps must be >= 0; got {args.karcher_steps}")
+        for flag, value in (("--tol", args.tol), ("--step-size", args.step_size)):
+            if not (math.isfinite(value) and value > 0):
+                raise BadInput(f"{flag} must be a positive finite number; got {value}")
+    if getattr(args, "batch_size", None) is not None and args.batch_size < 1:
+        raise BadInput(f"--batch-size must be >= 1; got {args.batch_size}")
 
 
 COMMANDS = {

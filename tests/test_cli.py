@@ -18,8 +18,10 @@ from elastic_jax import cli, io, shapes
 M, N = 13, 25
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 SMALL = ["--grid", str(M), str(N), "--degree", "3", "--times", "5", "--quiet", "--no-cache"]
-SHAPE = [*SMALL, "--vf-degree", "3", "--outer-steps", "1"]
-SHAPE_OPTIONS = dict(degree=3, vf_degree=3, n_times=5, outer_steps=1)
+# Shape commands: the configuration of tests/test_karcher.py (one compilation for both).
+SHAPE = ["--grid", str(M), str(N), "--degree", "4", "--vf-degree", "4", "--times", "5"]
+SHAPE += ["--quiet", "--no-cache"]
+SHAPE_OPTIONS = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
 
 
 def _no_temporaries(directory):
@@ -105,6 +107,93 @@ def test_bad_input_and_non_convergence_have_their_own_exit_codes(tmp_path, capsy
     assert summary["converged"] is False and summary["num_steps"] == 2
 
 
+def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, capsys):
+    good = _save(tmp_path, "good.npz", shapes.sample(shapes.sphere, M, N))
+    out = tmp_path / "out"
+    cases = {  # argv, what the one-line message must contain
+        "times": (["shape-geodesic", good, good, "--times", "2"], "--times 2"),
+        "max-steps": (["karcher", good, good, "--max-steps", "0"], "--max-steps 0"),
+        "outer-steps": (["distances", good, good, "--outer-steps", "-1"], "--outer-steps -1"),
+        "vf-degree": (["distances", good, good, "--vf-degree", "30"], "--vf-degree 30"),
+        "karcher-steps": (["karcher", good, good, "--karcher-steps", "-1"], "--karcher-steps"),
+        "tol": (["karcher", good, good, "--tol", "0"], "--tol"),
+        "step-size": (["karcher", good, good, "--step-size", "nan"], "--step-size"),
+        "batch-size": (["distances", good, good, "--batch-size", "0"], "--batch-size"),
+    }
+    for key, (argv, word) in cases.items():
+        code = cli.main(
+            [*argv, "--grid", str(M), str(N), "--quiet", "--no-cache", "--out", str(out)]
+        )
+        err = capsys.readouterr().err
+        assert code == cli.EXIT_BAD_INPUT, key
+        assert "bad input" in err and word in err, (key, err)
+        assert len(err.strip().splitlines()) == 1, key
+    assert not out.exists()
+
+
+def _fake_karcher(calls):
+    def karcher_mean(shapes, metric, **kwargs):
+        calls.append(kwargs)
+        k = shapes.shape[0]
+        return ej.KarcherResult(
+            mean=shapes[0],
+            distances=np.zeros(k),
+            registered=shapes,
+            velocities=np.zeros_like(shapes),
+            geodesics_converged=np.ones(k, bool),
+            history=np.array([[2.0, 0.5, 0.0], [1.0, 1e-6, 0.5]]),
+            converged=True,
+            num_steps=1,
+            num_solves=3,
+            result="mean_velocity_small",
+        )
+
+    return karcher_mean
+
+
+def test_karcher_builds_one_options_record_and_keeps_its_own_steps(tmp_path, capsys, monkeypatch):
+    from elastic_jax import _karcher
+
+    calls = []
+    monkeypatch.setattr(_karcher, "karcher_mean", _fake_karcher(calls))
+    files = [_save(tmp_path, f"s{i}.npz", shapes.sample(shapes.sphere, M, N)) for i in range(2)]
+    argv = ["karcher", *files, *SHAPE, "--max-steps", "7", "--karcher-steps", "3"]
+    argv += ["--scheme", "forward", "--tol", "0.01", "--out", str(tmp_path / "out")]
+    assert cli.main(argv) == 0
+    summary = json.loads(capsys.readouterr().out)
+    (kwargs,) = calls
+    assert kwargs["options"] == SHAPE_OPTIONS.replace(max_steps=7, scheme="forward")
+    assert (kwargs["max_steps"], kwargs["tol"], kwargs["step_size"]) == (3, 0.01, 1.0)
+    assert summary["history"]["step_size"] == [0.0, 0.5]
+    assert summary["result"] == "mean_velocity_small" and summary["num_solves"] == 3
+    assert summary["message"].startswith("converged")
+
+
+def test_distances_reports_each_pair_and_exits_3_when_one_did_not_converge(
+    tmp_path, capsys, monkeypatch
+):
+    from elastic_jax import _karcher
+
+    def distance_matrix(shapes, metric, **kwargs):
+        converged = np.ones((3, 3), bool)
+        converged[0, 2] = converged[2, 0] = False
+        change = np.full((3, 3), 0.01)
+        np.fill_diagonal(change, 0.0)
+        change[1, 2] = change[2, 1] = np.nan
+        return ej.DistanceMatrixResult(np.ones((3, 3)) - np.eye(3), converged, change)
+
+    monkeypatch.setattr(_karcher, "distance_matrix", distance_matrix)
+    files = [_save(tmp_path, f"s{i}.npz", shapes.sample(shapes.sphere, M, N)) for i in range(3)]
+    out = tmp_path / "out"
+    assert cli.main(["distances", *files, *SHAPE, "--out", str(out)]) == cli.EXIT_NOT_CONVERGED
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["converged"] is False
+    assert summary["pairs_converged"][0] == [True, True, False]
+    assert summary["refinement_change"][1] == [0.01, 0.0, None]  # NaN: not computed
+    saved = np.load(out / "distances.npz")
+    assert not saved["converged"][2, 0] and np.isnan(saved["refinement_change"][2, 1])
+
+
 @pytest.mark.slow
 @pytest.mark.filterwarnings("ignore::elastic_jax.ConvergenceWarning")
 def test_ctrl_c_then_resume_equals_the_library(tmp_path, capsys):
@@ -134,13 +223,20 @@ def test_ctrl_c_then_resume_equals_the_library(tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir()) == ["distances_checkpoint.npz"]
     assert 1 <= int(np.load(checkpoint)["done"].sum()) < 6
 
-    assert cli.main([*argv, "--resume"]) == 0
+    code = cli.main([*argv, "--resume"])
     summary = json.loads(capsys.readouterr().out)
     expected = ej.distance_matrix(
-        np.stack(fs), METRIC, modulo="rigid", strategy="loop", **SHAPE_OPTIONS
+        np.stack(fs), METRIC, modulo="rigid", strategy="loop", options=SHAPE_OPTIONS
     )
-    np.testing.assert_allclose(summary["distances"], expected, rtol=1e-9)
-    np.testing.assert_allclose(np.load(out / "distances.npz")["distances"], expected, rtol=1e-9)
+    converged = np.asarray(expected.converged)
+    assert code == (0 if converged.all() else cli.EXIT_NOT_CONVERGED)
+    assert summary["converged"] is bool(converged.all())
+    assert summary["pairs_converged"] == converged.tolist()
+    np.testing.assert_allclose(summary["distances"], expected.distances, rtol=1e-9)
+    np.testing.assert_allclose(summary["refinement_change"], expected.refinement_change, rtol=1e-9)
+    saved = np.load(out / "distances.npz")
+    np.testing.assert_allclose(saved["distances"], expected.distances, rtol=1e-9)
+    np.testing.assert_array_equal(saved["converged"], converged)
     assert (out / "distances.png").exists() and (out / "distances.csv").exists()
     assert _no_temporaries(out) == []
     assert (out / "summary.json").stat().st_mode & 0o044  # not private, unlike mkstemp's
@@ -155,13 +251,19 @@ def test_karcher_and_shape_geodesic_equal_the_library(tmp_path, capsys):
     ]
     files = [_save(tmp_path, f"s{i}.npz", f) for i, f in enumerate(fs)]
     out = tmp_path / "karcher"
-    argv = ["karcher", *files, *SHAPE, "--karcher-steps", "2", "--out", str(out)]
+    # --max-steps (the inner solves', here their default) beside --karcher-steps: it
+    # raised a TypeError when both reached karcher_mean as max_steps.
+    argv = ["karcher", *files, *SHAPE, "--karcher-steps", "2", "--max-steps", "500"]
+    argv += ["--strategy", "loop", "--out", str(out)]
     code = cli.main(argv)
     summary = json.loads(capsys.readouterr().out)
     res = ej.karcher_mean(
-        np.stack(fs), METRIC, modulo="rigid", max_steps=2, scheme="central", **SHAPE_OPTIONS
+        np.stack(fs), METRIC, modulo="rigid", max_steps=2, options=SHAPE_OPTIONS, strategy="loop"
     )
     assert code == (0 if res.converged else cli.EXIT_NOT_CONVERGED)
+    assert summary["converged"] is res.converged and summary["result"] == res.result
+    assert summary["history"]["sum_sq_distances"] == res.history[:, 0].tolist()
+    assert summary["settings"]["max_steps"] == 500 and summary["settings"]["karcher_steps"] == 2
     np.testing.assert_allclose(summary["distances"], res.distances, rtol=1e-9)
     np.testing.assert_allclose(np.load(out / "mean.npz")["f"], res.mean, atol=1e-9)
     assert {"mean.ply", "mean.png", "history.png", "summary.json"} <= {
@@ -171,9 +273,15 @@ def test_karcher_and_shape_geodesic_equal_the_library(tmp_path, capsys):
     out = tmp_path / "shape"
     code = cli.main(["shape-geodesic", files[0], files[1], *SHAPE, "--out", str(out)])
     summary = json.loads(capsys.readouterr().out)
-    res = ej.shape_geodesic(fs[0], fs[1], METRIC, modulo="diff", **SHAPE_OPTIONS)
+    res = ej.shape_geodesic(fs[0], fs[1], METRIC, modulo="diff", options=SHAPE_OPTIONS)
+    assert code == (0 if bool(res.converged) else cli.EXIT_NOT_CONVERGED)
     assert summary["distance"] == pytest.approx(float(res.distance), rel=1e-9)
     assert summary["distance"] < summary["parametrized_distance"]
+    assert summary["rounds"] == int(res.rounds) and summary["grad_norm"] == float(res.grad_norm)
+    assert summary["result"] == (res.message or "converged")
+    refinement = summary["refinement"]
+    assert refinement["relative_change"] == float(res.refinement.relative_change)
+    assert refinement["distance_time"] == float(res.refinement.distance_time)
     np.testing.assert_allclose(np.load(out / "registration.npz")["gamma"], res.gamma, atol=1e-9)
 
 
