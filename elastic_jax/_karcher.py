@@ -142,6 +142,7 @@ def _geodesic_kwargs(options: ShapeOptions) -> dict:
         "max_steps": options.max_steps,
         "tol": options.tol,
         "scheme": options.scheme,
+        "saddle_checks": options.saddle_checks,
     }
 
 

@@ -644,7 +644,8 @@ def _shape_solve(metric, f1, f2, bases, cfg, rigid):
     best = jnp.argmin(jnp.where(jnp.isfinite(ends.energy), ends.energy, jnp.inf))
     state = jax.tree_util.tree_map(lambda x: x[best], ends)
     state = straight_rounds(state, 0.0, cfg.max_steps)
-    state = state._replace(steps=state.steps + steps + jnp.sum(ends.steps) - ends.steps[best])
+    others = jnp.sum(ends.steps).astype(jnp.int32) - ends.steps[best]
+    state = state._replace(steps=state.steps + steps + others)
     energy0 = _straight_energy(prob, cfg, f1, f2)
     energy = _path_energy_at(prob, cfg, state.gamma, state.rotation, zero_coefficients)
     state = state._replace(energy=energy)
