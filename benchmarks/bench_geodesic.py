@@ -69,6 +69,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="only the 25 x 49 synthetic row")
+    # The issue-3 comparison with the authors' code was made with their forward scheme.
+    parser.add_argument("--scheme", default="midpoint", choices=("midpoint", "forward", "central"))
     args = parser.parse_args()
     env = environment()
     rows = [(25, 49, 7, 10)] if args.quick else [(25, 49, 7, 10), (50, 99, 7, 13)]
@@ -80,7 +82,12 @@ def main() -> None:
             schedules = [()] if (args.quick or m < 50) else [(), ((4, 5), (7, 7))]
             for solver in solvers:
                 for schedule in schedules:
-                    options = {"degree": degree, "n_times": n_times, "solver": solver}
+                    options = {
+                        "degree": degree,
+                        "n_times": n_times,
+                        "solver": solver,
+                        "scheme": args.scheme,
+                    }
                     if schedule:
                         options["schedule"] = schedule
                     record = solve_record(f1, f2, repeats=args.repeats, **options)

@@ -2,15 +2,17 @@
 
 Settings (issue 5): 8 surfaces at 25 x 49 (synthetic, plus the shared cats, horse and
 hand when ../shared/data is present, each scaled to unit area since the shape space here
-keeps scale), metric (1, 1, 0.1, 0), modulo="rigid", degree 5, vf degree 5, N = 7,
-scheme "central", 2 outer steps; one Karcher step per strategy ("vmap", "map" = lax.map
-in one jit, "loop" = Python loop of jitted solves), each in its own process so that its
-peak resident memory (ru_maxrss) is its own; then a 16-shape distance matrix (120 pairs,
+keeps scale), metric (1, 1, 0.1, 0), modulo="rigid", ShapeOptions(degree=5, vf_degree=5,
+n_times=7) (midpoint scheme, registration rounds to convergence); one Karcher step per
+strategy ("vmap", "map" = lax.map in one jit, "loop" = Python loop of jitted solves),
+each in its own process so that its peak resident memory (ru_maxrss) is its own; then a
+16-shape distance matrix (120 pairs,
 strategy "map" by default). One JSON record per measurement: first call (with
 compilation) and a repeat.
 
-Measured on 2 CPU cores (jax 0.10.2, float64), repeat after compilation: Karcher step
-map 17.7 s, loop 19.8 s, vmap 52.8 s; distance matrix map 140.5 s, loop 206 s.
+Measured on 2 CPU cores (jax 0.10.2, float64), repeat after compilation, with issue 5's
+solver (central scheme, 2 outer steps): Karcher step map 17.7 s, loop 19.8 s, vmap
+52.8 s; distance matrix map 140.5 s, loop 206 s.
 
 Run: python benchmarks/bench_karcher.py [--shapes 8] [--matrix-shapes 16]
      [--strategies vmap,map,loop] [--matrix-strategy map]   (--strategies "" skips them)
@@ -36,7 +38,7 @@ from elastic_jax import shapes
 
 k, task, strategy = {k}, {task!r}, {strategy!r}
 m, n = 25, 49
-options = dict(degree=5, vf_degree=5, n_times=7, scheme="central", outer_steps=2)
+options = ej.ShapeOptions(degree=5, vf_degree=5, n_times=7)
 coll = []
 for name in ("cat1", "cat2", "horse0", "hand4"):
     p = DATA / f"{{name}}_50x99.npz"
@@ -56,9 +58,10 @@ warnings.simplefilter("ignore", ej.ConvergenceWarning)
 
 def run():
     if task == "karcher":
-        kw = dict(modulo="rigid", max_steps=1, strategy=strategy, **options)
+        kw = dict(modulo="rigid", max_steps=1, strategy=strategy, options=options)
         return ej.karcher_mean(coll, metric, **kw).mean
-    return ej.distance_matrix(coll, metric, modulo="rigid", strategy=strategy, **options)
+    kw = dict(modulo="rigid", strategy=strategy, options=options)
+    return ej.distance_matrix(coll, metric, **kw).distances
 
 t = time.perf_counter(); jax.block_until_ready(run()); first = time.perf_counter() - t
 t = time.perf_counter(); out = jax.block_until_ready(run()); again = time.perf_counter() - t
@@ -101,11 +104,7 @@ def main() -> None:
                     "grid": [25, 49],
                     "metric": [1.0, 1.0, 0.1, 0.0],
                     "modulo": "rigid",
-                    "degree": 5,
-                    "vf_degree": 5,
-                    "n_times": 7,
-                    "scheme": "central",
-                    "outer_steps": 2,
+                    "options": {"degree": 5, "vf_degree": 5, "n_times": 7},
                 },
                 **record,
                 "environment": env,

@@ -1,19 +1,27 @@
-"""Geodesics between shapes (modulo reparametrization): the paper's Table 3 settings.
+"""Geodesics between shapes (modulo reparametrization): the paper's Table 3 rows and accuracy.
 
 Rows (paper, Table 3, laptop without GPU): low 12 x 25, degree 5 / vf degree 5, N = 5
 (32-41 s); middle 25 x 49, 7 / 8, N = 10 (95-183 s); high 50 x 99, 9 / 11, N = 15
-(505-842 s). Metric (1, 1, 0.1, 0), modulo="diff", the cat pair (../shared/data, resampled
-for the lower rows; skipped when absent) and a synthetic pair (a bumpy surface against a
-stretched copy under a random reparametrization). Target: at least 20x faster on 2 CPU
-cores at every row, with distances no higher. One JSON record per solve: compile time
-(first call minus a repeat), solve time, steps, distance, parametrized distance.
+(505-842 s); plus the package's defaults (ShapeOptions()) at 25 x 49. Metric
+(1, 1, 0.1, 0), modulo="diff". Pairs: a synthetic one (a bumpy surface against a stretched
+copy under a random rotation of the parameter sphere, sampled exactly at every grid, so
+every row sees the same continuous surfaces) and the cats (../shared/data, 50 x 99,
+interpolated bicubically to the lower rows' grids; skipped when absent).
 
-Run: python benchmarks/bench_shape.py [--rows low,middle,high] [--method coordinate]
+One JSON record per solve: compile time (first call minus a repeat), solve time, the
+distance, its refinement (halved time steps, the finer grid), converged, rounds, steps,
+peak RSS. Then one record per pair: the accuracy-versus-time table, each row's distance
+error against a fine reference solve (50 x 99, degree 12, vf degree 12, N = 21). The
+target: every row at least 20 x faster than the paper's fastest time for it.
+
+Run: python benchmarks/bench_shape.py [--rows low,middle,high,defaults] [--pairs synthetic,cats]
+     [--no-reference]
 """
 
 from __future__ import annotations
 
 import argparse
+import resource
 import time
 import warnings
 
@@ -27,86 +35,133 @@ import numpy as np  # noqa: E402
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import shapes  # noqa: E402
 
-from _common import cat_pair, emit, environment  # noqa: E402
+from _common import DATA, emit, environment  # noqa: E402
 
 METRIC = (1.0, 1.0, 0.1, 0.0)
 ROWS = {
     "low": {"grid": (12, 25), "degree": 5, "vf_degree": 5, "n_times": 5, "paper_s": [32, 41]},
     "middle": {"grid": (25, 49), "degree": 7, "vf_degree": 8, "n_times": 10, "paper_s": [95, 183]},
     "high": {"grid": (50, 99), "degree": 9, "vf_degree": 11, "n_times": 15, "paper_s": [505, 842]},
+    "defaults": {"grid": (25, 49), "paper_s": None},
 }
+REFERENCE = {"grid": (50, 99), "degree": 12, "vf_degree": 12, "n_times": 21}
 
 
-def pairs(m: int, n: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    h = shapes.random_rotation(11)
-    stretch = jnp.asarray([1.3, 1.0, 0.8])
-    synthetic = (
-        np.asarray(shapes.sample(shapes.bumpy, m, n)),
-        np.asarray(
-            jnp.einsum("i,imn->imn", stretch, shapes.sample(shapes.bumpy, m, n, rotation=h))
-        ),
-    )
-    out = {"bumpy vs stretched, reparametrized (synthetic)": synthetic}
-    cats = cat_pair(m, n)
-    if cats is not None:
-        out["cat1 -> cat2"] = cats
-    return out
+def pair(name: str, m: int, n: int):
+    """The pair on an m x n grid, or None when its data is absent."""
+    if name == "synthetic":
+        stretch = jnp.asarray([1.3, 1.0, 0.8])
+        h = shapes.random_rotation(11)
+        moved = shapes.sample(shapes.bumpy, m, n, rotation=h)
+        return shapes.sample(shapes.bumpy, m, n), jnp.einsum("i,imn->imn", stretch, moved)
+    paths = [DATA / f"cat{i}_50x99.npz" for i in (1, 2)]
+    if not all(p.exists() for p in paths):
+        return None
+    points = ej.sphere_points(m, n)
+    cats = [np.load(p)["f"] for p in paths]
+    if (m, n) == (50, 99):
+        return tuple(jnp.asarray(f) for f in cats)
+    return tuple(_grid(ej.reparametrize(f, points, "bicubic")) for f in cats)
+
+
+def _grid(f):
+    """Pole rows and seam exact after interpolation (MATH.md 1)."""
+    f = f.at[:, 0, :].set(f[:, 0, :1]).at[:, -1, :].set(f[:, -1, :1])
+    return f.at[:, :, -1].set(f[:, :, 0])
+
+
+def options_of(settings: dict) -> ej.ShapeOptions:
+    keys = ("degree", "vf_degree", "n_times")
+    return ej.ShapeOptions(**{k: settings[k] for k in keys if k in settings})
+
+
+def solve(name: str, settings: dict, metric: ej.SplitMetric, row: str) -> dict | None:
+    m, n = settings["grid"]
+    surfaces = pair(name, m, n)
+    if surfaces is None:
+        return None
+    options = options_of(settings)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        start = time.perf_counter()
+        jax.block_until_ready(ej.shape_geodesic(*surfaces, metric, options=options))
+        first = time.perf_counter() - start
+        start = time.perf_counter()
+        res = jax.block_until_ready(ej.shape_geodesic(*surfaces, metric, options=options))
+        seconds = time.perf_counter() - start
+    record = {
+        "benchmark": "shape_geodesic",
+        "settings": {
+            "row": row,
+            "pair": name,
+            "m": m,
+            "n": n,
+            "metric": METRIC,
+            "modulo": "diff",
+            "options": options.as_dict(),
+        },
+        "compile_s_estimate": first - seconds,
+        "solve_s": seconds,
+        "distance": float(res.distance),
+        "parametrized_distance": float(res.parametrized_distance),
+        "refinement": {
+            "distance_time": float(res.refinement.distance_time),
+            "distance_grid": float(res.refinement.distance_grid),
+            "relative_change": float(res.refinement.relative_change),
+        },
+        "converged": bool(res.converged),
+        "message": res.message,
+        "rounds": int(res.rounds),
+        "num_steps": int(res.num_steps),
+        "grad_norm": float(res.grad_norm),
+        "min_jacobian": float(ej.jacobian_determinant(res.gamma).min()),
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "paper_s": settings["paper_s"],
+    }
+    if settings["paper_s"]:
+        record["speedup_vs_paper_fastest"] = settings["paper_s"][0] / seconds
+    emit(record)
+    return record
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rows", default="low,middle,high")
-    parser.add_argument("--method", default="coordinate", choices=("coordinate", "joint"))
-    parser.add_argument("--outer-steps", type=int, default=5)
-    parser.add_argument("--interpolation", default="bilinear", choices=("bilinear", "bicubic"))
+    parser.add_argument("--rows", default="low,middle,high,defaults")
+    parser.add_argument("--pairs", default="synthetic,cats")
+    parser.add_argument("--no-reference", action="store_true")
     args = parser.parse_args()
     env = environment()
+    emit({"benchmark": "environment", "environment": env})
     metric = ej.SplitMetric(*METRIC)
-    for row in args.rows.split(","):
-        settings = ROWS[row]
-        m, n = settings["grid"]
-        options = {
-            "degree": settings["degree"],
-            "vf_degree": settings["vf_degree"],
-            "n_times": settings["n_times"],
-            "method": args.method,
-            "outer_steps": args.outer_steps,
-            "interpolation": args.interpolation,
-        }
-        for pair, (f1, f2) in pairs(m, n).items():
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", ej.ConvergenceWarning)
-                start = time.perf_counter()
-                jax.block_until_ready(ej.shape_geodesic(f1, f2, metric, **options))
-                first = time.perf_counter() - start
-                start = time.perf_counter()
-                res = jax.block_until_ready(ej.shape_geodesic(f1, f2, metric, **options))
-                solve = time.perf_counter() - start
-            emit(
-                {
-                    "benchmark": "shape_geodesic",
-                    "settings": {
-                        "row": row,
-                        "pair": pair,
-                        "m": m,
-                        "n": n,
-                        "metric": METRIC,
-                        "modulo": "diff",
-                        **options,
-                    },
-                    "compile_s_estimate": first - solve,
-                    "solve_s": solve,
-                    "num_steps": int(res.num_steps),
-                    "converged": bool(res.converged),
-                    "distance": float(res.distance),
-                    "parametrized_distance": float(res.parametrized_distance),
-                    "energy_history": np.asarray(res.energy_history).tolist(),
-                    "min_jacobian": float(ej.jacobian_determinant(res.gamma).min()),
-                    "paper_s": settings["paper_s"],
-                    "speedup_vs_paper_fastest": settings["paper_s"][0] / solve,
-                    "environment": env,
-                }
-            )
+    for name in args.pairs.split(","):
+        records = {row: solve(name, ROWS[row], metric, row) for row in args.rows.split(",")}
+        if args.no_reference or not any(records.values()):
+            continue
+        reference = solve(name, {**REFERENCE, "paper_s": None}, metric, "reference")
+        if reference is None:
+            continue
+        table = [
+            {
+                "row": row,
+                "grid": list(ROWS[row]["grid"]),
+                "solve_s": r["solve_s"],
+                "distance": r["distance"],
+                "error_vs_reference": abs(r["distance"] - reference["distance"])
+                / reference["distance"],
+                "refinement_change": r["refinement"]["relative_change"],
+                "converged": r["converged"],
+            }
+            for row, r in records.items()
+            if r is not None
+        ]
+        emit(
+            {
+                "benchmark": "shape_accuracy_vs_time",
+                "pair": name,
+                "reference": {"settings": REFERENCE, "distance": reference["distance"]},
+                "rows": table,
+            }
+        )
 
 
 if __name__ == "__main__":

@@ -97,7 +97,7 @@ class ShapeOptions:
     tol: float | None = None
     scheme: str = "midpoint"
     method: str = "joint"
-    vf_degree: int = 7
+    vf_degree: int = 8
     outer_steps: int = 10
     outer_tol: float = 1e-3
     init: str = "moebius"

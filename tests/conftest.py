@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import atexit
 import pathlib
+import shutil
+import tempfile
 
 import jax
 import numpy as np
@@ -11,6 +14,13 @@ import pytest
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+# One persistent compilation cache for the session: the command line's subprocesses
+# (tests/test_cli.py passes --cache-dir COMPILATION_CACHE) and the in-process calls that
+# check them compile the same solves; a shape solve compiles for 30-60 s on 2 cores.
+COMPILATION_CACHE = pathlib.Path(tempfile.mkdtemp(prefix="elastic-jax-tests-"))
+atexit.register(shutil.rmtree, COMPILATION_CACHE, ignore_errors=True)
+jax.config.update("jax_compilation_cache_dir", str(COMPILATION_CACHE))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
 

@@ -15,12 +15,16 @@ import trimesh
 import elastic_jax as ej
 from elastic_jax import cli, io, shapes
 
+from .conftest import COMPILATION_CACHE
+
 M, N = 13, 25
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
-SMALL = ["--grid", str(M), str(N), "--degree", "3", "--times", "5", "--quiet", "--no-cache"]
+# The session's compilation cache (conftest): subprocesses and in-process checks share it.
+CACHE = ["--cache-dir", str(COMPILATION_CACHE)]
+SMALL = ["--grid", str(M), str(N), "--degree", "3", "--times", "5", "--quiet", *CACHE]
 # Shape commands: the configuration of tests/test_karcher.py (one compilation for both).
 SHAPE = ["--grid", str(M), str(N), "--degree", "4", "--vf-degree", "4", "--times", "5"]
-SHAPE += ["--quiet", "--no-cache"]
+SHAPE += ["--quiet", *CACHE]
 SHAPE_OPTIONS = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
 
 
@@ -34,7 +38,7 @@ def _save(tmp_path, name, f):
 
 def test_demo_writes_what_it_promises_and_matches_the_library(tmp_path):
     out, cache = tmp_path / "demo", tmp_path / "cache"
-    argv = [sys.executable, "-m", "elastic_jax", "demo", *SMALL[:-1], "--cache-dir", str(cache)]
+    argv = [sys.executable, "-m", "elastic_jax", "demo", *SMALL[:-2], "--cache-dir", str(cache)]
     runs = [
         subprocess.run([*argv, "--out", str(d)], capture_output=True, text=True, timeout=300)
         for d in (out, tmp_path / "again")

@@ -18,7 +18,7 @@ NOTEBOOKS = pathlib.Path(__file__).resolve().parents[1] / "notebooks"
 def _run(name: str) -> tuple[dict, int]:
     """Execute a notebook in a fresh kernel; return its JSON results and the figures shown."""
     nb = nbformat.read(NOTEBOOKS / f"{name}.ipynb", as_version=4)
-    nbclient.NotebookClient(nb, timeout=180, kernel_name="python3").execute()
+    nbclient.NotebookClient(nb, timeout=900, kernel_name="python3").execute()
     outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs]
     figures = sum("image/png" in o.get("data", {}) for o in outputs)
     text = [o["text"] for o in outputs if o["output_type"] == "stream" and o["name"] == "stdout"]
