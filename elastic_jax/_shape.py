@@ -5,10 +5,11 @@ reparametrized by gamma (f1 o gamma), f2 is rotated in R^3 by R for modulo="rigi
 translations cost nothing (the metric sees only df), so both surfaces are centered for
 modulo="rigid".
 
-The solve runs in phases over one problem record: the parametrized geodesic; the global
-initialization (icosahedral rotations ranked, the best refined over the Moebius group,
-then a low-degree Diff step); registration rounds until the energy stops changing; the
-final geodesic; and the refinement check (the result re-evaluated with halved time
+The solve runs in phases over one problem record: the starts (icosahedral rotations
+ranked, the best refined over rotations and over the Moebius group); coarse-to-fine
+registration rounds (every start on the L2 mismatch, the best on the straight line's
+energy, then with the whole path) until the energy stops changing; the parametrized and
+the final geodesics; and the refinement check (the result re-evaluated with halved time
 steps and on a finer grid). Every phase is traceable, so the whole solve is one jitted
 call, vmappable over f2.
 """
@@ -125,7 +126,13 @@ class ShapeGeodesicResult(NamedTuple):
     @property
     def message(self) -> str:
         """Why the solve stopped short, in words ('' when it converged)."""
-        return result_message(self.result)
+        message = result_message(self.result)
+        if not message and not bool(self.converged):
+            message = (
+                "the final geodesic ended at a saddle point (smallest Hessian eigenvalue "
+                f"{float(self.min_curvature):.3g}); raise saddle_checks"
+            )
+        return message
 
 
 @functools.cache
@@ -191,7 +198,8 @@ def _resolution_np(m: int, n: int) -> tuple[float, float]:
     e1 = sphere_points_np(m, n)
     area_id = _grid_area_np(e1)
     floor = area_id * (1.0 - _RESOLUTION_FACTOR * (1.0 - area_id / (4.0 * np.pi)))
-    # A direction that no grid symmetry favours.
+    # A direction that no grid symmetry favours; moebius() written out in numpy, because
+    # this runs while callers (karcher_mean) trace their jitted batches.
     direction = np.array([0.36, 0.48, 0.8]) / np.linalg.norm([0.36, 0.48, 0.8])
     low, high = 0.0, 0.99
     for _ in range(30):
@@ -594,76 +602,78 @@ def _refinement(prob, cfg, gamma, rotation, coefficients, energy) -> Refinement:
     return Refinement(d_time, d_grid, change / jnp.maximum(d, jnp.finfo(d.dtype).tiny))
 
 
-def _shape_solve(metric, f1, f2, bases, cfg, rigid):
-    m, n = f1.shape[-2:]
-    dtype = f1.dtype
-    if rigid:
-        f1, f2 = _center(f1), _center(f2)
-    prob = _Problem(metric, f1, f2, sphere_points(m, n, dtype), bases)
-    zero_coefficients = jnp.zeros((cfg.n_times - 2, bases.dframe.shape[0] * 3), dtype)
-    zero_steps = jnp.zeros((), jnp.int32)
+def _straight_rounds(prob, cfg, rigid, state: _State, weight, max_steps) -> _State:
+    """Rounds on the matching criterion (weight 1: L2, 0: the straight line's energy)."""
+    criterion = _matching_criterion(prob, cfg, weight)
+    current = criterion(_registered(prob, cfg, state.gamma), _rotate(state.rotation, prob.f2))
+    floor = criterion(prob.f1, prob.f2)
 
-    def small_change(before, after):
-        # Relative to the current energy, with a floor at outer_tol times the straight
-        # line's: near a perfect match the energy is interpolation noise.
-        return jnp.abs(before - after) <= cfg.outer_tol * (after + cfg.outer_tol * energy0)
+    def small(before, after):
+        return jnp.abs(before - after) <= cfg.outer_tol * (after + cfg.outer_tol * floor)
 
+    round_cfg = cfg.replace(max_steps=max_steps)
+    state, _, _, _ = _iterate(
+        lambda s: _straight_round(prob, round_cfg, rigid, weight, s),
+        state._replace(energy=current),
+        cfg.outer_steps,
+        small,
+    )
+    return state
+
+
+def _coarse_registration(prob, cfg, rigid) -> _State:
+    """From the starts to the registration the rounds with the whole path begin from.
+
+    Coarse to fine in the criterion and in time. Every start gets rounds on the L2
+    mismatch, each round's BFGS cut at _MATCH_STEPS (a round only has to move towards the
+    basin: the next round linearizes again); the start whose straight line then has the
+    lowest energy gets rounds on that energy.
+    """
+    dtype = prob.f1.dtype
     gammas, rotations, steps = _initialize(prob, cfg, rigid)
+    zero = _State(
+        prob.e1,
+        jnp.eye(3, dtype=dtype),
+        _zero_coefficients(prob, cfg),
+        jnp.zeros((), dtype),
+        jnp.zeros((), jnp.int32),
+    )
 
-    def straight_rounds(state, weight, max_steps):
-        """Rounds on the matching criterion (weight 1: L2, 0: the straight line's energy)."""
-        criterion = _matching_criterion(prob, cfg, weight)
-        current = criterion(_registered(prob, cfg, state.gamma), _rotate(state.rotation, f2))
-        floor = criterion(f1, f2)
-
-        def small(before, after):
-            return jnp.abs(before - after) <= cfg.outer_tol * (after + cfg.outer_tol * floor)
-
-        round_cfg = cfg.replace(max_steps=max_steps)
-        state, _, _, _ = _iterate(
-            lambda s: _straight_round(prob, round_cfg, rigid, weight, s),
-            state._replace(energy=current),
-            cfg.outer_steps,
-            small,
-        )
-        return state
-
-    # Coarse to fine in the criterion and in time. Every start gets rounds on the L2
-    # mismatch, each round's BFGS cut at _MATCH_STEPS (a round only has to move towards
-    # the basin: the next round linearizes again); the start whose straight line then has
-    # the lowest energy gets rounds on that energy, then the rounds with the whole path.
     def matched(start):
         gamma, rotation = start
-        state = _State(gamma, rotation, zero_coefficients, jnp.zeros((), dtype), zero_steps)
-        state = straight_rounds(state, 1.0, _MATCH_STEPS)
-        end = _rotate(state.rotation, f2)
+        state = zero._replace(gamma=gamma, rotation=rotation)
+        state = _straight_rounds(prob, cfg, rigid, state, 1.0, _MATCH_STEPS)
+        end = _rotate(state.rotation, prob.f2)
         straight = _straight_energy(prob, cfg, _registered(prob, cfg, state.gamma), end)
         return state._replace(energy=straight)
 
     ends = jax.lax.map(matched, (gammas, rotations))
     best = jnp.argmin(jnp.where(jnp.isfinite(ends.energy), ends.energy, jnp.inf))
     state = jax.tree_util.tree_map(lambda x: x[best], ends)
-    state = straight_rounds(state, 0.0, cfg.max_steps)
+    state = _straight_rounds(prob, cfg, rigid, state, 0.0, cfg.max_steps)
     others = jnp.sum(ends.steps).astype(jnp.int32) - ends.steps[best]
-    state = state._replace(steps=state.steps + steps + others)
-    energy0 = _straight_energy(prob, cfg, f1, f2)
-    energy = _path_energy_at(prob, cfg, state.gamma, state.rotation, zero_coefficients)
-    state = state._replace(energy=energy)
-    history = jnp.full((cfg.outer_steps + 2,), jnp.nan, dtype).at[1].set(energy)
-    state, history, rounds, outer_done = _iterate(
-        lambda s: _round(prob, cfg, rigid, s), state, cfg.outer_steps, small_change, history
-    )
+    return state._replace(steps=state.steps + steps + others)
 
-    # The unregistered and the registered geodesic through one traced solve (lax.map
-    # runs them one after the other): half the compilation of two call sites.
+
+def _zero_coefficients(prob, cfg):
+    return jnp.zeros((cfg.n_times - 2, prob.bases.dframe.shape[0] * 3), prob.f1.dtype)
+
+
+def _final_solves(prob, cfg, state: _State):
+    """The unregistered and the registered geodesics, saddle-checked.
+
+    One traced solve for both (lax.map runs them one after the other): half the
+    compilation of two call sites.
+    """
+    f1, f2, bases = prob.f1, prob.f2, prob.bases
     starts = jnp.stack([f1, _registered(prob, cfg, state.gamma)])
     ends = jnp.stack([f2, _rotate(state.rotation, f2)])
-    inits = jnp.stack([zero_coefficients, state.coefficients])
+    inits = jnp.stack([_zero_coefficients(prob, cfg), state.coefficients])
 
     def solve(problem):
         start, end, init = problem
         return _solve(
-            metric,
+            prob.metric,
             start,
             end,
             init,
@@ -674,10 +684,34 @@ def _shape_solve(metric, f1, f2, bases, cfg, rigid):
         )
 
     both = jax.lax.map(solve, (starts, ends, inits))
-    parametrized, final = (jax.tree_util.tree_map(lambda x, i=i: x[i], both) for i in (0, 1))
+    return both, tuple(jax.tree_util.tree_map(lambda x, i=i: x[i], both) for i in (0, 1))
+
+
+def _shape_solve(metric, f1, f2, bases, cfg, rigid):
+    m, n = f1.shape[-2:]
+    dtype = f1.dtype
+    if rigid:
+        f1, f2 = _center(f1), _center(f2)
+    prob = _Problem(metric, f1, f2, sphere_points(m, n, dtype), bases)
+
+    state = _coarse_registration(prob, cfg, rigid)
+    energy = _path_energy_at(prob, cfg, state.gamma, state.rotation, state.coefficients)
+    state = state._replace(energy=energy)
+    history = jnp.full((cfg.outer_steps + 2,), jnp.nan, dtype).at[1].set(energy)
+    straight0 = _straight_energy(prob, cfg, f1, f2)
+
+    def small_change(before, after):
+        # Relative to the current energy, with a floor at outer_tol times the straight
+        # line's: near a perfect match the energy is interpolation noise.
+        return jnp.abs(before - after) <= cfg.outer_tol * (after + cfg.outer_tol * straight0)
+
+    state, history, rounds, outer_done = _iterate(
+        lambda s: _round(prob, cfg, rigid, s), state, cfg.outer_steps, small_change, history
+    )
+
+    both, (parametrized, final) = _final_solves(prob, cfg, state)
     history = history.at[0].set(parametrized.energy)
     steps = state.steps + jnp.sum(both.num_steps).astype(jnp.int32)
-
     scaling = _scaling_at(prob, cfg, state.gamma, state.rotation)
     joint = _joint_objective(prob, cfg, rigid, state.gamma, state.rotation, scaling)
     zero_step = _zero_registration(prob, rigid, dtype)
@@ -768,14 +802,18 @@ def shape_geodesic(
     modulo="rigid"); paper sections 4.2-4.3.
 
     1. The parametrized geodesic f1 -> f2 (``parametrized_distance``).
-    2. Initialization (``init="moebius"``): the 60 icosahedral rotations as
-       reparametrizations ranked by straight-line energy, the best few refined over the
-       Moebius group of S^2 (rotations and conformal boosts), then a low-degree Diff step.
-    3. Registration rounds (``method="joint"``: path and Diff step together, Algorithm 2;
-       ``"coordinate"``: alternately), each Diff step Proj(Id + sum x_k v_k) of degree
-       vf_degree composed onto gamma and shrunk (by halves, down to no step) until the
-       composed gamma has a positive Jacobian at every grid point; until a round changes
-       the energy by at most outer_tol, or outer_steps rounds.
+    2. Starts (``init="moebius"``): the 60 icosahedral rotations as reparametrizations
+       ranked by straight-line energy, the best ``init_candidates`` refined over the
+       rotations and over the Moebius group of S^2 (rotations and conformal boosts).
+       Every start gets registration rounds on the L2 mismatch; the one whose straight
+       line then has the lowest energy gets rounds on that energy (coarse to fine in the
+       criterion and in time).
+    3. Registration rounds with the whole path (``method="joint"``: path and Diff step
+       together, Algorithm 2; ``"coordinate"``: alternately). Each Diff step
+       Proj(Id + sum x_k v_k) of degree vf_degree is composed onto gamma and shrunk (by
+       halves, down to no step) until the composed gamma has a positive Jacobian at every
+       grid point and keeps the area the grid can resolve (MATH.md 9); rounds never raise
+       the energy and stop when one changes it by at most outer_tol, or after outer_steps.
     4. The final geodesic, its status, and the refinement check (:class:`Refinement`).
 
     The whole computation is one jitted call, vmappable over f2.
