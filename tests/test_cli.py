@@ -210,8 +210,15 @@ def test_ctrl_c_then_resume_equals_the_library(tmp_path, capsys):
     argv = ["distances", *files, *SHAPE, "--strategy", "loop", "--batch-size", "1"]
     argv += ["--out", str(out)]
     # A real SIGINT (Ctrl-C) as soon as the first pair's checkpoint exists: 5 pairs remain.
+    # A shell running the suite in the background hands its children SIGINT ignored, and
+    # Python then installs no KeyboardInterrupt handler: the child restores what a terminal
+    # gives before it runs the command line.
+    child = (
+        "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+        "from elastic_jax.cli import main; raise SystemExit(main(sys.argv[1:]))"
+    )
     run = subprocess.Popen(
-        [sys.executable, "-m", "elastic_jax", *argv],
+        [sys.executable, "-c", child, *argv],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
