@@ -45,7 +45,7 @@ from ._options import ShapeOptions, check_choice
 from ._reparam import _jacobian_determinant, _reparametrize, moebius
 from ._so3 import _icosahedral_np, _so3_exp
 from ._solvers import minimize, result_message
-from ._srnf import _center, _surface_area
+from ._srnf import _center
 
 MODULI = ("diff", "rigid")
 # Shrink factors tried for a reparametrization step, largest first; 0 keeps gamma.
@@ -153,7 +153,6 @@ class _Bases(NamedTuple):
     fine_points: Array  # (3, 2m - 1, 2n - 1) the refinement grid's points
     fine_dframe: Array  # (K, 2 P') the path harmonics' differentials there
     area_floor: Array  # () least grid area a reparametrization may keep (_resolution_np)
-    area_allowance: Array  # () area_floor over the identity's grid area: 1 - 5 eps_id
     max_boost: Array  # () largest |a| of a Moebius map the grid resolves
 
 
@@ -242,59 +241,27 @@ def _kabsch(source, target):
     return vt.T @ jnp.diag(jnp.asarray([1.0, 1.0, 1.0], h.dtype).at[2].set(d)) @ u.T
 
 
-def _resolved(prob, cfg, gammas):
-    """Whether each of ``gammas (k, 3, m, n)`` is a diffeomorphism the grid resolves.
+def _resolved(gammas, floor):
+    """Whether each of ``gammas (..., 3, m, n)`` is a diffeomorphism the grid resolves.
 
-    J > 0 at every grid point; the discrete area of the reparametrized unit sphere (the
-    integral of J) at least ``area_floor`` (:func:`_resolution_np`); and the discrete area
-    of f1 o gamma at least the problem's ``surface_floor``, or, for a gamma already below
-    it, at least the last candidate's (the one kept when nothing else passes). The last
-    check is on the surface itself: a gamma that squeezes a small part of f1 (a cat's
-    tail) between grid points keeps the sphere's area but hides the part from the grid.
-    Without it the cats at 25 x 49 were matched with 11 % of f1's area out of sight and a
-    distance that rose by 46 % on the finer grid.
+    J > 0 at every grid point, and the discrete area of the reparametrized unit sphere
+    (the integral of J) at least ``floor`` (:func:`_resolution_np`).
     """
     jac = _jacobian_determinant(gammas)
     m, n = gammas.shape[-2:]
     area = jnp.einsum("...ij,ij->...", jac[..., 1:-1, :-1], interior_weights(m, n, jac.dtype))
-    surface = jax.vmap(lambda g: _surface_area(_registered(prob, cfg, g)))(gammas)
-    surface_ok = surface >= jnp.minimum(prob.surface_floor, surface[-1])
-    return (jnp.min(jac, axis=(-2, -1)) > 0) & (area >= prob.bases.area_floor) & surface_ok
+    return (jnp.min(jac, axis=(-2, -1)) > 0) & (area >= floor)
 
 
-def _surface_floor(f1, f2, bases, interpolation):
-    """Least discrete area of f1 o gamma a registration may keep.
-
-    Area is invariant under reparametrization, but the grid's finite differences lose
-    some where a surface is finely detailed or its parametrization stretched: the
-    fraction kept, L(f) = A_grid(f) / A(f) with A on the (2m - 1) x (2n - 1) interpolant,
-    is a property of the inputs (0.95 and 0.94 for the cats at 25 x 49). f1 o gamma must
-    end like f2, so it may lose as much as the worse-resolved input, within the same
-    allowance as the reparametrized sphere: A(f1) min(L(f1), L(f2)) (1 - 5 eps_id).
-    """
-
-    def kept(f):
-        fine = _surface_area(_reparametrize(f, bases.fine_points, method=interpolation))
-        return _surface_area(f) / fine, fine
-
-    (l1, a1), (l2, _) = kept(f1), kept(f2)
-    return a1 * jnp.minimum(l1, l2) * bases.area_allowance
-
-
-def _safe_update(prob, cfg, gamma, y):
+def _safe_update(gamma, y, fields, scale, e1, interpolation, floor):
     """The largest shrink of the step whose composition with gamma stays resolved."""
-    bases = prob.bases
     candidates = jnp.stack(
         [
-            _compose(
-                gamma,
-                _step_field(s * y, bases.fields, bases.field_scale, prob.e1),
-                cfg.interpolation,
-            )
+            _compose(gamma, _step_field(s * y, fields, scale, e1), interpolation)
             for s in _STEP_SCALES
         ]
     )
-    ok = _resolved(prob, cfg, candidates)
+    ok = _resolved(candidates, floor)
     # The last candidate (scale 0) is gamma itself, which is valid.
     first = jnp.argmax(ok.at[-1].set(True))
     return candidates[first]
@@ -308,7 +275,6 @@ class _Problem(NamedTuple):
     f2: Array
     e1: Array
     bases: _Bases
-    surface_floor: Array  # () least grid area of f1 o gamma (_surface_floor)
 
 
 class _State(NamedTuple):
@@ -423,7 +389,7 @@ def _initialize(prob, cfg, rigid):
         # it where this direction needs less (a pure rotation, the last, always does).
         boosts = jnp.asarray(_BOOST_SCALES, dtype)[:, None] * vb[None, 3:]
         candidates = jax.vmap(lambda b: reparametrization(q, vb[:3], b))(boosts)
-        ok = _resolved(prob, cfg, candidates).at[-1].set(True)
+        ok = _resolved(candidates, prob.bases.area_floor).at[-1].set(True)
         b = boosts[jnp.argmax(ok)]
         return reparametrization(q, vb[:3], b), aligned(q, vb[:3], b)[1]
 
@@ -524,7 +490,15 @@ def _straight_round(prob, cfg, rigid, weight, state: _State) -> _State:
     y0 = _zero_registration(prob, rigid, dtype)
     found = minimize(objective, y0, solver=cfg.solver, max_steps=cfg.max_steps, tol=cfg.tol)
     x, r_step = _registration_variables(prob, found.x, rigid)
-    gamma = _safe_update(prob, cfg, state.gamma, x)
+    gamma = _safe_update(
+        state.gamma,
+        x,
+        prob.bases.fields,
+        prob.bases.field_scale,
+        prob.e1,
+        cfg.interpolation,
+        prob.bases.area_floor,
+    )
     rotation = r_step @ state.rotation
     energy = criterion(_registered(prob, cfg, gamma), _rotate(rotation, prob.f2))
     return _State(gamma, rotation, state.coefficients, energy, state.steps + found.num_steps)
@@ -582,7 +556,15 @@ def _round(prob, cfg, rigid, state: _State) -> _State:
         found = minimize(lambda y: objective((z0, y)), y0, **options)
         z, y = z0, found.x
     x, r_step = _registration_variables(prob, y, rigid)
-    gamma = _safe_update(prob, cfg, state.gamma, x)
+    gamma = _safe_update(
+        state.gamma,
+        x,
+        prob.bases.fields,
+        prob.bases.field_scale,
+        prob.e1,
+        cfg.interpolation,
+        prob.bases.area_floor,
+    )
     rotation = r_step @ state.rotation
     coefficients = scaling.coefficients(z)
     steps = state.steps + found.num_steps
@@ -710,8 +692,7 @@ def _shape_solve(metric, f1, f2, bases, cfg, rigid):
     dtype = f1.dtype
     if rigid:
         f1, f2 = _center(f1), _center(f2)
-    floor = _surface_floor(f1, f2, bases, cfg.interpolation)
-    prob = _Problem(metric, f1, f2, sphere_points(m, n, dtype), bases, floor)
+    prob = _Problem(metric, f1, f2, sphere_points(m, n, dtype), bases)
 
     state = _coarse_registration(prob, cfg, rigid)
     energy = _path_energy_at(prob, cfg, state.gamma, state.rotation, state.coefficients)
@@ -775,7 +756,6 @@ _shape_geodesic = jax.jit(_shape_solve, static_argnames=("cfg", "rigid"))
 def _bases(m: int, n: int, cfg: ShapeOptions, dtype) -> _Bases:
     values, dframe = _basis_np(m, n, cfg.degree)
     fine = (2 * m - 1, 2 * n - 1)
-    floor, max_boost = _resolution_np(m, n)
     fine_dframe = _basis_np(*fine, cfg.degree)[1] if cfg.refinement else np.zeros((1, 1))
     arrays = _Bases(
         values=values,
@@ -785,9 +765,8 @@ def _bases(m: int, n: int, cfg: ShapeOptions, dtype) -> _Bases:
         ico=_icosahedral_np(),
         fine_points=sphere_points_np(*fine),
         fine_dframe=fine_dframe,
-        area_floor=np.asarray(floor),
-        area_allowance=np.asarray(floor / _grid_area_np(sphere_points_np(m, n))),
-        max_boost=np.asarray(max_boost),
+        area_floor=np.asarray(_resolution_np(m, n)[0]),
+        max_boost=np.asarray(_resolution_np(m, n)[1]),
     )
     return _Bases(*(jnp.asarray(a, dtype) for a in arrays))
 

@@ -173,12 +173,6 @@ def test_refinement_on_the_cats(capsys):
             f"{gap:.4f}, parametrized {par_gap:.4f}"
         )
     assert 0 < gap <= par_gap
-    # The registration hides no part of cat1 between grid points: f1 o gamma keeps as much
-    # of its area on the grid as the worse-resolved input does, within the allowance
-    # (without the surface floor it kept 0.87 against the inputs' 0.95 and 0.94).
-    kept = [float(ej.surface_area(f) / ej.surface_area(u)) for f, u in ((f1, up1), (f2, up2))]
-    registered = float(ej.surface_area(res.f1_registered) / ej.surface_area(up1))
-    assert registered >= min(kept) - 0.04, (registered, kept)
 
 
 def test_joint_and_coordinate_descent_agree(bumpy_pair):
