@@ -125,12 +125,27 @@ class ShapeGeodesicResult(NamedTuple):
 
     @property
     def message(self) -> str:
-        """Why the solve stopped short, in words ('' when it converged)."""
+        """How the solve ended, in words; '' when the last round met outer_tol.
+
+        A converged result whose last round was refused (the step the grid resolves would
+        have raised the energy) says so: its registration is the best this grid resolves
+        along the rounds' steps, and ``refinement`` shows what a finer grid makes of it.
+        """
         message = result_message(self.result)
         if not message and not bool(self.converged):
             message = (
                 "the final geodesic ended at a saddle point (smallest Hessian eigenvalue "
                 f"{float(self.min_curvature):.3g}); raise saddle_checks"
+            )
+        history, k = np.asarray(self.energy_history), int(self.rounds)
+        if not message and k >= 1 and history[k + 1] == history[k] > 0:
+            last = ""
+            if k >= 2:
+                change = 100.0 * (history[k - 1] - history[k]) / history[k]
+                last = f" (the last accepted round lowered it by {change:.2g} %)"
+            message = (
+                "the rounds ended where the next Diff step the grid resolves would raise the "
+                f"energy{last}; refinement shows how a finer grid sees the result"
             )
         return message
 

@@ -478,7 +478,8 @@ def _run_shape_geodesic(args, progress: Progress) -> dict:
         "rounds": int(res.rounds),
         "num_steps": int(res.num_steps),
         "converged": bool(res.converged),
-        "result": res.message or "converged",
+        "result": "converged" if bool(res.converged) else res.message,
+        "message": res.message,
         "grad_norm": float(res.grad_norm),
         "refinement": {
             "distance_time": _json_float(res.refinement.distance_time),

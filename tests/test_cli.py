@@ -289,7 +289,8 @@ def test_karcher_and_shape_geodesic_equal_the_library(tmp_path, capsys):
     assert summary["distance"] == pytest.approx(float(res.distance), rel=1e-9)
     assert summary["distance"] < summary["parametrized_distance"]
     assert summary["rounds"] == int(res.rounds) and summary["grad_norm"] == float(res.grad_norm)
-    assert summary["result"] == (res.message or "converged")
+    assert summary["result"] == ("converged" if bool(res.converged) else res.message)
+    assert summary["message"] == res.message
     refinement = summary["refinement"]
     assert refinement["relative_change"] == float(res.refinement.relative_change)
     assert refinement["distance_time"] == float(res.refinement.distance_time)
