@@ -78,15 +78,21 @@ def _so3_log(r):
     general = factor[..., None] * v
     # Near pi, sin(theta) ~ 0 carries no direction: read n n^T off the symmetric part,
     # (R + R^T)/2 - cos(theta) I = (1 - cos(theta)) n n^T, and orient n along v.
+    # Both sides of a where are differentiated: every division and square root of the
+    # branch not taken gets a harmless operand (1), or reverse mode multiplies its
+    # infinite derivative by the zero cotangent and returns NaN (at R = I, 1 - c = 0).
     near_pi = (c < 0) & (s2 < 1e-4)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=r.dtype), r.shape)
     sym = 0.5 * (r + jnp.swapaxes(r, -1, -2)) - c[..., None, None] * eye
-    nn = sym / (1.0 - c)[..., None, None]
+    nn = sym / jnp.where(near_pi, 1.0 - c, 1.0)[..., None, None]
     diag = jnp.diagonal(nn, axis1=-2, axis2=-1)
     col = jnp.take_along_axis(nn, jnp.argmax(diag, axis=-1)[..., None, None], axis=-1)[..., 0]
-    n = col / jnp.sqrt(jnp.max(diag, axis=-1))[..., None]
+    n = col / jnp.sqrt(jnp.where(near_pi, jnp.max(diag, axis=-1), 1.0))[..., None]
     n = jnp.where(jnp.sum(n * v, axis=-1, keepdims=True) < 0, -n, n)
-    theta_pi = jnp.arctan2(jnp.sqrt(s2), c)
+    # At the exact half-turn s2 = 0, where sqrt has no derivative; theta = pi there.
+    positive = s2 > 0
+    sin_pi = jnp.where(positive, jnp.sqrt(jnp.where(positive, s2, 1.0)), 0.0)
+    theta_pi = jnp.arctan2(sin_pi, c)
     return jnp.where(near_pi[..., None], theta_pi[..., None] * n, general)
 
 

@@ -36,9 +36,11 @@ def test_values_and_gradients_near_the_singular_angles(scale):
     w = _axis_angles(scale, (3,), seed=1)
     np.testing.assert_allclose(ej.so3_log(ej.so3_exp(w)), w, atol=1e-13)
     for v in w:
-        # log o exp is the identity, so its Jacobian is I exactly: gradients of both are right.
-        jac = jax.jacfwd(lambda x: ej.so3_log(ej.so3_exp(x)))(v)
-        np.testing.assert_allclose(jac, np.eye(3), atol=1e-9)
+        # log o exp is the identity, so its Jacobian is I exactly: gradients of both are
+        # right, in both modes (reverse mode also differentiates the branches not taken).
+        for jacobian in (jax.jacfwd, jax.jacrev):
+            jac = jacobian(lambda x: ej.so3_log(ej.so3_exp(x)))(v)
+            np.testing.assert_allclose(jac, np.eye(3), atol=1e-9)
     check_grads(ej.so3_exp, (w[0],), order=2, modes=["fwd", "rev"])
 
 
@@ -54,6 +56,17 @@ def test_log_at_a_half_turn():
     w = ej.so3_log(r)
     assert float(jnp.linalg.norm(w)) == pytest.approx(np.pi, abs=1e-12)
     np.testing.assert_allclose(ej.so3_exp(w), r, atol=1e-12)
+    # Reverse mode agrees with forward mode there (it was NaN).
+    np.testing.assert_allclose(jax.jacrev(ej.so3_log)(r), jax.jacfwd(ej.so3_log)(r), atol=1e-12)
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-4, 0.5])
+def test_log_gradient_in_float32(scale):
+    # grad of sum(log(exp(w))) is (1, 1, 1); float32's 1 - cos(theta) rounds to 0 already
+    # at |w| = 1e-4.
+    w = jnp.asarray(_axis_angles(scale, (1,), seed=2)[0], jnp.float32)
+    grad = jax.grad(lambda x: ej.so3_log(ej.so3_exp(x)).sum())(w)
+    np.testing.assert_allclose(grad, np.ones(3), atol=1e-3)
 
 
 def test_icosahedral_group():
