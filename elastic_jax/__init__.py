@@ -1,6 +1,7 @@
 """elastic_jax: elastic shape analysis of spherical surfaces (split metrics, Su et al. 2020)."""
 
 from . import shapes as shapes
+from ._checks import InputError as InputError
 from ._differential import differential as differential
 from ._energy import path_energy as path_energy
 from ._energy import path_length as path_length
@@ -52,6 +53,7 @@ from ._so3 import icosahedral_group as icosahedral_group
 from ._so3 import so3_exp as so3_exp
 from ._so3 import so3_log as so3_log
 from ._so3 import vee as vee
+from ._solvers import RESULTS as RESULTS
 
 _SUBMODULES = ("cli", "io", "plot")
 

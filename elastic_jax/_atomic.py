@@ -14,6 +14,15 @@ from collections.abc import Iterator
 
 import numpy as np
 
+# Marks the temporaries (".NAME.tmp-XXXXXXXX.SUFFIX"), so that a later run can sweep up
+# those of a killed one (``stale_temporaries``) without touching anything else.
+TEMPORARY = ".tmp-"
+
+
+def stale_temporaries(directory: str | os.PathLike) -> list[pathlib.Path]:
+    """The temporaries of atomic writes under ``directory`` (left by killed runs)."""
+    return [p for p in pathlib.Path(directory).rglob(f".*{TEMPORARY}*") if p.is_file()]
+
 
 def _umask() -> int:
     # os.umask can only be read by setting it; set it straight back.
@@ -33,7 +42,7 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, name = tempfile.mkstemp(
-        dir=path.parent, prefix=f".{path.name}.", suffix=suffix or "".join(path.suffixes)
+        dir=path.parent, prefix=f".{path.name}{TEMPORARY}", suffix=suffix or "".join(path.suffixes)
     )
     os.close(fd)
     tmp = pathlib.Path(name)

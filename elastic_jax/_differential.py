@@ -5,7 +5,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
+
+from ._checks import grid_array
 
 
 def _phi_rows_extended(g: Array) -> Array:
@@ -20,10 +22,11 @@ def _phi_rows_extended(g: Array) -> Array:
     return jnp.concatenate([above, g, below], axis=-2)
 
 
-def interior_frame(f: Float[Array, "*batch 3 m n"]) -> tuple[Array, Array]:
+def interior_frame(f: Float[ArrayLike, "*batch m n"]) -> tuple[ArrayLike, ArrayLike]:
     """Columns of df on interior rows and distinct columns.
 
-    Returns ``(a1, a2)``, each ``(..., 3, m-2, n-1)``: a1 = f_theta / sin(phi), a2 = f_phi,
+    Returns ``(a1, a2)``, each ``(..., m-2, n-1)`` for ``f (..., m, n)`` (usually
+    ``(..., 3, m, n)``; numpy in, numpy out): a1 = f_theta / sin(phi), a2 = f_phi,
     by central differences (periodic in theta, half-turn rule across the poles). These
     are the only grid points with quadrature weight, so every integral is built on them.
     Acts on the last two axes only, so any leading shape works; a numpy input gives
@@ -63,7 +66,7 @@ def _differential(f: Array) -> Array:
     return jnp.concatenate([df, df[..., :1]], axis=-1)
 
 
-def differential(f: Float[Array, "*batch 3 m n"]) -> Float[Array, "*batch 3 2 m n"]:
+def differential(f: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array, "*batch 3 2 m n"]:
     """The differential of a surface in the orthonormal frame of the round sphere (MATH.md 2).
 
     df = [f_theta / sin(phi), f_phi], a field of 3 x 2 matrices. Reference discretization
@@ -83,9 +86,7 @@ def differential(f: Float[Array, "*batch 3 m n"]) -> Float[Array, "*batch 3 2 m 
         >>> differential(sphere_points(25, 49)).shape
         (3, 2, 25, 49)
     """
-    from ._validation import as_surface
-
-    f = as_surface(f, "f", check_immersion=False)
+    f = grid_array(f, "f")
     return _differential(f)
 
 

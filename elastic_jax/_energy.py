@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from ._checks import InputError, check_choice, check_int
 from ._differential import interior_frame
 from ._grid import integrate_interior
 from ._metric import SplitMetric, _split_bilinear
@@ -73,13 +74,12 @@ def as_path(path, name: str = "path") -> Array:
     """Check a path ``(..., N, 3, m, n)`` with N >= 2 (every frame a well-formed immersion)."""
     path = as_surface(path, name)
     if path.ndim < 4 or path.shape[-4] < 2:
-        raise ValueError(f"{name} must have shape (..., N, 3, m, n) with N >= 2; got {path.shape}")
+        raise InputError(f"{name} must have shape (..., N, 3, m, n) with N >= 2; got {path.shape}")
     return path
 
 
 def _check_scheme(scheme: str) -> None:
-    if scheme not in SCHEMES:
-        raise ValueError(f"scheme must be one of {SCHEMES}; got {scheme!r}")
+    check_choice("scheme", scheme, SCHEMES)
 
 
 def path_energy(
@@ -136,7 +136,7 @@ def path_length(
 
 
 def straight_path(
-    f1: Float[ArrayLike, "*batch 3 m n"], f2: Float[ArrayLike, "*batch 3 m n"], n_times: int
+    f1: Float[ArrayLike, "*batch1 3 m n"], f2: Float[ArrayLike, "*batch2 3 m n"], n_times: int
 ) -> Float[Array, "*batch N 3 m n"]:
     """The straight line f(t_k) = (1 - t_k) f1 + t_k f2, t_k = k / (n_times - 1) (paper eq. (4.1)).
 
@@ -150,9 +150,8 @@ def straight_path(
     f1 = as_surface(f1, "f1", check_immersion=False)
     f2 = as_surface(f2, "f2", check_immersion=False)
     if f1.shape[-3:] != f2.shape[-3:]:
-        raise ValueError(f"f1 and f2 must be on the same grid; got {f1.shape} and {f2.shape}")
-    if not isinstance(n_times, int) or n_times < 2:
-        raise ValueError(f"n_times must be an integer >= 2; got {n_times!r}")
+        raise InputError(f"f1 and f2 must be on the same grid; got {f1.shape} and {f2.shape}")
+    n_times = check_int("n_times", n_times, 2)
     f1, f2 = jnp.broadcast_arrays(f1, f2)
     batch_ones = (1,) * (f1.ndim - 3)
     t = jnp.linspace(0.0, 1.0, n_times, dtype=f1.dtype).reshape(batch_ones + (n_times, 1, 1, 1))

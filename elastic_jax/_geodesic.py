@@ -18,16 +18,27 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ._checks import (
+    InputError,
+    check_choice,
+    check_finite,
+    check_grid_shape,
+    check_int,
+    check_positive,
+    is_concrete,
+    real_array,
+)
 from ._differential import area_element, interior_frame
-from ._energy import _check_scheme, frame_energy
+from ._energy import frame_energy
 from ._grid import integrate_interior
 from ._harmonics import _harmonics_np, check_degree
 from ._interp import resample
 from ._metric import SplitMetric, _split_bilinear
-from ._solvers import check_solver, lanczos_smallest, minimize, result_message
+from ._options import SCHEMES, SOLVERS
+from ._solvers import RESULTS, lanczos_smallest, minimize, result_message
+from ._units import units_of
 from ._validation import as_surface
 
 
@@ -49,7 +60,8 @@ class GeodesicResult(NamedTuple):
         converged: ``()`` whether the solver met its tolerance within max_steps and, when
             saddle escapes were asked for (``saddle_checks >= 1``), the end point is not a
             saddle (``min_curvature >= saddle_threshold(dtype)``).
-        result: the solver's result code (``optimistix.RESULTS``; jaxopt's outcome mapped to it).
+        result: the solver's result code, an ``elastic_jax.RESULTS`` (optimistix's codes
+            and ``stalled``; jaxopt's outcome mapped to them).
         grad_norm: ``()`` 2-norm of the gradient of the scaled objective at the end
             (energy / straight_energy in whitened coefficients, where its Hessian is ~2 I).
         min_curvature: ``()`` Lanczos estimate of the smallest eigenvalue of that scaled
@@ -62,10 +74,10 @@ class GeodesicResult(NamedTuple):
     distance: Float[Array, ""]
     energy: Float[Array, ""]
     straight_energy: Float[Array, ""]
-    coefficients: Float[Array, "N-2 L"]
+    coefficients: Float[Array, "K L"]
     num_steps: Int[Array, ""]
     converged: Array
-    result: optx.RESULTS
+    result: RESULTS
     grad_norm: Float[Array, ""]
     min_curvature: Float[Array, ""]
 
@@ -207,7 +219,7 @@ def saddle_threshold(dtype) -> float:
     lowers it by 5e-4, far above the solver's tolerance in float64 (1e-6), while the
     Lanczos estimate itself is exact to ~1e-10 there: -1e-3 in float64. In float32 the
     estimate scatters by ~5e-5 (rounding of the Hessian-vector products), but the solver
-    stops about 100 times farther from the stationary point (tol 1e-4, gradient ~5e-4),
+    stops about 100 times farther from the stationary point (gradient ~5e-4 to 3e-3),
     which moved the estimate by 2e-3 on the sphere -> bent cylinder pair: -1e-2 keeps a
     factor 5 above that, so that a float32 minimum is not called a saddle.
     """
@@ -302,9 +314,9 @@ def _solve(
         x, num_steps, result = found.x, found.num_steps, found.result
     else:
         zero = jnp.zeros((), jnp.int32)
-        state = (x0, jnp.zeros_like(x0), jnp.zeros((), dtype), zero, optx.RESULTS.successful, zero)
+        state = (x0, jnp.zeros_like(x0), jnp.zeros((), dtype), zero, RESULTS.successful, zero)
         x, _, curvature, num_steps, result, _ = jax.lax.while_loop(again, solve_round, state)
-    converged = result == optx.RESULTS.successful
+    converged = result == RESULTS.successful
     if saddle_checks:
         # Escapes were asked for: a saddle still at the end is a failed solve.
         converged = converged & (curvature >= threshold)
@@ -330,9 +342,32 @@ _geodesic = jax.jit(
 )
 
 
+@functools.partial(jax.jit, static_argnames=("n_times", "scheme"))
+def _evaluate(metric, f1, f2, coefficients, values, dframe, *, n_times, scheme):
+    """The path, its energy and the straight line's energy at given coefficients."""
+    straight = _straight_frames(f1, f2, n_times)
+    energy = frame_energy(metric, *_perturbed_frames(straight, coefficients, dframe), scheme)
+    path = _path(f1, f2, coefficients, values, n_times)
+    return path, energy, frame_energy(metric, *straight, scheme)
+
+
+def constant(tree):
+    """``tree`` with its JAX arrays under ``stop_gradient`` (Python numbers left as they are)."""
+    return jax.tree_util.tree_map(
+        lambda x: jax.lax.stop_gradient(x) if isinstance(x, jax.Array) else x, tree
+    )
+
+
+def safe_sqrt(x: Array) -> Array:
+    """sqrt(x) with a zero, not an infinite, derivative at x = 0 (the double-where pattern:
+    the branch not taken never sees 0, so its derivative is finite too)."""
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+
+
 def upsample_coefficients(
-    coefficients: Float[ArrayLike, "N0-2 L0"], degree: int, new_degree: int, new_n_times: int
-) -> Float[Array, "N1-2 L1"]:
+    coefficients: Float[ArrayLike, "K0 L0"], degree: int, new_degree: int, new_n_times: int
+) -> Float[Array, "K1 L1"]:
     """Lift a coarse solution to a finer (degree, n_times) as an initial guess.
 
     Coefficients of spherical harmonics do not depend on the grid, so a change of grid
@@ -350,9 +385,9 @@ def upsample_coefficients(
     c = jnp.asarray(coefficients)
     k0, k1 = (degree + 1) ** 2 - 1, (new_degree + 1) ** 2 - 1
     if new_degree < degree:
-        raise ValueError(f"new_degree={new_degree} is below degree={degree}")
+        raise InputError(f"new_degree={new_degree} is below degree={degree}")
     if c.shape[-1] != 3 * k0:
-        raise ValueError(f"coefficients of degree {degree} have {3 * k0} columns; got {c.shape}")
+        raise InputError(f"coefficients of degree {degree} have {3 * k0} columns; got {c.shape}")
     c = c.reshape(c.shape[0], 3, k0)
     c = jnp.pad(c, ((0, 0), (0, 0), (0, k1 - k0)))
     zeros = jnp.zeros((1, 3, k1), c.dtype)
@@ -369,32 +404,60 @@ def _check_pair(f1, f2) -> tuple[Array, Array]:
     f2 = as_surface(f2, "f2")
     for name, f in (("f1", f1), ("f2", f2)):
         if f.ndim != 3:
-            raise ValueError(
+            raise InputError(
                 f"{name} must be one surface (3, m, n); got {f.shape}. Batch with jax.vmap."
             )
     if f1.shape != f2.shape or f1.dtype != f2.dtype:
-        raise ValueError(
+        raise InputError(
             "f1 and f2 must share grid and dtype (the same grid, the same dtype); got "
             f"{f1.shape} {f1.dtype} and {f2.shape} {f2.dtype}"
         )
     return f1, f2
 
 
-def _check_solve_options(n_times, solver, max_steps, tol, scheme, dtype) -> float:
-    """Validate the inner solves' options; returns tol (its default depends on the dtype)."""
-    check_solver(solver)
-    _check_scheme(scheme)
-    if not isinstance(n_times, int) or n_times < 3:
-        raise ValueError(
-            f"n_times must be an integer >= 3 (one free time point at least); got {n_times!r}"
+def _check_solve_options(n_times, solver, max_steps, tol, scheme, dtype) -> tuple[int, int, float]:
+    """Validate the inner solves' options; returns n_times, max_steps and tol (whose
+    default depends on the dtype)."""
+    check_choice("solver", solver, SOLVERS)
+    check_choice("scheme", scheme, SCHEMES)
+    n_times = check_int("n_times", n_times, 3)
+    max_steps = check_int("max_steps", max_steps, 1)
+    tol = default_tol(dtype) if tol is None else check_positive("tol", tol)
+    return n_times, max_steps, tol
+
+
+def default_tol(dtype) -> float:
+    """The inner solves' default tolerance on the scaled gradient's 2-norm: 1e-6 in
+    float64; 3e-3 in float32, whose rounding floor there is 7e-4 to 8e-4 (sphere-like pair
+    at degree 7, N = 13 on 25 x 49 and 50 x 99; the floor grows like the square root of
+    the number of coefficients). With Hessian ~2 I the energy is then within tol^2 / 4
+    of the minimum, relative: 2e-6 in float32."""
+    return 1e-6 if jnp.dtype(dtype) == jnp.float64 else 3e-3
+
+
+def _check_schedule(schedule, degree: int, m: int, n: int) -> list[tuple[int, ...]]:
+    """The levels of a schedule as tuples of ints, each checked (InputError naming it)."""
+    if isinstance(schedule, str) or not isinstance(schedule, Sequence):
+        raise InputError(
+            f"schedule must be a sequence of levels (degree, n_times[, m, n]); got {schedule!r}"
         )
-    if not isinstance(max_steps, int) or max_steps < 1:
-        raise ValueError(f"max_steps must be a positive integer; got {max_steps!r}")
-    if tol is None:
-        tol = 1e-6 if dtype == jnp.float64 else 1e-4
-    if not tol > 0:
-        raise ValueError(f"tol must be positive; got {tol!r}")
-    return float(tol)
+    levels = []
+    for k, level in enumerate(schedule):
+        name = f"schedule[{k}]"
+        if isinstance(level, str) or not isinstance(level, Sequence) or len(level) not in (2, 4):
+            raise InputError(
+                f"{name} must be (degree, n_times) or (degree, n_times, m, n); got {level!r}"
+            )
+        level_degree = check_int(f"{name} degree", level[0], 1)
+        level_times = check_int(f"{name} n_times", level[1], 3)
+        grid = tuple(check_int(f"{name} grid", v, 5) for v in level[2:])
+        if grid:
+            check_grid_shape((3, *grid), f"{name} grid")
+        check_degree(level_degree, *(grid or (m, n)), f"{name} degree")
+        if level_degree > degree:
+            raise InputError(f"{name} degree {level_degree} is above the final degree {degree}")
+        levels.append((level_degree, level_times, *grid))
+    return levels
 
 
 def geodesic(
@@ -407,7 +470,7 @@ def geodesic(
     solver: str = "bfgs",
     max_steps: int = 1000,
     tol: float | None = None,
-    init: Float[ArrayLike, "N-2 L"] | None = None,
+    init: Float[ArrayLike, "K L"] | None = None,
     scheme: str = "midpoint",
     schedule: Sequence[tuple[int, ...]] = (),
     saddle_checks: int | None = 1,
@@ -427,8 +490,9 @@ def geodesic(
         n_times: N >= 3 time points, end points included.
         solver: ``"bfgs"`` (optimistix.BFGS) or ``"lbfgs"`` (jaxopt.LBFGS).
         max_steps: step limit; reaching it gives ``converged=False`` and a ConvergenceWarning.
-        tol: solver tolerance on the scaled problem (default 1e-6 in float64, 1e-4 in float32);
-            see ``minimize`` in ``_solvers.py`` for what each solver compares with it.
+        tol: converged means the 2-norm of the gradient of the scaled objective (energy /
+            straight-line energy in whitened coefficients, Hessian ~2 I) is at most tol,
+            for either solver; default 1e-6 in float64, 3e-3 in float32 (:func:`default_tol`).
         init: ``(N - 2, L)`` coefficients of an earlier solve (warm start); zeros by default.
         scheme: ``"midpoint"`` (default), ``"forward"`` (the paper's) or ``"central"``
             (see :func:`path_energy`). The forward scheme's discrete energy has minima
@@ -463,29 +527,32 @@ def geodesic(
     Example:
         >>> import elastic_jax as ej
         >>> from elastic_jax import shapes
-        >>> f1 = shapes.sample(shapes.bumpy, 25, 49)
-        >>> f2 = shapes.sample(shapes.bent_cylinder, 25, 49)
-        >>> res = ej.geodesic(f1, f2, ej.SplitMetric(1.0, 1.0, 0.1, 0.0), degree=5, n_times=7)
+        >>> f1 = shapes.sample(shapes.bumpy, 13, 25)
+        >>> f2 = shapes.sample(shapes.bent_cylinder, 13, 25)
+        >>> res = ej.geodesic(f1, f2, ej.SplitMetric(1.0, 1.0, 0.1, 0.0), degree=3, n_times=5)
         >>> bool(res.energy < res.straight_energy)
         True
     """
     f1, f2 = _check_pair(f1, f2)
     m, n = f1.shape[-2:]
-    check_degree(degree, m, n)
-    tol = _check_solve_options(n_times, solver, max_steps, tol, scheme, f1.dtype)
-    if saddle_checks is not None and (
-        isinstance(saddle_checks, bool) or not isinstance(saddle_checks, int) or saddle_checks < 0
-    ):
-        raise ValueError(f"saddle_checks must be None or an integer >= 0; got {saddle_checks!r}")
+    degree = check_degree(degree, m, n)
+    n_times, max_steps, tol = _check_solve_options(
+        n_times, solver, max_steps, tol, scheme, f1.dtype
+    )
+    if saddle_checks is not None:
+        saddle_checks = check_int("saddle_checks", saddle_checks, 0)  # None: no check
+    levels = _check_schedule(schedule, degree, m, n)
     size = 3 * ((degree + 1) ** 2 - 1)
+    # Solve in units of the surfaces' size (see _units): float32 then works at any scale.
+    units = units_of(f1, f2)
+    g1, g2 = units.remove(f1), units.remove(f2)
     if init is None:
         init = jnp.zeros((n_times - 2, size), f1.dtype)
-        for level in schedule:
-            level_degree, level_times, *grid = level
-            g1, g2 = (f1, f2) if not grid else (resample(f, *grid) for f in (f1, f2))
+        for level_degree, level_times, *grid in levels:
+            h1, h2 = (g1, g2) if not grid else (resample(g, *grid) for g in (g1, g2))
             coarse = geodesic(
-                g1,
-                g2,
+                h1,
+                h2,
                 metric,
                 degree=level_degree,
                 n_times=level_times,
@@ -497,20 +564,27 @@ def geodesic(
             )
             init = upsample_coefficients(coarse.coefficients, level_degree, degree, n_times)
     else:
-        if schedule:
-            raise ValueError("give either init or schedule, not both")
-        init = jnp.asarray(init, f1.dtype)
+        if levels:
+            raise InputError("give either init or schedule, not both")
+        init = real_array(init, "init").astype(f1.dtype)
         if init.shape != (n_times - 2, size):
-            raise ValueError(
+            raise InputError(
                 f"init must have shape (n_times - 2, L) = {(n_times - 2, size)} "
                 f"for degree={degree}; got {init.shape}"
             )
+        check_finite(init, "init")
+        init = init / units.scale
     values, dframe = (jnp.asarray(a, f1.dtype) for a in _basis_np(m, n, degree))
-    result = _geodesic(
-        metric,
-        f1,
-        f2,
-        init,
+    # The solve runs on constants: its loops are never differentiated (reverse mode cannot
+    # go through a while loop). The energy is then evaluated again, differentiably, at the
+    # optimal coefficients C*: there dE/dC = 0, so its derivative in f1, f2 and the metric
+    # is the derivative of the minimal energy (envelope theorem); away from an optimum it
+    # is the derivative at fixed C.
+    solved = _geodesic(
+        constant(metric),
+        jax.lax.stop_gradient(g1),
+        jax.lax.stop_gradient(g2),
+        jax.lax.stop_gradient(init),
         values,
         dframe,
         n_times=n_times,
@@ -520,8 +594,16 @@ def geodesic(
         scheme=scheme,
         saddle_checks=saddle_checks,
     )
-    if not isinstance(result.converged, jax.core.Tracer) and not bool(result.converged):
-        if result.result == optx.RESULTS.successful:
+    coefficients = jax.lax.stop_gradient(solved.coefficients)
+    path, energy, straight = _evaluate(
+        metric, g1, g2, coefficients, values, dframe, n_times=n_times, scheme=scheme
+    )
+    unit_result = solved._replace(
+        path=path, energy=energy, distance=safe_sqrt(energy), straight_energy=straight
+    )
+    result = _restore_units(unit_result, units, f1, f2)
+    if is_concrete(result.converged, result.num_steps) and not bool(result.converged):
+        if result.result == RESULTS.successful:
             reason = f"and {saddle_checks} saddle escapes: {result.message}"
         else:
             reason = f"without meeting tol={tol:g}: {result.message}"
@@ -531,3 +613,17 @@ def geodesic(
             stacklevel=2,
         )
     return result
+
+
+def _restore_units(result: GeodesicResult, units, f1, f2) -> GeodesicResult:
+    """A result solved in ``units`` expressed in the user's units again (the ends exact)."""
+    s = units.scale
+    path = units.restore(result.path)
+    path = path.at[0].set(f1).at[-1].set(f2)
+    return result._replace(
+        path=path,
+        distance=result.distance * s,
+        energy=result.energy * s**2,
+        straight_energy=result.straight_energy * s**2,
+        coefficients=result.coefficients * s,
+    )

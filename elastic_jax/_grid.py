@@ -6,7 +6,9 @@ import functools
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
+
+from ._checks import check_grid_shape, check_int
 
 
 @functools.cache
@@ -45,7 +47,7 @@ def _interior_weights_np(m: int, n: int) -> np.ndarray:
     return np.repeat(w[:, None], n - 1, axis=1)
 
 
-def interior_weights(m: int, n: int, dtype) -> Float[Array, "m-2 n-1"]:
+def interior_weights(m: int, n: int, dtype) -> Float[Array, "mi ni"]:
     """Quadrature weights on interior rows and distinct columns (the only ones with weight)."""
     return jnp.asarray(_interior_weights_np(m, n), dtype=dtype)
 
@@ -68,7 +70,7 @@ def quadrature_weights(m: int, n: int, dtype=None) -> Float[Array, "m n"]:
     return jnp.asarray(w, dtype=dtype)
 
 
-def integrate(values: Float[Array, "*batch m n"]) -> Float[Array, "*batch"]:
+def integrate(values: Float[ArrayLike, "*batch m n"]) -> Float[Array, "*batch"]:
     """Integral over S^2 of a function sampled on the grid (MATH.md 2 quadrature).
 
     Args:
@@ -81,7 +83,7 @@ def integrate(values: Float[Array, "*batch m n"]) -> Float[Array, "*batch"]:
     return integrate_interior(values[..., 1:-1, :-1])
 
 
-def integrate_interior(values: Float[Array, "*batch m-2 n-1"]) -> Float[Array, "*batch"]:
+def integrate_interior(values: Float[ArrayLike, "*batch mi ni"]) -> Float[Array, "*batch"]:
     """Quadrature of values given on interior rows and distinct columns only."""
     m, n = values.shape[-2] + 2, values.shape[-1] + 1
     w = interior_weights(m, n, values.dtype)
@@ -93,9 +95,14 @@ def sphere_points(m: int, n: int, dtype=None) -> Float[Array, "3 m n"]:
 
     Pole rows are exactly constant and the seam column exactly repeats column 0.
 
+    Args:
+        m, n: the grid (MATH.md 1): m >= 5 rows, n >= 5 columns, n odd.
+        dtype: the array's dtype (JAX's default float when None).
+
     Returns:
         ``(3, m, n)``.
     """
+    check_grid_shape((3, check_int("m", m, 5), check_int("n", n, 5)), "the grid")
     return jnp.asarray(sphere_points_np(m, n), dtype=dtype)
 
 

@@ -10,6 +10,7 @@ import numpy as np
 import scipy.special
 from jaxtyping import Array, Float, Int
 
+from ._checks import InputError, check_int
 from ._grid import _angles_np
 
 
@@ -35,15 +36,16 @@ def max_degree(m: int, n: int) -> int:
     return min(m - 3, (n - 3) // 2)
 
 
-def check_degree(degree: int, m: int, n: int, name: str = "degree") -> None:
-    if not isinstance(degree, int | np.integer) or degree < 1:
-        raise ValueError(f"{name} must be an integer >= 1; got {degree!r}")
+def check_degree(degree: int, m: int, n: int, name: str = "degree") -> int:
+    """``degree`` as an int if 1 <= degree <= :func:`max_degree` (m, n); else InputError."""
+    degree = check_int(name, degree, 1)
     limit = max_degree(m, n)
     if degree > limit:
-        raise ValueError(
+        raise InputError(
             f"{name}={degree} is too high for the {m} x {n} grid: the limit is {limit} "
             "(min(m - 3, (n - 3) // 2), beyond which the harmonics are not independent on the grid)"
         )
+    return degree
 
 
 @functools.cache

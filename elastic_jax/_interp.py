@@ -12,9 +12,11 @@ from ._validation import as_surface, check_grid_shape
 
 
 def sample_at(
-    f: Float[Array, "*batch 3 m n"], phi: Float[Array, "*pts"], theta: Float[Array, "*pts"]
-) -> Float[Array, "*batch 3 *pts"]:
-    """f at points (phi, theta) by bilinear interpolation in the grid's angles.
+    f: Float[ArrayLike, "*batch 3 m n"],
+    phi: Float[ArrayLike, "..."],
+    theta: Float[ArrayLike, "..."],
+) -> Float[Array, "..."]:
+    """f at points (phi, theta) by bilinear interpolation in the grid's angles: (..., 3, *pts).
 
     Periodic in theta; phi in [0, pi] lies between grid rows, and the pole rows are
     constant, so no half-turn is needed for a bilinear stencil. Differentiable in f and
@@ -43,7 +45,7 @@ def _resample(f, phi, theta):
     return sample_at(f, phi[:, None], theta[None, :])
 
 
-def resample(f: Float[ArrayLike, "*batch 3 m n"], m: int, n: int) -> Float[Array, "*batch 3 m n"]:
+def resample(f: Float[ArrayLike, "*batch 3 m0 n0"], m: int, n: int) -> Float[Array, "*batch 3 m n"]:
     """The surface on another m x n grid, by bilinear interpolation (MATH.md 6).
 
     For multiresolution and for bringing shapes to a common grid; error O(h^2) in the

@@ -26,7 +26,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._atomic import save_npz_atomic
-from ._geodesic import ConvergenceWarning, geodesic
+from ._checks import InputError
+from ._geodesic import ConvergenceWarning, default_tol, geodesic
 from ._grid import sphere_points
 from ._harmonics import _vector_fields_np
 from ._metric import SplitMetric, _metric_inner
@@ -121,7 +122,7 @@ def default_strategy() -> str:
     return "map" if jax.default_backend() == "cpu" else "vmap"
 
 
-def initial_velocity(path: Float[Array, "N 3 m n"]) -> Float[Array, "3 m n"]:
+def initial_velocity(path: Float[ArrayLike, "N 3 m n"]) -> Float[Array, "3 m n"]:
     """Initial velocity of a discrete path: T (-3 f_0 + 4 f_1 - f_2) / 2, T = N - 1.
 
     The second-order one-sided difference. The forward difference T (f_1 - f_0) is the
@@ -239,16 +240,39 @@ def _fingerprint(*arrays, **settings) -> str:
 
 
 def _load_checkpoint(path: pathlib.Path, fingerprint: str) -> dict | None:
+    """The arrays of the checkpoint at ``path`` (None if there is none); an InputError
+    naming the file if it cannot be read or was written for other inputs."""
     if not path.exists():
         return None
-    with np.load(path, allow_pickle=False) as data:
-        saved = str(data["fingerprint"])
-        if saved != fingerprint:
-            raise ValueError(
-                f"checkpoint {path} was written for different shapes or settings "
-                f"(fingerprint {saved[:12]} != {fingerprint[:12]}); remove it or pass resume=False"
-            )
-        return {k: data[k] for k in data.files}
+    try:
+        # Our own handle: np.load leaves the file open when the archive is truncated.
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as data:
+            saved = {k: data[k] for k in data.files}
+        saved_fingerprint = str(saved["fingerprint"])
+    except Exception as err:  # a truncated or foreign file: zipfile, numpy or KeyError
+        raise InputError(
+            f"checkpoint {str(path)!r} cannot be read ({type(err).__name__}: {err}); "
+            "remove it to start over"
+        ) from err
+    if saved_fingerprint != fingerprint:
+        raise InputError(
+            f"checkpoint {str(path)!r} was written for other shapes or settings "
+            f"(fingerprint {saved_fingerprint[:12]} != {fingerprint[:12]}); resume it with "
+            "the inputs that wrote it, or start over without resuming"
+        )
+    return saved
+
+
+def _padded(batch, size: int):
+    """``batch`` (a pytree, leading axis b <= size) padded to ``size`` by repeating its last
+    item, so that every chunk has the compiled batch shape (a smaller last chunk would
+    compile the whole solve again)."""
+
+    def pad(x):
+        extra = max(size - x.shape[0], 0)
+        return jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)]) if extra else x
+
+    return jax.tree_util.tree_map(pad, batch)
 
 
 def _check_batch(modulo: str, strategy: str, batch_size) -> str:
@@ -264,13 +288,13 @@ def _check_collection(shapes, options: ShapeOptions | None, name="shapes"):
     """The collection ``(K, 3, m, n)`` and its options, checked on its grid, tol resolved."""
     shapes = as_surface(shapes, name)
     if shapes.ndim != 4 or shapes.shape[0] < 2:
-        raise ValueError(f"{name} must have shape (K, 3, m, n) with K >= 2; got {shapes.shape}")
+        raise InputError(f"{name} must have shape (K, 3, m, n) with K >= 2; got {shapes.shape}")
     options = resolve_options(options, {})
     check_grid_options(options, *shapes.shape[-2:])
     if options.tol is None:
         # Resolved here, as the solves would: one static key for every call, and a
         # fingerprint that names the tolerance used.
-        options = options.replace(tol=1e-6 if shapes.dtype == jnp.float64 else 1e-4)
+        options = options.replace(tol=default_tol(shapes.dtype))
     return shapes, options
 
 
@@ -433,7 +457,7 @@ def karcher_mean(
     step_size = check_positive("step_size", step_size)
     mean = shapes[0] if init is None else as_surface(init, "init")
     if mean.shape != shapes.shape[1:] or mean.dtype != shapes.dtype:
-        raise ValueError(
+        raise InputError(
             f"init must be one surface {shapes.shape[1:]} {shapes.dtype} like the shapes; "
             f"got {mean.shape} {mean.dtype}"
         )
@@ -451,10 +475,20 @@ def karcher_mean(
             return _one_geodesic(at, shape, metric, modulo, options)
 
         chunks = _chunks(shapes.shape[0], batch_size)
+        # The loop strategy solves one shape at a time: nothing to pad.
+        size = 1 if strategy == "loop" else chunks[0][1] - chunks[0][0]
         with warnings.catch_warnings():
             # Reported per shape in geodesics_converged.
             warnings.simplefilter("ignore", ConvergenceWarning)
-            parts = [_batched(batch_call, single_call, shapes[a:b], strategy) for a, b in chunks]
+            parts = [
+                tuple(
+                    out[: b - a]
+                    for out in _batched(
+                        batch_call, single_call, _padded(shapes[a:b], size), strategy
+                    )
+                )
+                for a, b in chunks
+            ]
         return _Solved(*(jnp.concatenate(p) for p in zip(*parts, strict=True)))
 
     def save(step):
@@ -607,10 +641,12 @@ def distance_matrix(
             continue
         # Index per chunk: all K(K-1)/2 pairs at once would copy every surface K - 1 times.
         chunk_pairs = (shapes[rows[a:b]], shapes[cols[a:b]])
+        if strategy != "loop":
+            chunk_pairs = _padded(chunk_pairs, min(chunk_size or rows.size, rows.size))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)  # reported in `converged`
             chunk = _batched(batch_call, single_call, chunk_pairs, strategy)
-        values[a:b], converged[a:b], change[a:b] = (np.asarray(c) for c in chunk)
+        values[a:b], converged[a:b], change[a:b] = (np.asarray(c)[: b - a] for c in chunk)
         done[a:b] = True
         if path is not None:
             save_npz_atomic(

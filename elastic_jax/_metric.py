@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._checks import InputError, is_concrete
 from ._differential import cross, dot, interior_frame
 from ._grid import integrate_interior
 from ._validation import as_surface
@@ -23,11 +24,13 @@ def _coefficient(name: str, value):
     else:
         arr = np.asarray(value)
         if not np.issubdtype(arr.dtype, np.floating) and not np.issubdtype(arr.dtype, np.integer):
-            raise TypeError(f"SplitMetric: coefficient {name} must be a real number; got {value!r}")
+            raise InputError(
+                f"SplitMetric: coefficient {name} must be a real number; got {value!r}"
+            )
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"SplitMetric: coefficient {name}={value!r} is not finite")
+        raise InputError(f"SplitMetric: coefficient {name}={value!r} is not finite")
     if np.any(arr < 0):
-        raise ValueError(f"SplitMetric: coefficient {name}={value!r} is negative; all must be >= 0")
+        raise InputError(f"SplitMetric: coefficient {name}={value!r} is negative; all must be >= 0")
     # Python floats stay weakly typed, so one metric serves float32 and float64 surfaces.
     return float(arr) if arr.ndim == 0 and not isinstance(value, jax.Array) else value
 
@@ -44,24 +47,29 @@ class SplitMetric:
     so jitted functions trace them: changing the values never recompiles.
 
     Raises:
-        ValueError: a coefficient is negative or not finite, or all four are zero.
+        InputError (a ValueError): a coefficient is negative, not finite or not a real
+            number, or all four are zero (for arrays: at some element).
 
     Example:
         >>> SplitMetric(1.0, 1.0, 0.1, 0.0)
         SplitMetric(a=1.0, b=1.0, c=0.1, d=0.0)
     """
 
-    a: float
-    b: float
-    c: float
-    d: float
+    # Python floats, or arrays (a batch of metrics, traced leaves under jit and vmap).
+    a: ArrayLike
+    b: ArrayLike
+    c: ArrayLike
+    d: ArrayLike
 
     def __post_init__(self):
         values = [_coefficient(k, getattr(self, k)) for k in "abcd"]
         for k, v in zip("abcd", values, strict=True):
             object.__setattr__(self, k, v)
-        if all(isinstance(v, float) for v in values) and not any(values):
-            raise ValueError("SplitMetric: all four coefficients are zero; the metric vanishes")
+        if is_concrete(values):
+            # Elementwise, so that a batch of metrics (arrays) is checked member by member.
+            total = sum(np.asarray(v, dtype=np.float64) for v in values)
+            if np.any(total == 0):
+                raise InputError("SplitMetric: all four coefficients are zero; the metric vanishes")
 
     @classmethod
     def from_elastic(cls, ae, be, ce) -> SplitMetric:
@@ -127,7 +135,7 @@ def _split_bilinear(metric: SplitMetric, a1, a2, x1, x2, y1, y2) -> Array:
 
 
 def split_parts(
-    alpha: Float[Array, "*batch 3 2"], xi: Float[Array, "*batch 3 2"]
+    alpha: Float[ArrayLike, "*batch 3 2"], xi: Float[ArrayLike, "*batch 3 2"]
 ) -> tuple[Array, Array, Array, Array]:
     """The orthogonal decomposition xi = xi_m + xi_vol + xi_perp + xi_0 (MATH.md 3).
 
@@ -144,7 +152,7 @@ def split_parts(
     """
     alpha, xi = jnp.broadcast_arrays(jnp.asarray(alpha), jnp.asarray(xi))
     if alpha.shape[-2:] != (3, 2):
-        raise ValueError(f"alpha and xi must have shape (..., 3, 2); got {alpha.shape}")
+        raise InputError(f"alpha and xi must have shape (..., 3, 2); got {alpha.shape}")
     return _split_parts(alpha, xi)
 
 
@@ -174,9 +182,9 @@ def _split_parts(alpha, xi):
 
 
 def base_inner(
-    alpha: Float[Array, "*batch 3 2"],
-    xi: Float[Array, "*batch 3 2"],
-    eta: Float[Array, "*batch 3 2"],
+    alpha: Float[ArrayLike, "*batch 3 2"],
+    xi: Float[ArrayLike, "*batch 3 2"],
+    eta: Float[ArrayLike, "*batch 3 2"],
 ) -> Float[Array, "*batch"]:
     """The base inner product <xi, eta>_alpha = tr(xi g^-1 eta^T) sqrt(det g) (paper eq. (3.3)).
 
@@ -195,9 +203,9 @@ def base_inner(
 
 def split_inner(
     metric: SplitMetric,
-    alpha: Float[Array, "*batch 3 2"],
-    xi: Float[Array, "*batch 3 2"],
-    eta: Float[Array, "*batch 3 2"],
+    alpha: Float[ArrayLike, "*batch 3 2"],
+    xi: Float[ArrayLike, "*batch 3 2"],
+    eta: Float[ArrayLike, "*batch 3 2"],
 ) -> Float[Array, "*batch"]:
     """The split metric G^{a,b,c,d}_alpha(xi, eta) at one point (paper eq. (3.4), MATH.md 3).
 
@@ -210,7 +218,7 @@ def split_inner(
     """
     alpha, xi, eta = jnp.broadcast_arrays(*map(jnp.asarray, (alpha, xi, eta)))
     if alpha.shape[-2:] != (3, 2):
-        raise ValueError(f"alpha, xi and eta must have shape (..., 3, 2); got {alpha.shape}")
+        raise InputError(f"alpha, xi and eta must have shape (..., 3, 2); got {alpha.shape}")
     out = _split_bilinear(metric, *_pointwise(alpha), *_pointwise(xi), *_pointwise(eta))
     return out[..., 0, 0]
 
@@ -228,12 +236,12 @@ def _broadcast_fields(f, u, v) -> tuple[Array, Array, Array]:
     grid = ", ".join(map(str, f.shape[-3:]))
     for name, x in (("u", u), ("v", v)):
         if x.shape[-3:] != f.shape[-3:]:
-            raise ValueError(
+            raise InputError(
                 f"{name} must be a field on the grid of f, (..., {grid}); got {x.shape}"
             )
         if not isinstance(x, jax.core.Tracer) and not np.isfinite(np.asarray(x)).all():
-            raise ValueError(f"{name} contains non-finite values (NaN or inf)")
-    return jnp.broadcast_arrays(f, u, v)
+            raise InputError(f"{name} contains non-finite values (NaN or inf)")
+    return tuple(jnp.broadcast_arrays(f, u, v))
 
 
 def metric_inner(

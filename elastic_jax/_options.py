@@ -1,15 +1,17 @@
 """One validated, hashable record of the options of a solve between shapes.
 
-Plain Python and numpy only (no JAX), so that every module and the command line can
-import it. The record is frozen and hashable: it is the static configuration of the
-jitted solves, so equal options never recompile.
+It imports only the validation layer (``_checks``), so that every module and the command
+line can import it. The record is frozen and hashable: it is the static configuration of
+the jitted solves, so equal options never recompile.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
-import numbers
+
+from ._checks import InputError, check_bool, check_choice, check_int, check_positive
+
+__all__ = ["InputError", "ShapeOptions", "check_choice", "check_int", "check_positive"]
 
 SOLVERS = ("bfgs", "lbfgs")
 SCHEMES = ("forward", "central", "midpoint")
@@ -18,47 +20,23 @@ INITS = ("moebius", "icosahedral", "none")
 INTERPOLATIONS = ("bilinear", "bicubic")
 
 
-def check_choice(name: str, value, allowed: tuple[str, ...]) -> str:
-    """``value`` if it is one of ``allowed``; else a ValueError that names both."""
-    if not isinstance(value, str) or value not in allowed:
-        raise ValueError(f"{name} must be one of {allowed}; got {value!r}")
-    return value
-
-
-def check_int(name: str, value, minimum: int) -> int:
-    """A Python int >= minimum (numpy integers accepted; bools, floats and strings refused)."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
-    if value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
-    return int(value)
-
-
-def check_positive(name: str, value) -> float:
-    """A finite float > 0 (ints accepted; NaN, inf, zero, negatives and non-numbers refused)."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ValueError(f"{name} must be a positive finite number; got {value!r}")
-    value = float(value)
-    if not (math.isfinite(value) and value > 0):
-        raise ValueError(f"{name} must be a positive finite number; got {value!r}")
-    return value
-
-
 @dataclasses.dataclass(frozen=True)
 class ShapeOptions:
     """Options of a geodesic between shapes: its path, its registration, its checks.
 
     One record travels from :func:`shape_geodesic` to :func:`karcher_mean`,
     :func:`distance_matrix` and the command line; every field is checked when the record
-    is made (a ValueError names the field). Grid-dependent limits (a degree too high for
-    the grid) are checked when it is used. Change fields with ``options.replace(...)``.
+    is made (an InputError, a ValueError, names the field). Grid-dependent limits (a
+    degree too high for the grid) are checked when it is used. Change fields with
+    ``options.replace(...)``.
 
     The path (parametrized geodesics, paper Algorithm 1, MATH.md 4 and 7):
         degree: spherical-harmonic degree of the path perturbations.
         n_times: N >= 3 time points, end points included.
         solver: ``"bfgs"`` (optimistix) or ``"lbfgs"`` (jaxopt), for every inner solve.
         max_steps: step limit of each inner solve.
-        tol: inner tolerance on the scaled problems; None: 1e-6 in float64, 1e-4 in float32.
+        tol: inner tolerance, for either solver a bound on the 2-norm of the gradient of
+            the scaled problem (:func:`geodesic`); None: 1e-6 in float64, 3e-3 in float32.
         scheme: time discretization. ``"midpoint"`` (default): each step's metric is
             taken at the middle of the step, so the energy is the midpoint rule for the
             energy of the piecewise-linear path; second order, symmetric, and it cannot
@@ -119,7 +97,7 @@ class ShapeOptions:
         for name, minimum in ints.items():
             object.__setattr__(self, name, check_int(name, getattr(self, name), minimum))
         if self.init_candidates > 60:
-            raise ValueError(
+            raise InputError(
                 f"init_candidates must be at most 60 (the icosahedral rotations); "
                 f"got {self.init_candidates}"
             )
@@ -135,8 +113,7 @@ class ShapeOptions:
         if self.tol is not None:
             object.__setattr__(self, "tol", check_positive("tol", self.tol))
         object.__setattr__(self, "outer_tol", check_positive("outer_tol", self.outer_tol))
-        if not isinstance(self.refinement, bool):
-            raise ValueError(f"refinement must be True or False; got {self.refinement!r}")
+        object.__setattr__(self, "refinement", check_bool("refinement", self.refinement))
 
     def replace(self, **changes) -> ShapeOptions:
         """A copy with some fields changed (validated again)."""

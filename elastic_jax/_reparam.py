@@ -10,6 +10,7 @@ import numpy as np
 import scipy.special
 from jaxtyping import Array, ArrayLike, Float
 
+from ._checks import InputError
 from ._differential import _pole_phi_derivative, cross, dot, interior_frame, pole_fourier1
 from ._grid import _angles_np, sphere_points
 from ._harmonics import _vector_fields_np, check_degree
@@ -22,7 +23,7 @@ METHODS = ("bilinear", "bicubic")
 def _check_coefficients(x: Array, degree: int) -> None:
     size = 2 * (degree + 1) ** 2 - 2
     if x.shape[-1:] != (size,):
-        raise ValueError(
+        raise InputError(
             f"x must have shape (..., Lbar) with Lbar = 2(degree + 1)^2 - 2 = {size} for "
             f"degree={degree}; got {x.shape}"
         )
@@ -181,7 +182,7 @@ def _angles_of(points: Array) -> tuple[Array, Array]:
     return phi, theta
 
 
-def moebius(x: Float[Array, "3 ..."], a: Float[Array, " 3"]) -> Float[Array, "3 ..."]:
+def moebius(x: Float[ArrayLike, "3 ..."], a: Float[ArrayLike, " 3"]) -> Float[Array, "3 ..."]:
     """The Moebius map phi_a(x) = (1 - |a|^2)(x - a) / |x - a|^2 - a of S^2 (MATH.md 9).
 
     |a| < 1; a = 0 is the identity and phi_a's inverse is phi_{-a}. It fixes +-a/|a|,
@@ -207,9 +208,9 @@ def moebius(x: Float[Array, "3 ..."], a: Float[Array, " 3"]) -> Float[Array, "3 
     x = jnp.asarray(x)
     a = jnp.asarray(a, x.dtype)
     if x.shape[:1] != (3,) or a.shape != (3,):
-        raise ValueError(f"moebius needs x (3, ...) and a (3,); got {x.shape} and {a.shape}")
+        raise InputError(f"moebius needs x (3, ...) and a (3,); got {x.shape} and {a.shape}")
     if not isinstance(a, jax.core.Tracer) and not float(jnp.linalg.norm(a)) < 1.0:
-        raise ValueError(f"moebius needs |a| < 1; got |a| = {float(jnp.linalg.norm(a))}")
+        raise InputError(f"moebius needs |a| < 1; got |a| = {float(jnp.linalg.norm(a))}")
     a = a.reshape((3,) + (1,) * (x.ndim - 1))
     d = x - a
     d2 = jnp.sum(d * d, axis=0, keepdims=True)
@@ -278,11 +279,11 @@ def reparametrize(
         ``(..., 3, p, q)``.
     """
     if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+        raise InputError(f"method must be one of {METHODS}; got {method!r}")
     f = as_surface(f, "f", check_immersion=False)
     gamma = jnp.asarray(gamma, f.dtype)
     if gamma.ndim != 3 or gamma.shape[0] != 3:
-        raise ValueError(f"gamma must have shape (3, p, q); got {gamma.shape}")
+        raise InputError(f"gamma must have shape (3, p, q); got {gamma.shape}")
     return _reparametrize(f, gamma, method=method)
 
 

@@ -26,6 +26,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ._checks import is_concrete
 from ._differential import area_element, interior_frame
 from ._energy import frame_energy
 from ._geodesic import (
@@ -33,9 +34,13 @@ from ._geodesic import (
     _basis_np,
     _check_pair,
     _frames_between,
+    _path,
     _perturbed_frames,
     _scaling,
     _solve,
+    constant,
+    default_tol,
+    safe_sqrt,
     upsample_coefficients,
 )
 from ._grid import _interior_weights_np, interior_weights, sphere_points, sphere_points_np
@@ -44,8 +49,9 @@ from ._metric import SplitMetric
 from ._options import ShapeOptions, check_choice
 from ._reparam import _jacobian_determinant, _reparametrize, moebius
 from ._so3 import _icosahedral_np, _so3_exp
-from ._solvers import minimize, result_message
+from ._solvers import RESULTS, minimize, result_message
 from ._srnf import _center
+from ._units import units_of
 
 MODULI = ("diff", "rigid")
 # Shrink factors tried for a reparametrization step, largest first; 0 keeps gamma.
@@ -96,7 +102,7 @@ class ShapeGeodesicResult(NamedTuple):
             saddle_checks >= 1) and the last round changed the
             energy by at most outer_tol (E + outer_tol E_0) (always true when outer_steps=0
             asks for no rounds).
-        result: ``optimistix.RESULTS`` code: the final solve's failure if it failed, else
+        result: an ``elastic_jax.RESULTS`` code: the final solve's failure if it failed, else
             ``nonlinear_max_steps_reached`` when the rounds ran out, else successful.
         grad_norm: ``()`` 2-norm of the gradient of the joint objective (path in whitened
             coefficients and the next Diff step, energy / its scale) at the result.
@@ -113,12 +119,12 @@ class ShapeGeodesicResult(NamedTuple):
     f1_registered: Float[Array, "3 m n"]
     gamma: Float[Array, "3 m n"]
     rotation: Float[Array, "3 3"]
-    coefficients: Float[Array, "N-2 L"]
+    coefficients: Float[Array, "K L"]
     energy_history: Float[Array, " H"]
     rounds: Int[Array, ""]
     num_steps: Int[Array, ""]
     converged: Array
-    result: optx.RESULTS
+    result: RESULTS
     grad_norm: Float[Array, ""]
     min_curvature: Float[Array, ""]
     refinement: Refinement
@@ -720,11 +726,9 @@ def _shape_solve(metric, f1, f2, bases, cfg, rigid):
     joint = _joint_objective(prob, cfg, rigid, state.gamma, state.rotation, scaling)
     zero_step = _zero_registration(prob, rigid, dtype)
     grad_norm = optx.two_norm(jax.grad(joint)((scaling.whitened(final.coefficients), zero_step)))
-    result = optx.RESULTS.where(
+    result = RESULTS.where(
         final.converged,
-        optx.RESULTS.where(
-            outer_done, optx.RESULTS.successful, optx.RESULTS.nonlinear_max_steps_reached
-        ),
+        RESULTS.where(outer_done, RESULTS.successful, RESULTS.nonlinear_max_steps_reached),
         final.result,
     )
     if cfg.refinement:
@@ -755,6 +759,17 @@ def _shape_solve(metric, f1, f2, bases, cfg, rigid):
 
 
 _shape_geodesic = jax.jit(_shape_solve, static_argnames=("cfg", "rigid"))
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "rigid"))
+def _shape_evaluate(metric, f1, f2, bases, gamma, rotation, coefficients, *, cfg, rigid):
+    """The path from f1 o gamma to R f2 with the perturbation C, and its energy."""
+    if rigid:
+        f1, f2 = _center(f1), _center(f2)
+    prob = _Problem(metric, f1, f2, sphere_points(*f1.shape[-2:], f1.dtype), bases)
+    start, end = _registered(prob, cfg, gamma), _rotate(rotation, f2)
+    path = _path(start, end, coefficients, bases.values, cfg.n_times)
+    return path, _path_energy_at(prob, cfg, gamma, rotation, coefficients)
 
 
 def _bases(m: int, n: int, cfg: ShapeOptions, dtype) -> _Bases:
@@ -838,7 +853,9 @@ def shape_geodesic(
         >>> from elastic_jax import shapes
         >>> f1 = shapes.sample(shapes.bumpy, 13, 25)
         >>> f2 = shapes.sample(shapes.bumpy, 13, 25, rotation=shapes.random_rotation(1))
-        >>> res = ej.shape_geodesic(f1, f2, ej.SplitMetric(1.0, 1.0, 0.1, 0.0), degree=4)
+        >>> options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+        >>> metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+        >>> res = ej.shape_geodesic(f1, f2, metric, modulo="rigid", options=options)
         >>> bool(res.distance < 0.1 * res.parametrized_distance)
         True
     """
@@ -849,9 +866,31 @@ def shape_geodesic(
     check_grid_options(cfg, m, n)
     dtype = f1.dtype
     if cfg.tol is None:
-        cfg = cfg.replace(tol=1e-6 if dtype == jnp.float64 else 1e-4)
-    result = _shape_geodesic(metric, f1, f2, _bases(m, n, cfg, dtype), cfg, modulo == "rigid")
-    if not isinstance(result.converged, jax.core.Tracer) and not bool(result.converged):
+        cfg = cfg.replace(tol=default_tol(dtype))
+    rigid = modulo == "rigid"
+    # Solve in units of the surfaces' size (see _units): float32 then works at any scale.
+    units = units_of(f1, f2)
+    bases = _bases(m, n, cfg, dtype)
+    g1, g2 = units.remove(f1), units.remove(f2)
+    # As in geodesic: the solve runs on constants and the energy is evaluated again,
+    # differentiably, at the solution (envelope theorem: the derivative of the minimal
+    # energy in f1, f2 and the metric, with gamma, R and C held).
+    solved = _shape_geodesic(
+        constant(metric), jax.lax.stop_gradient(g1), jax.lax.stop_gradient(g2), bases, cfg, rigid
+    )
+    gamma, rotation, coefficients = (
+        jax.lax.stop_gradient(x) for x in (solved.gamma, solved.rotation, solved.coefficients)
+    )
+    path, energy = _shape_evaluate(
+        metric, g1, g2, bases, gamma, rotation, coefficients, cfg=cfg, rigid=rigid
+    )
+    unit_result = solved._replace(
+        path=path, f1_registered=path[0], energy=energy, distance=safe_sqrt(energy)
+    )
+    result = _restore_shape_units(unit_result, units, rigid)
+    if is_concrete(result.converged, result.energy_history, result.rounds) and not bool(
+        result.converged
+    ):
         history = np.asarray(result.energy_history)
         warnings.warn(
             f"shape_geodesic: not converged after {int(result.rounds)} registration rounds "
@@ -861,3 +900,27 @@ def shape_geodesic(
             stacklevel=2,
         )
     return result
+
+
+def _restore_shape_units(result: ShapeGeodesicResult, units, rigid: bool) -> ShapeGeodesicResult:
+    """A result solved in ``units`` in the user's units again. Modulo "rigid" the solve
+    centres both surfaces, so the path is only scaled back; modulo "diff" it is also
+    moved back to the inputs' place."""
+    s = units.scale
+
+    def surfaces(x):
+        return x * s if rigid else units.restore(x)
+
+    return result._replace(
+        path=surfaces(result.path),
+        distance=result.distance * s,
+        energy=result.energy * s**2,
+        parametrized_distance=result.parametrized_distance * s,
+        f1_registered=surfaces(result.f1_registered),
+        coefficients=result.coefficients * s,
+        energy_history=result.energy_history * s**2,
+        refinement=result.refinement._replace(
+            distance_time=result.refinement.distance_time * s,
+            distance_grid=result.refinement.distance_grid * s,
+        ),
+    )

@@ -9,8 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._checks import InputError
 
-def hat(w: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+
+def hat(w: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """The skew matrix K with K v = w x v."""
     w = jnp.asarray(w)
     zero = jnp.zeros_like(w[..., 0])
@@ -19,7 +21,7 @@ def hat(w: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     return jnp.stack(rows, axis=-2)
 
 
-def vee(k: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
+def vee(k: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     """Inverse of :func:`hat` on the skew part: (K32, K13, K21)."""
     return jnp.stack([k[..., 2, 1], k[..., 0, 2], k[..., 1, 0]], axis=-1)
 
@@ -58,7 +60,7 @@ def so3_exp(w: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """
     w = jnp.asarray(w)
     if w.shape[-1:] != (3,):
-        raise ValueError(f"w must have shape (..., 3); got {w.shape}")
+        raise InputError(f"w must have shape (..., 3); got {w.shape}")
     if not jnp.issubdtype(w.dtype, jnp.floating):
         w = w.astype(jnp.result_type(float))
     return _so3_exp(w)
@@ -110,7 +112,7 @@ def so3_log(r: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     """
     r = jnp.asarray(r)
     if r.shape[-2:] != (3, 3):
-        raise ValueError(f"R must have shape (..., 3, 3); got {r.shape}")
+        raise InputError(f"R must have shape (..., 3, 3); got {r.shape}")
     return _so3_log(r)
 
 

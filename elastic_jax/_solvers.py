@@ -11,15 +11,27 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array
 
-SOLVERS = ("bfgs", "lbfgs")
+from ._checks import check_choice
+from ._options import SOLVERS
+
+
+class RESULTS(optx.RESULTS):  # pyright: ignore
+    """optimistix's result codes and one more: a solve that stopped making progress."""
+
+    stalled = (
+        "The solver stopped making progress (steps and value changes at rounding level) "
+        "before the gradient norm reached tol: the precision cannot resolve tol; raise tol "
+        "or use float64."
+    )
 
 
 class Minimum(NamedTuple):
-    """What a solve returns: the minimizer, the solver's result code and its step count."""
+    """What a solve returns: the minimizer, its result code, step count and gradient norm."""
 
     x: Array
-    result: optx.RESULTS
+    result: RESULTS
     num_steps: Array
+    grad_norm: Array
 
 
 def _jaxopt():
@@ -33,8 +45,24 @@ def _jaxopt():
 
 
 def check_solver(solver: str) -> None:
-    if solver not in SOLVERS:
-        raise ValueError(f"solver must be one of {SOLVERS}; got {solver!r}")
+    check_choice("solver", solver, SOLVERS)
+
+
+class _GradientBFGS(optx.BFGS):
+    """optimistix's BFGS, stopped by the gradient norm: ``|grad f(y)|_2 <= gtol`` at an
+    accepted point (optimistix's own rule, on changes of y and f, is kept at rounding
+    level, rtol = atol = 100 eps, so that a solve that cannot move stops there)."""
+
+    gtol: float
+
+    def __init__(self, gtol: float, rounding: float):
+        super().__init__(rtol=rounding, atol=rounding)
+        self.gtol = gtol
+
+    def terminate(self, fn, y, args, options, state, tags):
+        # Before the first accepted step f_info holds no gradient yet.
+        small = optx.two_norm(state.f_info.grad) <= self.gtol
+        return (~state.first_step) & (small | state.terminate), state.result
 
 
 def minimize(
@@ -42,43 +70,54 @@ def minimize(
 ) -> Minimum:
     """Minimize a smooth scalar function of one array (traceable, vmappable).
 
-    bfgs: ``optimistix.BFGS(rtol=tol, atol=tol)``, whose Cauchy rule stops when both the
-    step (max norm, relative to the iterate) and the change of the value are below tol;
-    the dense inverse Hessian suits up to a few thousand variables. lbfgs:
-    ``jaxopt.LBFGS(tol=tol)``, which stops when the gradient's 2-norm is below tol.
+    ``tol`` means the same for both solvers: the solve has converged when the 2-norm of
+    the gradient of ``fun`` at the returned point is at most tol (the caller scales x
+    and the value to O(1), so that this is a relative accuracy; near a minimum with
+    Hessian ~2 I the value is then within ~tol^2 / 4 of the minimum). bfgs:
+    optimistix's BFGS (dense inverse Hessian, suits up to a few thousand variables)
+    stopped by that rule; lbfgs: ``jaxopt.LBFGS(tol=tol)``, whose own rule it is.
     Neither raises: a solve that hits ``max_steps`` returns
-    ``RESULTS.nonlinear_max_steps_reached``. The caller scales x and the value to O(1).
+    ``RESULTS.nonlinear_max_steps_reached`` and one that stops moving before meeting tol
+    (rounding) ``RESULTS.stalled``.
     """
     check_solver(solver)
+    grad = jax.grad(fun)
     # optimistix tests its stopping rule only after a step the line search accepts; at a
     # start that is already optimal (f1 = f2) no step passes Armijo, so stop here first.
-    start_grad = optx.two_norm(jax.grad(fun)(x0))
+    start_grad = optx.two_norm(grad(x0))
     return jax.lax.cond(
         start_grad <= tol,
-        lambda x: Minimum(x, optx.RESULTS.successful, jnp.zeros((), jnp.int32)),
-        lambda x: _run(fun, x, solver=solver, max_steps=max_steps, tol=tol),
+        lambda x: Minimum(x, RESULTS.successful, jnp.zeros((), jnp.int32), start_grad),
+        lambda x: _run(fun, grad, x, solver=solver, max_steps=max_steps, tol=tol),
         x0,
     )
 
 
-def _run(fun, x0, *, solver, max_steps, tol) -> Minimum:
+def _run(fun, grad, x0, *, solver, max_steps, tol) -> Minimum:
     if solver == "bfgs":
+        rounding = 100 * float(jnp.finfo(jax.tree_util.tree_leaves(x0)[0].dtype).eps)
         sol = optx.minimise(
             lambda x, _: fun(x),
-            optx.BFGS(rtol=tol, atol=tol),
+            _GradientBFGS(gtol=tol, rounding=rounding),
             x0,
             max_steps=max_steps,
             throw=False,
         )
-        return Minimum(sol.value, sol.result, jnp.asarray(sol.stats["num_steps"], jnp.int32))
-    lbfgs = _jaxopt().LBFGS(fun=fun, maxiter=max_steps, tol=tol)
-    x, state = lbfgs.run(x0)
-    # jaxopt stops silently at maxiter: judge convergence from its gradient norm.
-    ok = (state.error <= tol) & jnp.isfinite(state.value)
-    result = optx.RESULTS.where(
-        ok, optx.RESULTS.successful, optx.RESULTS.nonlinear_max_steps_reached
-    )
-    return Minimum(x, result, jnp.asarray(state.iter_num, jnp.int32))
+        x, result, steps = sol.value, RESULTS.promote(sol.result), sol.stats["num_steps"]
+    else:
+        x, state = _jaxopt().LBFGS(fun=fun, maxiter=max_steps, tol=tol).run(x0)
+        # jaxopt stops silently at maxiter; its other stops are judged below.
+        result = RESULTS.where(
+            state.iter_num >= max_steps, RESULTS.nonlinear_max_steps_reached, RESULTS.successful
+        )
+        steps = state.iter_num
+    grad_norm = optx.two_norm(grad(x))
+    ok = (grad_norm <= tol) & jnp.isfinite(fun(x))
+    # A solver that stopped on its own before meeting tol stalled (the step limit and
+    # other failures keep their own codes).
+    failed = RESULTS.where(result == RESULTS.successful, RESULTS.stalled, result)
+    result = RESULTS.where(ok, RESULTS.successful, failed)
+    return Minimum(x, result, jnp.asarray(steps, jnp.int32), grad_norm)
 
 
 def lanczos_smallest(
@@ -147,6 +186,6 @@ def lanczos_smallest(
     return theta[0], (vector / jnp.linalg.norm(vector)).reshape(shape)
 
 
-def result_message(result: optx.RESULTS) -> str:
+def result_message(result: RESULTS) -> str:
     """The solver's words for a (concrete, unbatched) result code; '' on success."""
-    return optx.RESULTS[result] if result != optx.RESULTS.successful else ""
+    return RESULTS[result] if result != RESULTS.successful else ""

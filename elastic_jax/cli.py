@@ -8,25 +8,36 @@ so Ctrl-C never leaves half a file; ``karcher`` and ``distances`` checkpoint eve
 step or chunk and continue with ``--resume``.
 
 Exit codes: 0 done and converged; 2 bad input (unreadable file, invalid surface or mesh,
-bad option); 3 finished but the solver did not converge (results are still written);
-130 interrupted; 1 anything else (a bug: please report it).
+bad option, an --out that is not a writable directory or that another run holds, a
+checkpoint there without --resume or --overwrite), reported in one line before any work;
+3 finished but the solver did not converge (results are still written); 130 interrupted
+(Ctrl-C), 143 terminated (SIGTERM), both leaving only complete files; 1 anything else
+(a bug: please report it).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
 import pathlib
 import platform
+import signal
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 
+from ._atomic import TEMPORARY, stale_temporaries
+from ._checks import InputError, check_grid_shape, check_int, check_positive
 from ._options import INITS, METHODS, SCHEMES, SOLVERS, ShapeOptions
 
-EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_NOT_CONVERGED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_NOT_CONVERGED = 0, 1, 2, 3
+EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # 128 + SIGINT, 128 + SIGTERM
+LOCK_NAME = ".elastic-jax.lock"
+CHECKPOINTS = {"karcher": "karcher_checkpoint.npz", "distances": "distances_checkpoint.npz"}
 DEFAULT_METRIC = (1.0, 1.0, 0.1, 0.0)
 SURFACE_FILE = "a surface: .npz (array f), .mat (the authors'), or a mesh trimesh reads"
 SHAPE_COMMANDS = ("shape-geodesic", "karcher", "distances")
@@ -201,6 +212,12 @@ def _batch_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--resume", action="store_true", help="continue from the checkpoint in --out"
     )
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="discard a checkpoint in --out and start over (without it or --resume, a "
+        "checkpoint there is refused)",
+    )
 
 
 class _DefaultsShown(argparse.ArgumentDefaultsHelpFormatter):
@@ -216,7 +233,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="elastic-jax",
         description="Elastic shape analysis of spherical surfaces (split metrics, Su et al. 2020).",
-        epilog="Exit codes: 0 ok, 2 bad input, 3 not converged, 130 interrupted.",
+        epilog="Exit codes: 0 ok, 2 bad input, 3 not converged, 130 interrupted, 143 terminated.",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     add = sub.add_parser
@@ -299,7 +316,9 @@ def _load_all(files: Sequence[str], grid, dtype, progress: Progress):
         progress(f"reading {name}")
         try:
             f = io.load_surface(name, m=m, n=n)
-        except (OSError, ValueError, KeyError) as err:
+        except (InputError, KeyError) as err:  # their messages name the file
+            raise BadInput(err.args[0] if err.args else str(err)) from err
+        except (OSError, ValueError) as err:
             raise BadInput(f"{name}: {err}") from err
         except Exception as err:  # a file trimesh or scipy cannot parse is still bad input
             raise BadInput(f"{name}: cannot be read ({type(err).__name__}: {err})") from err
@@ -357,23 +376,53 @@ def _shape_geodesic_options(args) -> ShapeOptions:
     return args.shape_options
 
 
+def _json_safe(value):
+    """``value`` with every non-finite float (not JSON) replaced by None, recursively."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
 def _write_summary(out: pathlib.Path, summary: dict) -> None:
     from ._atomic import write_text_atomic
 
     target = out / "summary.json"
     summary["files"] = sorted({*summary.get("files", []), str(target)})
-    write_text_atomic(target, json.dumps(summary, indent=2) + "\n")
-    print(json.dumps(summary, indent=2))
+    # A failed solve's NaN becomes null: the file stays valid JSON (allow_nan=False).
+    text = json.dumps(_json_safe(summary), indent=2, allow_nan=False)
+    write_text_atomic(target, text + "\n")
+    print(text)
+
+
+def _figure(target: pathlib.Path, make: Callable, progress: Progress) -> list[str]:
+    """``[target]`` after drawing ``make()`` into it; ``[]`` (and a progress line) when
+    the data cannot be drawn: a failed solve's NaN is reported in the summary, not as
+    bad input."""
+    from . import plot
+
+    try:
+        fig = make()
+    except InputError as err:
+        progress(f"{target.name} not drawn: {_one_line(err)}")
+        return []
+    return [str(plot.save_figure(fig, target))]
 
 
 def _write_path(out: pathlib.Path, path, settings: dict, progress: Progress) -> list[str]:
+    import numpy as np
+
     from . import io, plot
 
+    if not np.isfinite(path).all():
+        progress("the path is not finite: no meshes and no figure written")
+        return []
     progress(f"writing the path's {path.shape[0]} meshes and its figure to {out}")
     written = [str(p) for p in io.save_path(path, out / "path", settings=settings)]
-    fig = plot.plot_path(path)
-    written.append(str(plot.save_figure(fig, out / "path.png")))
-    return written
+    return written + _figure(out / "path.png", lambda: plot.plot_path(path), progress)
 
 
 # --------------------------------------------------------------------------- commands
@@ -414,6 +463,8 @@ def _run_geodesic(args, progress: Progress, surfaces=None, label=None) -> dict:
         "straight_energy": float(res.straight_energy),
         "num_steps": int(res.num_steps),
         "converged": bool(res.converged),
+        "message": res.message,
+        "grad_norm": float(res.grad_norm),
         "seconds": seconds,
         "environment": _environment(),
     }
@@ -465,8 +516,8 @@ def _run_shape_geodesic(args, progress: Progress) -> dict:
     )
     history = np.asarray(res.energy_history)
     # Rounds not taken are NaN in the record; the figure shows the rounds taken.
-    fig = plot.plot_energy({"path energy": history[np.isfinite(history)]})
-    files.append(str(plot.save_figure(fig, args.out / "energy.png")))
+    energies = {"path energy": history[np.isfinite(history)]}
+    files += _figure(args.out / "energy.png", lambda: plot.plot_energy(energies), progress)
     return {
         "command": args.command,
         "inputs": [args.source, args.target],
@@ -494,7 +545,6 @@ def _run_shape_geodesic(args, progress: Progress) -> dict:
 
 def _json_float(x) -> float | None:
     """A float for JSON; NaN and inf (not JSON) become null."""
-    import math
 
     x = float(x)
     return x if math.isfinite(x) else None
@@ -575,13 +625,12 @@ def _run_karcher(args, progress: Progress) -> dict:
             )
         )
     ]
-    files.append(str(io.save_surface(mean, args.out / "mean.ply")))
-    files.append(str(plot.save_figure(plot.plot_path(mean), args.out / "mean.png")))
+    if np.isfinite(mean).all():
+        files.append(str(io.save_surface(mean, args.out / "mean.ply")))
+    files += _figure(args.out / "mean.png", lambda: plot.plot_path(mean), progress)
     history = np.asarray(res.history)
-    fig = plot.plot_energy(
-        {"sum of squared distances": history[:, 0], "mean velocity norm": history[:, 1]}
-    )
-    files.append(str(plot.save_figure(fig, args.out / "history.png")))
+    columns = {"sum of squared distances": history[:, 0], "mean velocity norm": history[:, 1]}
+    files += _figure(args.out / "history.png", lambda: plot.plot_energy(columns), progress)
     return {
         "command": args.command,
         "inputs": list(args.files),
@@ -659,8 +708,11 @@ def _run_distances(args, progress: Progress) -> dict:
         for name, row in zip(names, matrix, strict=True)
     ]
     files.append(str(write_text_atomic(args.out / "distances.csv", "\n".join(rows) + "\n")))
-    fig = plot.plot_distance_matrix(matrix, labels=names)
-    files.append(str(plot.save_figure(fig, args.out / "distances.png")))
+    files += _figure(
+        args.out / "distances.png",
+        lambda: plot.plot_distance_matrix(matrix, labels=names),
+        progress,
+    )
     return {
         "command": args.command,
         "inputs": list(args.files),
@@ -753,26 +805,119 @@ def _run_bench(args, progress: Progress) -> dict:
     }
 
 
+def _checked(flag: str, check: Callable, *args):
+    """``check(flag, value, ...)`` from the validation layer, its InputError as BadInput."""
+    try:
+        return check(flag, *args)
+    except InputError as err:
+        raise BadInput(str(err)) from err
+
+
 def _preflight(args) -> None:
     """Refuse bad options before reading any file or starting any work."""
-    from ._validation import check_grid_shape
-
     _metric_from(args)
     if args.grid is not None:
-        try:
-            check_grid_shape((3, *args.grid), "--grid")
-        except ValueError as err:
-            raise BadInput(str(err)) from err
+        _checked("--grid", lambda name, grid: check_grid_shape((3, *grid), name), args.grid)
     if args.command in SHAPE_COMMANDS:
         args.shape_options = shape_options_from(args)
+    else:
+        _checked("--degree", check_int, args.degree, 1)
+        _checked("--times", check_int, args.times, 3)
+        if args.max_steps is not None:
+            _checked("--max-steps", check_int, args.max_steps, 1)
+    if args.command in ("karcher", "distances") and len(args.files) < 2:
+        raise BadInput(f"{args.command} needs at least 2 surface files; got {len(args.files)}")
     if args.command == "karcher":
-        if args.karcher_steps < 0:
-            raise BadInput(f"--karcher-steps must be >= 0; got {args.karcher_steps}")
-        for flag, value in (("--tol", args.tol), ("--step-size", args.step_size)):
-            if not (math.isfinite(value) and value > 0):
-                raise BadInput(f"{flag} must be a positive finite number; got {value}")
-    if getattr(args, "batch_size", None) is not None and args.batch_size < 1:
-        raise BadInput(f"--batch-size must be >= 1; got {args.batch_size}")
+        _checked("--karcher-steps", check_int, args.karcher_steps, 0)
+        _checked("--tol", check_positive, args.tol)
+        _checked("--step-size", check_positive, args.step_size)
+    if getattr(args, "batch_size", None) is not None:
+        _checked("--batch-size", check_int, args.batch_size, 1)
+    if args.command == "bench":
+        _checked("--repeat", check_int, args.repeat, 1)
+
+
+def _claim_out(args, stack: contextlib.ExitStack) -> None:
+    """Make --out, prove it writable, lock it for this run, and sweep what killed runs left.
+
+    All before any file is read or any solve starts, so that a bad --out never costs a
+    solve. The lock is advisory (flock on ``.elastic-jax.lock``): a second run on the
+    same directory is refused (BadInput) instead of overwriting the first one's
+    checkpoint. A checkpoint already there is continued with --resume or discarded with
+    --overwrite, never silently.
+    """
+    out = args.out
+    if out.exists() and not out.is_dir():
+        raise BadInput(f"--out {out}: exists and is not a directory")
+    if not out.exists():
+        # A run refused before writing anything leaves no empty directory behind
+        # (rmdir fails, harmlessly, once the directory holds files).
+        stack.callback(_remove_if_empty, out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        stack.enter_context(_locked(out / LOCK_NAME))
+        probe = tempfile.NamedTemporaryFile(dir=out, prefix=f".probe{TEMPORARY}")
+        probe.close()
+    except BlockingIOError:
+        raise BadInput(
+            f"--out {out}: another elastic-jax run is writing there (it holds {LOCK_NAME}); "
+            "wait for it or choose another --out"
+        ) from None
+    except OSError as err:
+        raise BadInput(f"--out {out}: not a writable directory ({err.strerror or err})") from err
+    # Temporaries of atomic writes that a killed run left behind: nobody else writes here
+    # while we hold the lock.
+    for stale in stale_temporaries(out):
+        stale.unlink(missing_ok=True)
+    checkpoint = CHECKPOINTS.get(args.command)
+    if checkpoint and (out / checkpoint).exists() and not (args.resume or args.overwrite):
+        raise BadInput(
+            f"--out {out} holds the checkpoint {checkpoint} of an earlier run; continue it "
+            "with --resume or discard it with --overwrite"
+        )
+
+
+def _remove_if_empty(directory: pathlib.Path) -> None:
+    with contextlib.suppress(OSError):
+        directory.rmdir()
+
+
+@contextlib.contextmanager
+def _locked(path: pathlib.Path):
+    """Hold an exclusive advisory lock on ``path`` (BlockingIOError if another holds it)."""
+    import fcntl
+
+    while True:
+        fh = open(path, "a+")  # noqa: SIM115 (held for the whole run)
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BaseException:
+            fh.close()
+            raise
+        # The previous holder may have removed the file between our open and our lock:
+        # then we hold a lock on a file nobody else can find; take the new one.
+        try:
+            same = os.fstat(fh.fileno()).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        fh.close()
+    try:
+        fh.write(f"{os.getpid()}\n")
+        fh.flush()
+        yield
+    finally:
+        path.unlink(missing_ok=True)
+        fh.close()
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, handled like Ctrl-C (complete files only, exit 143)."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
 
 
 COMMANDS = {
@@ -804,25 +949,34 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ._geodesic import ConvergenceWarning
 
     progress = Progress(args.quiet)
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), contextlib.ExitStack() as stack:
             # Non-convergence is reported in the summary and the exit code instead.
             warnings.simplefilter("ignore", ConvergenceWarning)
             _preflight(args)
+            _claim_out(args, stack)
             summary = COMMANDS[args.command](args, progress)
-        _write_summary(args.out, summary)
-    except BadInput as err:
-        print(f"elastic-jax {args.command}: bad input: {err}", file=sys.stderr)
+            _write_summary(args.out, summary)
+    except (BadInput, InputError) as err:
+        print(f"elastic-jax {args.command}: bad input: {_one_line(err)}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:
+        how = "terminated" if isinstance(err, Terminated) else "interrupted"
         print(
-            f"elastic-jax {args.command}: interrupted; every file in {args.out} is complete "
+            f"elastic-jax {args.command}: {how}; every file in {args.out} is complete "
             "(karcher and distances continue with --resume)",
             file=sys.stderr,
         )
-        return EXIT_INTERRUPTED
+        return EXIT_TERMINATED if isinstance(err, Terminated) else EXIT_INTERRUPTED
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     progress(f"done; summary in {args.out / 'summary.json'}")
-    return EXIT_NOT_CONVERGED if summary.get("converged") is False else EXIT_OK
+    return EXIT_NOT_CONVERGED if summary.get("converged") is not True else EXIT_OK
+
+
+def _one_line(err: Exception) -> str:
+    return " ".join(str(err).split())
 
 
 if __name__ == "__main__":

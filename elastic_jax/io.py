@@ -34,6 +34,7 @@ import scipy.io
 import trimesh
 
 from ._atomic import atomic_path, save_npz_atomic
+from ._checks import InputError
 from ._grid import _angles_np
 from ._interp import resample
 from ._validation import check_grid_shape, validate_surface
@@ -68,7 +69,7 @@ _MERGE_RTOL = 1e-9
 _PAIRS_PER_CHUNK = 5_000_000
 
 
-class MeshError(ValueError):
+class MeshError(InputError):
     """A mesh that cannot be turned into a surface on the spherical grid."""
 
 
@@ -298,7 +299,7 @@ def mesh_to_grid(
     else:
         origin = np.asarray(center, dtype=np.float64)
         if origin.shape != (3,) or not np.all(np.isfinite(origin)):
-            raise ValueError(f"center must be 3 finite numbers; got {center!r}")
+            raise InputError(f"center must be 3 finite numbers; got {center!r}")
         about = "the given center"
     scale = float(np.max(np.linalg.norm(vertices - origin, axis=1)))
     directions = _grid_directions(m, n)
@@ -402,6 +403,34 @@ def grid_to_mesh(f) -> trimesh.Trimesh:
     return mesh
 
 
+def _read(path: pathlib.Path, kind: str, reader):
+    """``reader()``, with a failure to parse the file an InputError naming the file."""
+    try:
+        return reader()
+    except (InputError, KeyError, FileNotFoundError, IsADirectoryError):
+        raise
+    except Exception as err:  # zipfile, numpy, trimesh and their parsers raise many kinds
+        raise InputError(
+            f"{str(path)!r} cannot be read as a .{kind} file ({type(err).__name__}: {err})"
+        ) from err
+
+
+def _load_npz_f(path: pathlib.Path) -> np.ndarray:
+    # Our own handle: np.load leaves the file open when the archive is truncated.
+    with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as data:
+        return _from_key(data, path)
+
+
+def _loadmat(path: pathlib.Path) -> dict:
+    try:
+        return scipy.io.loadmat(path)
+    except NotImplementedError as err:  # MATLAB v7.3 files are HDF5
+        raise InputError(
+            f"{str(path)!r} is a MATLAB v7.3 (HDF5) file, which scipy cannot read; "
+            "save it with save(..., '-v7') or convert it to .npz"
+        ) from err
+
+
 def _check_exists(path: pathlib.Path) -> None:
     if not path.exists():
         raise FileNotFoundError(f"no such file: {str(path)!r}")
@@ -410,7 +439,7 @@ def _check_exists(path: pathlib.Path) -> None:
 
 
 def _unknown_suffix(path: pathlib.Path, verb: str, formats: Sequence[str]) -> ValueError:
-    return ValueError(
+    return InputError(
         f"cannot {verb} {str(path)!r}: unknown file type {path.suffix or '(no suffix)'!r}; "
         f"supported: {', '.join('.' + s for s in formats)}"
     )
@@ -456,7 +485,7 @@ def load_surface(path: str | os.PathLike, m: int | None = None, n: int | None = 
     """
     path = pathlib.Path(path)
     if (m is None) != (n is None):
-        raise ValueError(f"give both m and n or neither; got m={m}, n={n}")
+        raise InputError(f"give both m and n or neither; got m={m}, n={n}")
     if m is not None:
         m, n = operator.index(m), operator.index(n)
         check_grid_shape((3, m, n), "the grid (3, m, n)")
@@ -467,27 +496,22 @@ def load_surface(path: str | os.PathLike, m: int | None = None, n: int | None = 
     _check_exists(path)
 
     if kind in mesh_formats:
-        mesh = trimesh.load(path, force="mesh")
-        f = mesh_to_grid(mesh, 50 if m is None else m, 99 if n is None else n)
+        mesh = _read(path, kind, lambda: trimesh.load(path, force="mesh"))
+        try:
+            f = mesh_to_grid(mesh, 50 if m is None else m, 99 if n is None else n)
+        except MeshError as err:
+            raise type(err)(f"{str(path)!r}: {err}") from err
     else:
         if kind == "npz":
-            with np.load(path, allow_pickle=False) as data:
-                f = _from_key(data, path)
+            f = _read(path, kind, lambda: _load_npz_f(path))
         else:
-            try:
-                data = scipy.io.loadmat(path)
-            except NotImplementedError as err:  # MATLAB v7.3 files are HDF5
-                raise ValueError(
-                    f"{str(path)!r} is a MATLAB v7.3 (HDF5) file, which scipy cannot read; "
-                    "save it with save(..., '-v7') or convert it to .npz"
-                ) from err
-            f = _from_key(data, path)
+            f = _read(path, kind, lambda: _from_key(_loadmat(path), path))
             if f.ndim == 3 and f.shape[-1] == 3 and f.shape[0] != 3:
                 f = f.transpose(2, 0, 1)
         if f.ndim != 3:
-            raise ValueError(f"the array 'f' in {str(path)!r} has shape {f.shape}; need (3, m, n)")
+            raise InputError(f"the array 'f' in {str(path)!r} has shape {f.shape}; need (3, m, n)")
         if not np.issubdtype(f.dtype, np.number) or np.iscomplexobj(f):
-            raise ValueError(f"the array 'f' in {str(path)!r} is not real numbers: {f.dtype}")
+            raise InputError(f"the array 'f' in {str(path)!r} is not real numbers: {f.dtype}")
         f = f.astype(np.float64)
         validate_surface(f, f"the surface in {str(path)!r}")
         if m is not None and (m, n) != f.shape[1:]:
@@ -506,7 +530,7 @@ def _checked_surfaces(x, name: str, layout: str) -> np.ndarray:
         x = x.astype(np.float64)
     validate_surface(x, name)
     if x.ndim != layout.count(",") + 1:
-        raise ValueError(f"{name} must have shape {layout}; got shape {x.shape}")
+        raise InputError(f"{name} must have shape {layout}; got shape {x.shape}")
     return x
 
 
@@ -584,7 +608,7 @@ def save_path(
     """
     kind = str(format).lower().lstrip(".")
     if kind not in MESH_FORMATS:
-        raise ValueError(f"unknown mesh format {format!r}; supported: {', '.join(MESH_FORMATS)}")
+        raise InputError(f"unknown mesh format {format!r}; supported: {', '.join(MESH_FORMATS)}")
     surfaces = _checked_surfaces(path, "path", "(N, 3, m, n)")
     text = json.dumps({} if settings is None else dict(settings), default=_json_default)
     directory = pathlib.Path(directory)

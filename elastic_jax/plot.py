@@ -32,6 +32,7 @@ from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the "3d" proje
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from ._atomic import atomic_path
+from ._checks import InputError
 from ._validation import as_surface
 
 __all__ = [
@@ -67,7 +68,7 @@ def parametrization_colors(m: int, n: int) -> np.ndarray:
         ``(m - 1, n - 1, 4)`` RGBA values in [0, 1], opaque.
     """
     if m < 2 or n < 2:
-        raise ValueError(f"the grid needs at least 2 rows and 2 columns; got m={m}, n={n}")
+        raise InputError(f"the grid needs at least 2 rows and 2 columns; got m={m}, n={n}")
     u = (np.arange(m - 1) + 0.5) / (m - 1)  # phi / pi at the cell centres
     v = (np.arange(n - 1) + 0.5) / (n - 1)  # theta / (2 pi) at the cell centres
     u, v = np.meshgrid(u, v, indexing="ij")
@@ -85,17 +86,17 @@ def _cell_colors(colors, m: int, n: int) -> np.ndarray:
         arr = np.asarray(colors, dtype=float)
         if arr.ndim == 3:
             if arr.shape[:2] != (m - 1, n - 1) or arr.shape[2] not in (3, 4):
-                raise ValueError(
+                raise InputError(
                     f"colors as an array must have shape ({m - 1}, {n - 1}, 3 or 4), one "
                     f"RGB(A) colour per grid cell; got {arr.shape}"
                 )
             if not np.all(np.isfinite(arr)) or arr.min() < 0 or arr.max() > 1:
-                raise ValueError("colors must hold finite RGB(A) values in [0, 1]")
+                raise InputError("colors must hold finite RGB(A) values in [0, 1]")
             return mcolors.to_rgba_array(arr.reshape(-1, arr.shape[2])).reshape(m - 1, n - 1, 4)
     try:
         rgba = mcolors.to_rgba(colors)
     except (ValueError, TypeError):
-        raise ValueError(
+        raise InputError(
             "colors must be 'parametrization', a matplotlib colour, or an array "
             f"({m - 1}, {n - 1}, 3 or 4) of per-cell colours; got {colors!r}"
         ) from None
@@ -107,26 +108,26 @@ def _choose_frames(frames, count: int) -> list[int]:
         frames = count if count <= _DEFAULT_FRAMES else _DEFAULT_FRAMES
     if isinstance(frames, int | np.integer) and not isinstance(frames, bool):
         if not 1 <= frames <= count:
-            raise ValueError(f"frames={frames} must be between 1 and the path's {count} frames")
+            raise InputError(f"frames={frames} must be between 1 and the path's {count} frames")
         # Spacing (count - 1) / (frames - 1) >= 1, so rounding never repeats an index.
         return [int(k) for k in np.rint(np.linspace(0, count - 1, frames))]
     if isinstance(frames, str | bytes):
-        raise ValueError(
+        raise InputError(
             f"frames must be None, an int or a sequence of frame indices; got {frames!r}"
         )
     try:
         chosen = [int(k) for k in frames]
     except (TypeError, ValueError):
-        raise ValueError(
+        raise InputError(
             f"frames must be None, an int or a sequence of frame indices; got {frames!r}"
         ) from None
     if not chosen:
-        raise ValueError("frames is an empty sequence; give at least one frame index")
+        raise InputError("frames is an empty sequence; give at least one frame index")
     if any(isinstance(k, float) and not float(k).is_integer() for k in frames):
-        raise ValueError(f"frame indices must be integers; got {list(frames)!r}")
+        raise InputError(f"frame indices must be integers; got {list(frames)!r}")
     bad = [k for k in chosen if not 0 <= k < count]
     if bad:
-        raise ValueError(f"frame indices {bad} are out of range for a path of {count} frames")
+        raise InputError(f"frame indices {bad} are out of range for a path of {count} frames")
     return chosen
 
 
@@ -157,7 +158,7 @@ def _shading(quads: np.ndarray, light: np.ndarray) -> np.ndarray:
 def _as_path(path) -> np.ndarray:
     ndim = np.ndim(path)
     if ndim not in (3, 4):
-        raise ValueError(
+        raise InputError(
             f"path must be a surface (3, m, n) or a path (N, 3, m, n); got shape {np.shape(path)}"
         )
     # Drawing does not need an immersion: a geodesic may pass through a pinched surface.
@@ -246,19 +247,19 @@ def plot_path(
 def _history_columns(history, labels) -> list[tuple[str | None, np.ndarray]]:
     if isinstance(history, Mapping):
         if labels is not None:
-            raise ValueError("labels cannot be given with a dict history: its keys are the labels")
+            raise InputError("labels cannot be given with a dict history: its keys are the labels")
         if not history:
-            raise ValueError("history is an empty dict")
+            raise InputError("history is an empty dict")
         columns = []
         for key, values in history.items():
             arr = np.asarray(values, dtype=float)
             if arr.ndim != 1:
-                raise ValueError(f"history[{key!r}] must be 1-D; got shape {arr.shape}")
+                raise InputError(f"history[{key!r}] must be 1-D; got shape {arr.shape}")
             columns.append((str(key), arr))
         return columns
     arr = np.asarray(history, dtype=float)
     if arr.ndim not in (1, 2):
-        raise ValueError(f"history must have shape (steps,) or (steps, k); got {arr.shape}")
+        raise InputError(f"history must have shape (steps,) or (steps, k); got {arr.shape}")
     arr = arr.reshape(arr.shape[0], -1)
     k = arr.shape[1]
     if labels is None:
@@ -266,7 +267,7 @@ def _history_columns(history, labels) -> list[tuple[str | None, np.ndarray]]:
     else:
         names = [str(s) for s in labels]
         if len(names) != k:
-            raise ValueError(f"got {len(names)} labels for {k} history column(s)")
+            raise InputError(f"got {len(names)} labels for {k} history column(s)")
     return [(name, arr[:, j]) for j, name in enumerate(names)]
 
 
@@ -293,10 +294,10 @@ def plot_energy(history, *, labels: Sequence[str] | None = None, logy: bool = Tr
     for name, values in columns:
         which = "history" if name is None else repr(name)
         if values.size == 0:
-            raise ValueError(f"{which} has no steps")
+            raise InputError(f"{which} has no steps")
         bad = ~np.isfinite(values)
         if bad.any():
-            raise ValueError(
+            raise InputError(
                 f"{which} has {int(bad.sum())} non-finite value(s), the first at step "
                 f"{int(np.argmax(bad))}"
             )
@@ -340,18 +341,18 @@ def plot_distance_matrix(
     """
     D = np.asarray(D, dtype=float)
     if D.ndim != 2 or D.shape[0] != D.shape[1]:
-        raise ValueError(f"D must be a square matrix (K, K); got shape {D.shape}")
+        raise InputError(f"D must be a square matrix (K, K); got shape {D.shape}")
     bad = ~np.isfinite(D)
     if bad.any():
         i, j = np.argwhere(bad)[0]
-        raise ValueError(
+        raise InputError(
             f"D has {int(bad.sum())} non-finite value(s) (NaN or inf), the first at ({i}, {j})"
         )
     asym = np.abs(D - D.T)
     scale = np.max(np.abs(D)) if D.size else 0.0
     if asym.size and asym.max() > 1e-8 * scale:
         i, j = np.unravel_index(np.argmax(asym), asym.shape)
-        raise ValueError(
+        raise InputError(
             f"D is not symmetric: D[{i}, {j}] = {D[i, j]:.6g} but D[{j}, {i}] = {D[j, i]:.6g} "
             f"(difference {asym[i, j]:.3g}, more than 1e-8 times max |D| = {scale:.3g})"
         )
@@ -359,7 +360,7 @@ def plot_distance_matrix(
     if labels is not None:
         labels = [str(s) for s in labels]
         if len(labels) != k:
-            raise ValueError(f"got {len(labels)} labels for a {k} x {k} matrix")
+            raise InputError(f"got {len(labels)} labels for a {k} x {k} matrix")
 
     side = min(3.0 + 0.3 * k, 12.0)
     fig = Figure(figsize=(side + 1.0, side), layout="constrained")
@@ -388,7 +389,7 @@ def save_figure(fig: Figure, path: str | os.PathLike, dpi: float = 120) -> pathl
         ``path`` as a :class:`pathlib.Path`.
     """
     if not dpi > 0:
-        raise ValueError(f"dpi must be positive; got {dpi}")
+        raise InputError(f"dpi must be positive; got {dpi}")
     path = pathlib.Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi)

@@ -19,20 +19,20 @@ from collections.abc import Callable
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ._grid import sphere_points
 
 __all__ = ["sphere", "ellipsoid", "bumpy", "bent_cylinder", "sample", "random_rotation"]
 
 
-def sphere(x: Float[Array, "3 ..."], radius: float = 1.0) -> Float[Array, "3 ..."]:
+def sphere(x: Float[ArrayLike, "3 ..."], radius: float = 1.0) -> Float[Array, "3 ..."]:
     """The round sphere of the given radius about the origin: F(x) = radius x."""
     return radius * x
 
 
 def ellipsoid(
-    x: Float[Array, "3 ..."], axes: tuple[float, float, float] = (1.0, 0.75, 0.5)
+    x: Float[ArrayLike, "3 ..."], axes: tuple[float, float, float] = (1.0, 0.75, 0.5)
 ) -> Float[Array, "3 ..."]:
     """The ellipsoid with semi-axes ``axes``: F(x) = diag(axes) x."""
     return jnp.stack([ax * xi for ax, xi in zip(axes, x, strict=True)])
@@ -47,7 +47,7 @@ _BUMPS = (
 )
 
 
-def bumpy(x: Float[Array, "3 ..."], scale: float = 1.0) -> Float[Array, "3 ..."]:
+def bumpy(x: Float[ArrayLike, "3 ..."], scale: float = 1.0) -> Float[Array, "3 ..."]:
     """A star-shaped surface with four unequal bumps and no symmetry: F(x) = r(x) diag(1, .9, .8) x.
 
     r(x) = scale (1 + sum_i A_i exp(kappa_i (<x, c_i> - 1))): von Mises bumps, smooth on S^2.
@@ -60,7 +60,7 @@ def bumpy(x: Float[Array, "3 ..."], scale: float = 1.0) -> Float[Array, "3 ..."]
 
 
 def bent_cylinder(
-    x: Float[Array, "3 ..."],
+    x: Float[ArrayLike, "3 ..."],
     half_length: float = 1.5,
     radius: float = 0.5,
     curvature: float = 0.4,
@@ -87,9 +87,9 @@ def sample(
     shape: Callable[..., Array],
     m: int,
     n: int,
-    rotation: Float[Array, "3 3"] | None = None,
+    rotation: Float[ArrayLike, "3 3"] | None = None,
     dtype=None,
-    moebius: Float[Array, " 3"] | None = None,
+    moebius: Float[ArrayLike, " 3"] | None = None,
     **params,
 ) -> Float[Array, "3 m n"]:
     """Sample ``shape`` on the m x n grid, composed with h(x) = R phi_a(x) if given.

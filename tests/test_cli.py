@@ -123,6 +123,13 @@ def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, caps
         "tol": (["karcher", good, good, "--tol", "0"], "--tol"),
         "step-size": (["karcher", good, good, "--step-size", "nan"], "--step-size"),
         "batch-size": (["distances", good, good, "--batch-size", "0"], "--batch-size"),
+        "batch-size -1": (["karcher", good, good, "--batch-size", "-1"], "--batch-size"),
+        "one file karcher": (["karcher", good], "at least 2"),
+        "one file distances": (["distances", good], "at least 2"),
+        "repeat -1": (["bench", "--repeat", "-1"], "--repeat"),
+        "repeat 0": (["bench", "--repeat", "0"], "--repeat"),
+        "geodesic max-steps": (["geodesic", good, good, "--max-steps", "0"], "--max-steps"),
+        "geodesic times": (["geodesic", good, good, "--times", "2"], "--times"),
     }
     for key, (argv, word) in cases.items():
         code = cli.main(
@@ -133,6 +140,124 @@ def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, caps
         assert "bad input" in err and word in err, (key, err)
         assert len(err.strip().splitlines()) == 1, key
     assert not out.exists()
+
+
+def test_out_checkpoints_and_locks_are_checked_before_any_work(tmp_path, capsys, monkeypatch):
+    from elastic_jax import _karcher
+
+    good = _save(tmp_path, "good.npz", shapes.sample(shapes.sphere, M, N))
+    other = _save(tmp_path, "other.npz", shapes.sample(shapes.sphere, M, N, radius=2.0))
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(pathlib.Path(good).read_bytes()[:200])
+    a_file = tmp_path / "a_file"
+    a_file.write_text("not a directory")
+    foreign, corrupt, held, fresh = (tmp_path / d for d in ("foreign", "corrupt", "held", "new"))
+    for d in (foreign, corrupt, held):
+        d.mkdir()
+    np.savez(foreign / "karcher_checkpoint.npz", fingerprint="written by other inputs")
+    (corrupt / "distances_checkpoint.npz").write_bytes(b"PK\x03\x04 cut short")
+    stale = fresh / ".summary.json.tmp-k2j4x9ab.json"  # a killed run's temporary
+    fresh.mkdir()
+    stale.write_text("{")
+    (fresh / ".keep").write_text("the user's")
+    collection = ["karcher", good, other, *SHAPE]
+    cases = {  # argv, --out, what the one-line message must contain
+        "out is a file": (["geodesic", good, other, *SMALL], a_file, "not a directory"),
+        "checkpoint of other inputs": ([*collection, "--resume"], foreign, "other shapes"),
+        "checkpoint kept without --resume": (collection, foreign, "--overwrite"),
+        "corrupt checkpoint": (
+            ["distances", good, other, *SHAPE, "--resume"],
+            corrupt,
+            "cannot be read",
+        ),
+        "truncated input": (["geodesic", good, str(truncated), *SMALL], fresh, "truncated.npz"),
+    }
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file() and p != stale}
+    for key, (argv, out, word) in cases.items():
+        code = cli.main([*argv, "--out", str(out)])
+        err = capsys.readouterr().err
+        assert code == cli.EXIT_BAD_INPUT, (key, err)
+        assert "bad input" in err and word in err, (key, err)
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, key
+    # Nothing written or discarded; the killed run's temporary swept, the user's file kept.
+    after = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    assert after == before and not stale.exists()
+    # A second run on a directory that a first run holds is refused (advisory lock).
+    with cli._locked(held / cli.LOCK_NAME):
+        code = cli.main([*collection, "--out", str(held)])
+    assert code == cli.EXIT_BAD_INPUT and "another elastic-jax run" in capsys.readouterr().err
+    # --overwrite discards the checkpoint explicitly; the run then goes on.
+    monkeypatch.setattr(_karcher, "karcher_mean", _fake_karcher([]))
+    code = cli.main([*collection, "--out", str(foreign), "--overwrite"])
+    assert code == cli.EXIT_OK and json.loads(capsys.readouterr().out)["num_steps"] == 1
+
+
+def _signal_at_first_checkpoint(argv, out, signum) -> tuple[int, str]:
+    """Run the command line in a child, send ``signum`` as soon as its first checkpoint
+    exists; its exit code and stderr.
+
+    A shell running the suite in the background hands its children SIGINT ignored, and
+    Python then installs no KeyboardInterrupt handler: the child restores what a terminal
+    gives before it runs the command line.
+    """
+    child = (
+        "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+        "from elastic_jax.cli import main; raise SystemExit(main(sys.argv[1:]))"
+    )
+    run = subprocess.Popen(
+        [sys.executable, "-c", child, *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    checkpoint = out / "distances_checkpoint.npz"
+    deadline = time.monotonic() + 240
+    while not checkpoint.exists() and run.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    run.send_signal(signum)
+    _, err = run.communicate(timeout=60)
+    return run.returncode, err
+
+
+def test_sigterm_is_handled_like_ctrl_c(tmp_path):
+    fs = [shapes.sample(shapes.sphere, M, N, radius=r) for r in (1.0, 1.5, 2.0)]
+    files = [_save(tmp_path, f"s{i}.npz", f) for i, f in enumerate(fs)]
+    out = tmp_path / "out"
+    argv = ["distances", *files, *SHAPE, "--strategy", "loop", "--batch-size", "1"]
+    code, err = _signal_at_first_checkpoint([*argv, "--out", str(out)], out, signal.SIGTERM)
+    assert code == cli.EXIT_TERMINATED == 143, err
+    assert "terminated" in err and "Traceback" not in err
+    assert sorted(p.name for p in out.iterdir()) == ["distances_checkpoint.npz"]
+
+
+def test_a_nan_solve_exits_3_with_valid_json(tmp_path, capsys, monkeypatch):
+    from elastic_jax import _geodesic
+
+    def nan_geodesic(f1, f2, metric, **options):
+        nan = np.float64(np.nan)
+        return ej.GeodesicResult(
+            path=np.full((options["n_times"], *np.shape(f1)), np.nan),
+            distance=nan,
+            energy=nan,
+            straight_energy=nan,
+            coefficients=np.zeros((options["n_times"] - 2, 3)),
+            num_steps=np.int32(4),
+            converged=np.bool_(False),
+            result=ej.RESULTS.nonfinite,
+            grad_norm=nan,
+            min_curvature=nan,
+        )
+
+    monkeypatch.setattr(_geodesic, "geodesic", nan_geodesic)
+    a = _save(tmp_path, "a.npz", shapes.sample(shapes.sphere, M, N))
+    out = tmp_path / "out"
+    code = cli.main(["geodesic", a, a, *SMALL, "--out", str(out)])
+    captured = capsys.readouterr()
+    assert code == cli.EXIT_NOT_CONVERGED, captured.err
+    summary = json.loads((out / "summary.json").read_text())  # valid JSON: no NaN token
+    assert summary["distance"] is None and summary["num_steps"] == 4
+    assert summary["converged"] is False and "Nonfinite" in summary["message"]
+    assert [pathlib.Path(f).name for f in summary["files"]] == ["summary.json"]
 
 
 def _fake_karcher(calls):
@@ -210,26 +335,9 @@ def test_ctrl_c_then_resume_equals_the_library(tmp_path, capsys):
     argv = ["distances", *files, *SHAPE, "--strategy", "loop", "--batch-size", "1"]
     argv += ["--out", str(out)]
     # A real SIGINT (Ctrl-C) as soon as the first pair's checkpoint exists: 5 pairs remain.
-    # A shell running the suite in the background hands its children SIGINT ignored, and
-    # Python then installs no KeyboardInterrupt handler: the child restores what a terminal
-    # gives before it runs the command line.
-    child = (
-        "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-        "from elastic_jax.cli import main; raise SystemExit(main(sys.argv[1:]))"
-    )
-    run = subprocess.Popen(
-        [sys.executable, "-c", child, *argv],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    code, err = _signal_at_first_checkpoint(argv, out, signal.SIGINT)
     checkpoint = out / "distances_checkpoint.npz"
-    deadline = time.monotonic() + 240
-    while not checkpoint.exists() and run.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
-    run.send_signal(signal.SIGINT)
-    _, err = run.communicate(timeout=60)
-    assert run.returncode == cli.EXIT_INTERRUPTED, err
+    assert code == cli.EXIT_INTERRUPTED, err
     assert "interrupted" in err
     assert sorted(p.name for p in out.iterdir()) == ["distances_checkpoint.npz"]
     assert 1 <= int(np.load(checkpoint)["done"].sum()) < 6

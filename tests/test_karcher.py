@@ -245,7 +245,7 @@ def test_resume_after_a_kill_equals_an_uninterrupted_run(tmp_path):
         full.num_solves,
         full.result,
     )
-    with pytest.raises(ValueError, match="different shapes or settings"):
+    with pytest.raises(ValueError, match="other shapes or settings"):
         ej.karcher_mean(coll[::-1], METRIC, checkpoint=path, resume=True, **kwargs)
 
 
