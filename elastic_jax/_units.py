@@ -52,7 +52,8 @@ def units_of(*surfaces: Float[ArrayLike, "3 m n"]) -> Units:
     # A single point (refused on concrete input) keeps unit scale instead of 0; the log
     # never sees 0 (double where).
     positive = extent > 0
-    power = jnp.round(jnp.log2(jnp.where(positive, extent, 1.0)))
-    scale = jnp.where(positive, jnp.exp2(power), 1.0).astype(extent.dtype)
+    power = jnp.round(jnp.log2(jnp.where(positive, extent, 1.0))).astype(jnp.int32)
+    # ldexp is exact; exp2 is not on every backend (exp2(3.0) = 7.999999999999998 on CPU).
+    scale = jnp.where(positive, jnp.ldexp(jnp.ones_like(extent), power), 1.0)
     centre = (0.5 * lower + 0.5 * upper)[:, None, None]
     return Units(jax.lax.stop_gradient(centre), jax.lax.stop_gradient(scale))
