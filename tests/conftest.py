@@ -20,21 +20,7 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 COMPILATION_CACHE = pathlib.Path(tempfile.mkdtemp(prefix="elastic-jax-tests-"))
 atexit.register(shutil.rmtree, COMPILATION_CACHE, ignore_errors=True)
 jax.config.update("jax_compilation_cache_dir", str(COMPILATION_CACHE))
-# Written only by the tests that share solves with subprocesses (the cache_writes
-# fixture): in a process that has compiled the whole suite, XLA aborted twice while
-# serializing test_shape's coordinate-descent solve for the cache (Fatal Python error in
-# put_executable_and_time; that test passes in a fresh process). Reads stay on.
-NO_CACHE_WRITES = 1e9
-jax.config.update("jax_persistent_cache_min_compile_time_secs", NO_CACHE_WRITES)
-
-
-@pytest.fixture
-def cache_writes():
-    """Write this test's compilations to the session's persistent cache (for subprocesses)."""
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    yield
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", NO_CACHE_WRITES)
-
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
 

@@ -18,9 +18,6 @@ from elastic_jax import cli, io, shapes
 from .conftest import COMPILATION_CACHE
 
 M, N = 13, 25
-
-# Subprocesses read what these tests compile from the session's persistent cache.
-pytestmark = pytest.mark.usefixtures("cache_writes")
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 # The session's compilation cache (conftest): subprocesses and in-process checks share it.
 CACHE = ["--cache-dir", str(COMPILATION_CACHE)]

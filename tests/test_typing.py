@@ -13,9 +13,6 @@ from .conftest import COMPILATION_CACHE
 
 pytest.importorskip("beartype")
 
-# Subprocesses read what these tests compile from the session's persistent cache.
-pytestmark = pytest.mark.usefixtures("cache_writes")
-
 # One script, run with and without the hook: both print the same JSON record.
 SCRIPT = """
 import json, sys, warnings
