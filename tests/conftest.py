@@ -22,6 +22,17 @@ atexit.register(shutil.rmtree, COMPILATION_CACHE, ignore_errors=True)
 jax.config.update("jax_compilation_cache_dir", str(COMPILATION_CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
+
+@pytest.fixture(autouse=True, scope="module")
+def _fresh_jit_caches():
+    """Drop this module's compiled executables when it ends (the persistent cache keeps
+    them for later modules): a process that held the whole suite's executables aborted
+    inside XLA late in the suite (in compilation and in cache serialization; each test
+    passes in a fresh process)."""
+    yield
+    jax.clear_caches()
+
+
 DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 # Tolerances for float64 identities and for float32, in one place.
