@@ -207,13 +207,9 @@ def _batched(batch_call: Callable, single_call: Callable, batch, strategy: str) 
         return tuple(jnp.stack(parts) for parts in zip(*outs, strict=True))
     devices = jax.devices()
     if strategy == "vmap" and len(devices) > 1:
-        pad = (-size) % len(devices)
-
-        def padded(x):
-            return jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
-
+        padded = _padded(batch, size + (-size) % len(devices))
         sharding = NamedSharding(Mesh(np.asarray(devices), ("batch",)), PartitionSpec("batch"))
-        batch = jax.tree_util.tree_map(lambda x: jax.device_put(padded(x), sharding), batch)
+        batch = jax.tree_util.tree_map(lambda x: jax.device_put(x, sharding), padded)
         return tuple(o[:size] for o in batch_call(batch, strategy))
     return batch_call(batch, strategy)
 

@@ -347,8 +347,6 @@ def _check_degrees(args, m: int, n: int) -> None:
                 check_degree(value, m, n, name)
             except ValueError as err:
                 raise BadInput(f"--{name.replace('_', '-')} {value}: {err}") from err
-    if args.times < 3:
-        raise BadInput(f"--times must be at least 3; got {args.times}")
 
 
 def _geodesic_options(args) -> dict:
