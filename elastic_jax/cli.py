@@ -315,7 +315,7 @@ def _load_all(files: Sequence[str], grid, dtype, progress: Progress):
     for name in files:
         progress(f"reading {name}")
         try:
-            f = io.load_surface(name, m=m, n=n)
+            f = io.load_surface(name, m=m, n=n, progress=progress)
         except (InputError, KeyError) as err:  # their messages name the file
             raise BadInput(err.args[0] if err.args else str(err)) from err
         except (OSError, ValueError) as err:

@@ -1,11 +1,12 @@
 """Reading and writing surfaces: grids (.npz, .mat) and triangle meshes (.ply, .obj, ...).
 
-A surface is an array ``(3, m, n)`` on the spherical grid (MATH.md 1). A closed mesh of
-sphere topology becomes such an array by radial projection: one ray per grid direction
-from a centre of the mesh, the surface point is where the ray leaves the mesh. This needs
-the mesh to be star-shaped about that centre (every ray crosses the surface exactly once),
-which :func:`mesh_to_grid` checks rather than assumes. The way back, :func:`grid_to_mesh`,
-triangulates the grid with one vertex per distinct grid point.
+A surface is an array ``(3, m, n)`` on the spherical grid (MATH.md 1). A closed genus-0
+mesh becomes such an array through a map of the mesh onto the unit sphere: by radial
+projection when the mesh is star-shaped (one ray per grid direction from a centre of the
+mesh, the surface point is where the ray leaves the mesh; exact, and checked rather than
+assumed), otherwise by :func:`spherical_parametrization`, a fold-free map of any closed
+genus-0 mesh (module ``_sphere_map``). The way back, :func:`grid_to_mesh`, triangulates
+the grid with one vertex per distinct grid point.
 
 Every file is written atomically (a temporary beside it, then a rename), so an interrupted
 job leaves the previous file or the new one, never part of one.
@@ -26,7 +27,7 @@ import json
 import operator
 import os
 import pathlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import jax
 import numpy as np
@@ -34,22 +35,41 @@ import scipy.io
 import trimesh
 
 from ._atomic import atomic_path, save_npz_atomic
-from ._checks import InputError
+from ._checks import InputError, check_choice
 from ._grid import _angles_np
 from ._interp import resample
+from ._sphere_map import (
+    DegenerateFaceError,
+    InconsistentWindingError,
+    MeshError,
+    NonManifoldVertexError,
+    NotGenusZeroError,
+    NotStarShapedError,
+    NotWatertightError,
+    ParametrizationError,
+    SphericalParametrization,
+    check_mesh,
+    parametrize,
+)
 from ._validation import check_grid_shape, validate_surface
 
 __all__ = [
     "MESH_FORMATS",
+    "DegenerateFaceError",
+    "InconsistentWindingError",
     "MeshError",
+    "NonManifoldVertexError",
     "NotGenusZeroError",
     "NotStarShapedError",
     "NotWatertightError",
+    "ParametrizationError",
+    "SphericalParametrization",
     "grid_to_mesh",
     "load_surface",
     "mesh_to_grid",
     "save_path",
     "save_surface",
+    "spherical_parametrization",
     "star_center",
 ]
 
@@ -67,22 +87,6 @@ _MERGE_RTOL = 1e-9
 # Bounds the (ray, candidate triangle) pairs that trimesh materialises per call: a ray
 # from the centre has a few percent (up to a third) of the faces as candidates.
 _PAIRS_PER_CHUNK = 5_000_000
-
-
-class MeshError(InputError):
-    """A mesh that cannot be turned into a surface on the spherical grid."""
-
-
-class NotWatertightError(MeshError):
-    """The mesh has boundary edges (or edges shared by more than two faces)."""
-
-
-class NotGenusZeroError(MeshError):
-    """The mesh is closed but not a sphere: its Euler characteristic is not 2."""
-
-
-class NotStarShapedError(MeshError):
-    """Some ray from the centre misses the mesh or crosses it more than once."""
 
 
 def _mesh_loadable_formats() -> tuple[str, ...]:
@@ -129,32 +133,10 @@ def _as_trimesh(mesh) -> trimesh.Trimesh:
     return mesh
 
 
-def _check_sphere_topology(mesh: trimesh.Trimesh) -> None:
-    """Raise unless the mesh is one closed surface with Euler characteristic 2."""
-    if len(mesh.faces) == 0:
-        raise MeshError("the mesh has no faces")
-    if not mesh.is_watertight:
-        edges = np.sort(mesh.edges, axis=1)
-        _, counts = np.unique(edges, axis=0, return_counts=True)
-        raise NotWatertightError(
-            f"the mesh is not closed (watertight): {int(np.sum(counts == 1))} edge(s) belong "
-            f"to one face only and {int(np.sum(counts > 2))} to more than two, out of "
-            f"{len(counts)} edges; a surface on the sphere grid needs a closed mesh (if the "
-            "file repeats vertices per face, load it with trimesh's default process=True "
-            "or call mesh.merge_vertices())"
-        )
-    bodies = int(mesh.body_count)
-    if bodies != 1:
-        raise MeshError(
-            f"the mesh has {bodies} connected components; a surface on the sphere grid is one"
-        )
-    chi = int(mesh.euler_number)
-    if chi != 2:
-        genus = (2 - chi) / 2
-        raise NotGenusZeroError(
-            f"the mesh is closed but not a topological sphere: its Euler characteristic "
-            f"V - E + F is {chi}, not 2 (genus (2 - chi)/2 = {genus:g})"
-        )
+def _checked_mesh(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh's float64 vertices and its faces wound outward, after ``check_mesh``."""
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    return vertices, check_mesh(vertices, np.asarray(mesh.faces))
 
 
 def _area_centroid(mesh: trimesh.Trimesh) -> np.ndarray:
@@ -245,54 +227,148 @@ def _direction_name(k: int, m: int, n: int, u: np.ndarray) -> str:
     return f"({u[0]:.4f}, {u[1]:.4f}, {u[2]:.4f}) ({where})"
 
 
+def spherical_parametrization(
+    mesh: trimesh.Trimesh | trimesh.Scene,
+    *,
+    area_weight: float = 0.9,
+    max_iter: int = 20_000,
+    rtol: float = 1e-5,
+    init: np.ndarray | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> SphericalParametrization:
+    """A bijective, orientation-preserving map of a closed genus-0 mesh onto the sphere.
+
+    For meshes that are not star-shaped (animals, hands, bent tubes): a mean-value Tutte
+    map of the mesh with one face removed, inverse stereographic projection and a Moebius
+    centring give a fold-free start; the foldover-free energy of Garanzha et al. (ACM TOG
+    2021), per face A_T ((1 - w) |J|^2 + w (det J^2 + 1)) / chi(det J, eps) with J the map's
+    Jacobian from the mesh triangle (scaled to total area 4 pi) to its chord triangle on the
+    sphere and chi(D, eps) = (D + sqrt(eps^2 + D^2)) / 2, is minimized by optimistix L-BFGS
+    for decreasing eps; a final area-weighted Kabsch rotation turns the map towards the
+    vertices' directions from their area centroid, so that a rotated mesh gives a rotated
+    map. ``w = area_weight`` trades angle distortion (w -> 0, conformal) for area
+    distortion (w -> 1, equal areas); area balance keeps thin parts of the mesh (legs,
+    tails) from shrinking to nothing on the sphere, which is what the grid needs.
+    Runs in float64 whatever JAX's x64 setting (``jax.enable_x64`` locally).
+
+    The map is never folded: a face whose image is turned over (triple product of its
+    sphere points <= 0) after ``max_iter`` iterations raises ParametrizationError.
+
+    Args:
+        mesh: a closed, consistently wound, vertex-manifold ``trimesh.Trimesh`` with Euler
+            characteristic 2 and no zero-area faces (or a Scene of one).
+        area_weight: w in (0, 1], default 0.9.
+        max_iter: L-BFGS iterations in all (>= 1).
+        rtol: stop when a round of 250 iterations lowers the energy by less than this
+            fraction (with no folded face).
+        init: optional ``(V, 3)`` starting directions on the sphere (normalized here), for
+            example a map from another tool; folded starts are untangled.
+        progress: called with a line of text after every round.
+
+    Returns:
+        :class:`SphericalParametrization`: vertices, faces (wound outward), sphere
+        positions and the quality figures (flipped faces, area-distortion ratio, mean
+        angle error, energy, iterations, time); ``.to_grid(m, n)`` resamples the mesh.
+
+    Raises:
+        MeshError: the mesh fails a check (the subclass and message say which).
+        ParametrizationError: folded faces remain (``.flipped`` holds their count).
+        InputError: bad options.
+    """
+    mesh = _as_trimesh(mesh)
+    vertices, faces = _checked_mesh(mesh)
+    return parametrize(
+        vertices,
+        faces,
+        area_weight=area_weight,
+        max_iter=max_iter,
+        rtol=rtol,
+        init=init,
+        progress=progress,
+    )
+
+
 def mesh_to_grid(
     mesh: trimesh.Trimesh | trimesh.Scene,
     m: int = 50,
     n: int = 99,
     *,
+    method: str = "auto",
     center: Sequence[float] | np.ndarray | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> np.ndarray:
-    """A closed genus-0 triangle mesh as a surface on the m x n grid, by radial projection.
+    """A closed genus-0 triangle mesh as a surface on the m x n grid.
 
-    With c the mesh's area-weighted centroid (sum_T area_T centroid_T / sum_T area_T),
-    f(phi_i, theta_j) = c + t_ij e1(phi_i, theta_j), where t_ij > 0 is where the ray from c
-    in the grid direction e1 (MATH.md 1) crosses the mesh. One ray per distinct grid point:
-    (m - 2)(n - 1) interior directions and the two poles; the pole rows repeat the pole hit
-    and the seam column repeats column 0, so the result passes ``validate_surface``.
-    Where the rays go exactly through mesh vertices (a mesh from :func:`grid_to_mesh` on
-    the same grid, if it is radial about c) those vertices come back to rounding error;
-    elsewhere the mesh is interpolated linearly inside its triangles.
+    Methods:
 
-    The checks run in this order, the topological ones before any ray is cast: closed
-    (watertight), one connected component, Euler characteristic 2; then every ray must
-    cross the mesh exactly once (crossings closer than 1e-9 times the mesh's size, as at
-    an edge or a vertex that several triangles share, count once).
+    - ``"radial"``: with c the mesh's area-weighted centroid (sum_T area_T centroid_T /
+      sum_T area_T) or ``center``, f(phi_i, theta_j) = c + t_ij e1(phi_i, theta_j), where
+      t_ij > 0 is where the ray from c in the grid direction e1 (MATH.md 1) crosses the
+      mesh. Exact, and it needs the mesh star-shaped about c: every ray must cross the mesh
+      exactly once (crossings closer than 1e-9 times the mesh's size, as at an edge or a
+      vertex that several triangles share, count once). Where the rays go exactly through
+      mesh vertices (a mesh from :func:`grid_to_mesh` on the same grid, if it is radial
+      about c) those vertices come back to rounding error.
+    - ``"spherical"``: :func:`spherical_parametrization` maps the mesh onto the sphere;
+      each grid direction is located in its spherical triangle and the mesh's vertices
+      are interpolated with the same (projective barycentric) weights, so every grid point
+      lies on the mesh. Any closed genus-0 mesh; the map follows rigid motions of the mesh
+      (a rotated mesh gives the rotated surface on the same grid).
+    - ``"auto"`` (default): radial about ``center`` when one is given; otherwise radial
+      about the area centroid when the mesh is star-shaped about it, else radial about
+      :func:`star_center` when it is star-shaped about some point, else spherical.
+
+    One point per distinct grid point: (m - 2)(n - 1) interior directions and the two
+    poles; the pole rows repeat the pole point and the seam column repeats column 0.
 
     Args:
         mesh: a ``trimesh.Trimesh``, or a ``trimesh.Scene`` whose meshes are concatenated.
         m, n: grid size (n odd, both >= 5).
-        center: the point the rays start from, ``(3,)``; default the area-weighted
-            centroid. When the mesh is star-shaped about another point,
-            :func:`star_center` finds one (the error message says so).
+        method: ``"auto"``, ``"radial"`` or ``"spherical"``.
+        center: the point the rays start from, ``(3,)`` (radial only).
+        progress: called with a line of text during a spherical parametrization.
 
     Returns:
         ``(3, m, n)`` float64 numpy array.
 
     Raises:
         NotWatertightError: the mesh has boundary or non-manifold edges (counts given).
+        NonManifoldVertexError: the faces around a vertex form several fans.
         NotGenusZeroError: its Euler characteristic is not 2 (value and genus given).
-        NotStarShapedError: some rays miss the mesh or cross it more than once (counts and
-            the first such direction given).
+        InconsistentWindingError, DegenerateFaceError: flipped faces, zero-area faces.
+        NotStarShapedError: method "radial" and some rays miss the mesh or cross it more
+            than once (counts and the first such direction given).
+        ParametrizationError: method "spherical" (or "auto" on a non-star-shaped mesh)
+            and the map could not be unfolded.
         MeshError: no faces, several connected components, or a scene without meshes.
         TypeError: ``mesh`` is not a trimesh mesh or scene.
-        ValueError: a bad grid size or center.
+        ValueError: a bad grid size, method or center.
     """
     m, n = operator.index(m), operator.index(n)
     check_grid_shape((3, m, n), "the grid (3, m, n)")
+    check_choice("method", method, ("auto", "radial", "spherical"))
     mesh = _as_trimesh(mesh)
-    _check_sphere_topology(mesh)
+    vertices, faces = _checked_mesh(mesh)
+    if method == "spherical":
+        if center is not None:
+            raise InputError("center applies to method='radial' (or 'auto'), not 'spherical'")
+        par = parametrize(vertices, faces, progress=progress)
+        return par.to_grid(m, n)
+    if method == "radial" or center is not None:
+        return _radial(mesh, vertices, m, n, center, hint=True)
+    try:
+        return _radial(mesh, vertices, m, n, None, hint=False)
+    except NotStarShapedError:
+        kernel = star_center(mesh)
+    if kernel is not None:
+        return _radial(mesh, vertices, m, n, kernel, hint=False)
+    if progress is not None:
+        progress("the mesh is star-shaped about no point: spherical parametrization")
+    return parametrize(vertices, faces, progress=progress).to_grid(m, n)
 
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+
+def _radial(mesh, vertices, m: int, n: int, center, hint: bool) -> np.ndarray:
+    """Radial projection of a checked mesh about ``center`` (None: its area centroid)."""
     if center is None:
         origin = _area_centroid(mesh)
         about = "its area-weighted centroid"
@@ -321,7 +397,8 @@ def mesh_to_grid(
             f"({origin[0]:.4g}, {origin[1]:.4g}, {origin[2]:.4g}): of {len(directions)} rays "
             f"from it, {missed} missed the mesh and {multiple} crossed it more than once "
             f"(up to {int(count.max())} times); the first, in direction "
-            f"{_direction_name(k, m, n, directions[k])}, {found}" + _star_hint(mesh, center)
+            f"{_direction_name(k, m, n, directions[k])}, {found}"
+            + (_star_hint(mesh, center) if hint else "")
         )
     # One crossing per ray, sorted by ray: t lines up with the directions.
     return _from_distinct(origin + t[:, None] * directions, m, n)
@@ -454,7 +531,13 @@ def _from_key(data: Mapping, path: pathlib.Path) -> np.ndarray:
     return np.asarray(data["f"])
 
 
-def load_surface(path: str | os.PathLike, m: int | None = None, n: int | None = None) -> np.ndarray:
+def load_surface(
+    path: str | os.PathLike,
+    m: int | None = None,
+    n: int | None = None,
+    *,
+    progress: Callable[[str], None] | None = None,
+) -> np.ndarray:
     """Read a surface ``(3, m, n)`` from a grid file or a mesh file.
 
     - ``.npz``: the array ``f`` ``(3, m, n)``.
@@ -462,8 +545,9 @@ def load_surface(path: str | os.PathLike, m: int | None = None, n: int | None = 
       stored ``(3, m, n)`` or ``(m, n, 3)``; the latter (last axis 3, first axis not) is
       transposed to ``(3, m, n)``.
     - a mesh file trimesh reads (``.ply .obj .off .stl .glb`` ...): loaded with
-      ``trimesh.load(path, force="mesh")`` and projected with :func:`mesh_to_grid` on the
-      m x n grid, default 50 x 99.
+      ``trimesh.load(path, force="mesh")`` and resampled by :func:`mesh_to_grid` (method
+      "auto": radial projection when the mesh is star-shaped, else a spherical
+      parametrization) on the m x n grid, default 50 x 99.
 
     For grid files, giving m and n that differ from the file's grid resamples bilinearly
     (``elastic_jax.resample``, MATH.md 6) in float64.
@@ -471,6 +555,7 @@ def load_surface(path: str | os.PathLike, m: int | None = None, n: int | None = 
     Args:
         path: the file; the suffix picks the format.
         m, n: grid size, both or neither.
+        progress: called with a line of text during a spherical parametrization.
 
     Returns:
         ``(3, m, n)`` float64 numpy array that passed ``validate_surface``.
@@ -480,8 +565,9 @@ def load_surface(path: str | os.PathLike, m: int | None = None, n: int | None = 
         KeyError: a grid file without the array ``f`` (the keys it has are named).
         ValueError: an unknown suffix (the supported ones are named), a badly shaped array,
             NaN/inf, or any other ``validate_surface`` failure.
-        MeshError: from :func:`mesh_to_grid` for meshes that are not closed, genus-0 and
-            star-shaped about their centroid.
+        MeshError: from :func:`mesh_to_grid` for meshes that are not closed, manifold,
+            consistently wound genus-0 meshes without zero-area faces, or whose spherical
+            parametrization stays folded (ParametrizationError).
     """
     path = pathlib.Path(path)
     if (m is None) != (n is None):
@@ -498,9 +584,12 @@ def load_surface(path: str | os.PathLike, m: int | None = None, n: int | None = 
     if kind in mesh_formats:
         mesh = _read(path, kind, lambda: trimesh.load(path, force="mesh"))
         try:
-            f = mesh_to_grid(mesh, 50 if m is None else m, 99 if n is None else n)
+            f = mesh_to_grid(
+                mesh, 50 if m is None else m, 99 if n is None else n, progress=progress
+            )
         except MeshError as err:
-            raise type(err)(f"{str(path)!r}: {err}") from err
+            err.args = (f"{str(path)!r}: {err}", *err.args[1:])
+            raise
     else:
         if kind == "npz":
             f = _read(path, kind, lambda: _load_npz_f(path))
