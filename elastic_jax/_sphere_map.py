@@ -125,6 +125,11 @@ class SphericalParametrization(NamedTuple):
     converged: bool
     seconds: float
 
+    def spherical_areas(self) -> np.ndarray:
+        """``(F,)`` signed areas of the faces' spherical triangles; they sum to 4 pi for a
+        map that tiles the sphere once (see :func:`spherical_triangle_areas`)."""
+        return spherical_triangle_areas(self.sphere, self.faces)
+
     def to_grid(self, m: int = 50, n: int = 99) -> np.ndarray:
         """The mesh resampled on the m x n spherical grid through this map.
 

@@ -1,4 +1,4 @@
-"""The three notebooks run top to bottom (nbclient) and reach the numbers they promise.
+"""The four notebooks run top to bottom (nbclient) and reach the numbers they promise.
 
 Each notebook's last cell prints a JSON line of its results; the tests read it back.
 """
@@ -50,3 +50,13 @@ def test_karcher_mean_notebook():
     mean_sv, input_sv = np.asarray(out["mean_sv"]), np.asarray(out["input_sv"])
     assert np.all(mean_sv >= 0.97 * input_sv.min(axis=0))
     assert np.all(mean_sv <= 1.03 * input_sv.max(axis=0))
+
+
+def test_any_mesh_notebook():
+    out, figures = _run("04_any_mesh")
+    assert figures == 1
+    assert out["star_center"] is None  # radial projection cannot parametrize the U-tube
+    assert out["flipped"] == 0 and abs(out["tiles_minus_4pi"]) < 1e-8
+    assert out["min_jacobian"] > 0
+    # MATH.md 9: the area bound holds for every quotient; registration lowers the distance.
+    assert out["area_bound"] <= out["shape"] < out["parametrized"]
