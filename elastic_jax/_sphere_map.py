@@ -145,7 +145,7 @@ class SphericalParametrization(NamedTuple):
 
         check_grid_shape((3, m, n), "the grid (3, m, n)")
         directions = io._grid_directions(m, n)
-        return io._from_distinct(resample(self, directions), m, n)
+        return io._from_distinct(sample_mesh(self, directions), m, n)
 
 
 def _face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -559,7 +559,7 @@ def parametrize(
     )
 
 
-def resample(par: SphericalParametrization, directions: np.ndarray) -> np.ndarray:
+def sample_mesh(par: SphericalParametrization, directions: np.ndarray) -> np.ndarray:
     """Points of the mesh at the given directions of the sphere map.
 
     Args:
@@ -577,28 +577,39 @@ def resample(par: SphericalParametrization, directions: np.ndarray) -> np.ndarra
     tri = np.transpose(sphere[faces], (0, 2, 1))  # columns are the corners
     out = np.full((len(directions), 3), np.nan)
     todo = np.arange(len(directions))
-    for k in (8, 32, 128, len(faces)):
-        k = min(k, len(faces))
-        _, cand = tree.query(directions[todo], k=k)
-        cand = cand.reshape(len(todo), k)
-        lam = np.linalg.solve(
-            tri[cand], np.broadcast_to(directions[todo][:, None, :, None], (len(todo), k, 3, 1))
-        )[..., 0]
+
+    def locate(rows: np.ndarray, cand: np.ndarray) -> np.ndarray:
+        """Fill ``out[rows]`` where a candidate face ``cand`` (R, k) holds the direction;
+        return the mask of rows found."""
+        u = directions[rows]
+        lam = np.linalg.solve(tri[cand], np.broadcast_to(u[:, None, :, None], (*cand.shape, 3, 1)))
+        lam = lam[..., 0]
         # A small negative tolerance: directions on an edge or a vertex belong to both.
         inside = np.all(lam >= -1e-12 * np.abs(lam).sum(-1, keepdims=True), axis=-1)
         inside &= lam.sum(-1) > 0
         found = inside.any(axis=1)
-        first = np.argmax(inside, axis=1)
-        rows = np.flatnonzero(found)
-        face = cand[rows, first[rows]]
-        weights = np.clip(lam[rows, first[rows]], 0, None)
+        first = np.argmax(inside, axis=1)[found]
+        weights = np.clip(lam[found, first], 0, None)
         weights /= weights.sum(axis=1, keepdims=True)
-        out[todo[rows]] = np.einsum("rk,rkd->rd", weights, vertices[faces[face]])
-        todo = todo[~found]
+        face = cand[found, first]
+        out[rows[found]] = np.einsum("rk,rkd->rd", weights, vertices[faces[face]])
+        return found
+
+    # Nearest face centroids first; long thin spherical triangles can hold a direction
+    # whose nearest centroids are elsewhere, so widen, then try every face (one direction
+    # at a time, to bound the memory).
+    for k in (8, 32, 128):
+        k = min(k, len(faces))
         if todo.size == 0:
             break
-    if todo.size:  # cannot happen for a map that tiles the sphere
+        _, cand = tree.query(directions[todo], k=k)
+        todo = todo[~locate(todo, cand.reshape(len(todo), k))]
+    every = np.arange(len(faces))[None, :]
+    missing = [r for r in todo if not locate(np.array([r]), every)[0]]
+    if missing:  # cannot happen for a map that tiles the sphere
         raise ParametrizationError(
-            f"{todo.size} grid direction(s) lie in no face of the sphere map", 0
+            f"{len(missing)} grid direction(s) lie in no face of the sphere map (first: "
+            f"{directions[missing[0]].tolist()}); the map does not cover the sphere",
+            0,
         )
     return out
