@@ -28,6 +28,7 @@ a rigidly moved or uniformly scaled mesh up to that rotation.
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -40,6 +41,7 @@ import scipy.sparse.linalg
 import scipy.spatial
 
 from ._checks import InputError, check_grid_shape, check_int, check_positive
+from ._geodesic import ConvergenceWarning
 
 # Faces whose area is below this fraction of the mean face area count as zero-area.
 _ZERO_AREA = 1e-12
@@ -538,6 +540,14 @@ def parametrize(
             f"{len(faces)} after {iterations} iterations (max_iter={max_iter}); raise max_iter "
             "or remesh the surface (very thin or needle-like triangles)",
             flipped,
+        )
+    if not converged:
+        warnings.warn(
+            f"spherical parametrization: not converged after max_iter={max_iter} iterations "
+            f"(energy {final:.6g}, still falling by more than rtol={rtol:g} per round of "
+            f"{_ROUND}); the map has no folds but is not the energy's minimizer: raise max_iter",
+            ConvergenceWarning,
+            stacklevel=3,
         )
     share = spherical_triangle_areas(sphere, faces) / (4 * np.pi)
     ratio = share / (area / area.sum())

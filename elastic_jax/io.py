@@ -274,6 +274,10 @@ def spherical_parametrization(
         MeshError: the mesh fails a check (the subclass and message say which).
         ParametrizationError: folded faces remain (``.flipped`` holds their count).
         InputError: bad options.
+
+    Warns:
+        ConvergenceWarning: ``max_iter`` ran out while the energy was still falling (the
+            record says ``converged=False``; the map has no folds).
     """
     mesh = _as_trimesh(mesh)
     vertices, faces = _checked_mesh(mesh)

@@ -224,6 +224,14 @@ def test_a_tangled_start_is_untangled_or_refused():
     assert abs(untangled.energy - reference.energy) <= 1e-3 * reference.energy
 
 
+def test_a_map_stopped_early_says_so():
+    # 250 iterations unfold the U-tube (measured) but leave it far from converged.
+    with pytest.warns(ej.ConvergenceWarning, match="not converged after max_iter=250"):
+        par = io.spherical_parametrization(u_tube(), max_iter=250)
+    assert not par.converged and par.iterations == 250
+    assert_tiles_the_sphere(par)
+
+
 def _glued_spheres() -> trimesh.Trimesh:
     a = trimesh.creation.icosphere(subdivisions=1)
     faces_b = a.faces + len(a.vertices)
