@@ -501,7 +501,8 @@ def parametrize(
         norm = np.linalg.norm(p, axis=1, keepdims=True)
         if np.any(norm[np.unique(faces)] == 0):
             raise InputError("init has a zero vector for a vertex of the mesh")
-        p = p / np.where(norm == 0, 1, norm)
+        # Vertices no face uses may be zero; any unit vector keeps x / |x| finite there.
+        p = np.where(norm == 0, [0.0, 0.0, 1.0], p / np.where(norm == 0, 1, norm))
     gram_inv, area = _reference(vertices, faces)
     iterations, converged = 0, False
     with jax.enable_x64(True):
