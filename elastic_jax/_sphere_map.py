@@ -27,6 +27,7 @@ a rigidly moved or uniformly scaled mesh up to that rotation.
 
 from __future__ import annotations
 
+import functools
 import time
 import warnings
 from collections.abc import Callable
@@ -155,7 +156,13 @@ def _face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
 
 
-def _half_edge_pairs(faces: np.ndarray):
+def _edge_keys(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Half-edges ``(start, end)`` of every face, flattened, and one key per undirected edge."""
+    start, end = faces.reshape(-1), faces[:, [1, 2, 0]].reshape(-1)
+    return start, end, np.minimum(start, end) * (int(faces.max()) + 1) + np.maximum(start, end)
+
+
+def _half_edge_pairs(start: np.ndarray, end: np.ndarray, key: np.ndarray):
     """For every undirected edge, its two half-edges (a closed, edge-manifold mesh).
 
     Returns:
@@ -163,11 +170,8 @@ def _half_edge_pairs(faces: np.ndarray):
         vertex start to vertex end in face f is (f, k) -> (f, k + 1 mod 3); corners are
         indices 3 f + k into the flattened face array.
     """
-    start = faces.reshape(-1)
-    end = faces[:, [1, 2, 0]].reshape(-1)
     corner = np.arange(start.size)
     corner_end = (corner // 3) * 3 + (corner % 3 + 1) % 3
-    key = np.minimum(start, end) * (int(faces.max()) + 1) + np.maximum(start, end)
     order = np.argsort(key, kind="stable")
     pairs = order.reshape(-1, 2)  # watertight: every key exactly twice
     return start[pairs], end[pairs], corner[pairs], corner_end[pairs]
@@ -207,8 +211,7 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
             f"{int(np.flatnonzero(repeated)[0])}, {faces[repeated][0].tolist()}); they have "
             "zero area"
         )
-    start, end = faces.reshape(-1), faces[:, [1, 2, 0]].reshape(-1)
-    key = np.minimum(start, end) * (int(faces.max()) + 1) + np.maximum(start, end)
+    start, end, key = _edge_keys(faces)
     _, counts = np.unique(key, return_counts=True)
     if np.any(counts != 2):
         raise NotWatertightError(
@@ -218,7 +221,7 @@ def check_mesh(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
             "file repeats vertices per face, load it with trimesh's default process=True "
             "or call mesh.merge_vertices())"
         )
-    a, b, ca, cb = _half_edge_pairs(faces)
+    a, b, ca, cb = _half_edge_pairs(start, end, key)
     # Corners at the same vertex are linked across each edge; the links of a vertex whose
     # faces form one fan connect all its corners.
     same = a[:, 0] == a[:, 1]
@@ -391,13 +394,15 @@ def _energy(x, eps, faces, gram_inv, area, area_weight):
     return (area * e).sum() / area.sum()
 
 
-def _make_solver(maxiter: int, tol: float):
+@functools.cache
+def _solver(maxiter: int):
+    """The compiled L-BFGS round of ``maxiter`` steps (one per round length)."""
     import optimistix as optx
 
     # optimistix's backtracking search never accepts a step that raises the energy (a
     # folded face under a small eps is a huge value, a point through the origin NaN);
-    # rtol = atol = tol at rounding level: the rounds decide when to stop.
-    solver = optx.LBFGS(rtol=tol, atol=tol, history_length=10)
+    # rtol = atol at rounding level: the rounds decide when to stop.
+    solver = optx.LBFGS(rtol=1e-12, atol=1e-12, history_length=10)
 
     @jax.jit
     def solve(x, eps, faces, gram_inv, area, area_weight):
@@ -411,16 +416,6 @@ def _make_solver(maxiter: int, tol: float):
         return sol.value, sol.stats["num_steps"], jnp.min(d), before, after, jnp.sum(d <= 0)
 
     return solve
-
-
-_SOLVERS: dict = {}
-
-
-def _solver(maxiter: int, tol: float):
-    key = (maxiter, tol)
-    if key not in _SOLVERS:
-        _SOLVERS[key] = _make_solver(maxiter, tol)
-    return _SOLVERS[key]
 
 
 def _reference(vertices: np.ndarray, faces: np.ndarray):
@@ -482,6 +477,8 @@ def parametrize(
         raise InputError(f"area_weight must be in (0, 1]; got {area_weight!r}")
     max_iter = check_int("max_iter", max_iter, 1)
     rtol = check_positive("rtol", rtol)
+    if progress is not None and not callable(progress):
+        raise InputError(f"progress must be a callable taking a line of text; got {progress!r}")
     weight = _vertex_weights(vertices, faces)
     if init is None:
         uv = _tutte(vertices, faces)
@@ -513,10 +510,10 @@ def parametrize(
         eps = 2 * np.sqrt(1e-2 * (1e-2 - dmin)) if dmin <= 0 else 1e-8
         while iterations < max_iter:
             steps = min(_ROUND, max_iter - iterations)
-            x, k, dmin, before, after, flips = _solver(steps, 1e-12)(x, eps, *args)
+            x, k, dmin, before, after, flips = _solver(steps)(x, eps, *args)
             x = x / jnp.linalg.norm(x, axis=1, keepdims=True)
             k, dmin, before, after = int(k), float(dmin), float(before), float(after)
-            iterations += max(int(k), 1)
+            iterations += max(k, 1)
             if progress is not None:
                 progress(
                     f"sphere map: {iterations} iterations, energy {after:.6g}, "

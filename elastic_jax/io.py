@@ -351,23 +351,21 @@ def mesh_to_grid(
     m, n = operator.index(m), operator.index(n)
     check_grid_shape((3, m, n), "the grid (3, m, n)")
     check_choice("method", method, ("auto", "radial", "spherical"))
+    if method == "spherical" and center is not None:
+        raise InputError("center applies to method='radial' (or 'auto'), not 'spherical'")
     mesh = _as_trimesh(mesh)
     vertices, faces = _checked_mesh(mesh)
-    if method == "spherical":
-        if center is not None:
-            raise InputError("center applies to method='radial' (or 'auto'), not 'spherical'")
-        par = parametrize(vertices, faces, progress=progress)
-        return par.to_grid(m, n)
     if method == "radial" or center is not None:
         return _radial(mesh, vertices, m, n, center, hint=True)
-    try:
-        return _radial(mesh, vertices, m, n, None, hint=False)
-    except NotStarShapedError:
-        kernel = star_center(mesh)
-    if kernel is not None:
-        return _radial(mesh, vertices, m, n, kernel, hint=False)
-    if progress is not None:
-        progress("the mesh is star-shaped about no point: spherical parametrization")
+    if method == "auto":
+        try:
+            return _radial(mesh, vertices, m, n, None, hint=False)
+        except NotStarShapedError:
+            kernel = star_center(mesh)
+        if kernel is not None:
+            return _radial(mesh, vertices, m, n, kernel, hint=False)
+        if progress is not None:
+            progress("the mesh is star-shaped about no point: spherical parametrization")
     return parametrize(vertices, faces, progress=progress).to_grid(m, n)
 
 

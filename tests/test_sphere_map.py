@@ -314,6 +314,8 @@ def test_options_are_checked():
         io.spherical_parametrization(mesh, area_weight=1.5)
     with pytest.raises(ValueError, match="max_iter must be an integer >= 1"):
         io.spherical_parametrization(mesh, max_iter=0)
+    with pytest.raises(ValueError, match="progress must be a callable"):
+        io.spherical_parametrization(mesh, progress="verbose")
     with pytest.raises(ValueError, match="method must be one of"):
         io.mesh_to_grid(mesh, 13, 25, method="conformal")
     with pytest.raises(ValueError, match="center applies to method='radial'"):
