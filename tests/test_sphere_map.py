@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import pathlib
+import subprocess
+import sys
 import warnings
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.spatial
@@ -128,7 +134,7 @@ def shared_map(name: str):
 
 
 @pytest.mark.data
-@pytest.mark.parametrize("name", ["cat1", "cat2"])
+@pytest.mark.parametrize("name", ["cat1", "cat2", "horse0", "hand4"])
 def test_shared_surfaces_map_without_folds_and_resample_closely(name):
     mesh, par = shared_map(name)
     assert io.star_center(mesh) is None  # radial projection cannot do these
@@ -136,10 +142,15 @@ def test_shared_surfaces_map_without_folds_and_resample_closely(name):
     f = par.to_grid(50, 99)
     assert off_mesh(mesh, f) <= 1e-10
     worst, mean = coverage(mesh, f)
-    assert worst <= 2.0 and mean <= 0.15  # measured cat1 0.99 / 0.053, cat2 1.0 / 0.06
+    # measured max / mean: cat1 0.99 / 0.053, cat2 1.0 / 0.06, horse0 1.5 / 0.11, hand4 1.3 / 0.07
+    assert worst <= 2.0 and mean <= 0.15
     ej.validate_surface(f)
     assert grid_triangles(f).volume > 0  # orientation kept: outward normals
-    assert normal_agreement(mesh, f) >= 0.98  # measured cat2 0.988: creases at thin parts
+    agreement = normal_agreement(mesh, f)
+    print(f"{name}: coverage max {worst:.3f} % mean {mean:.4f} %, normals {agreement:.4f}")
+    # Creases where thin parts (legs, tail) are squeezed on the sphere: measured cat1
+    # 0.99, cat2 0.988, horse0 0.974, hand4 0.98.
+    assert agreement >= 0.97
 
 
 @pytest.mark.data
@@ -151,22 +162,25 @@ def test_resampled_cats_are_as_close_as_the_originals():
     cat1, cat2 = (ej.resample(load_shape(name), m, n) for name in ("cat1", "cat2"))
     rt1, rt2 = (shared_map(name)[1].to_grid(m, n) for name in ("cat1", "cat2"))
 
-    def distance(f1, f2):
+    def distance(f1, f2, options):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ej.ConvergenceWarning)
-            res = ej.shape_geodesic(f1, f2, METRIC_SHAPE, options=OPTIONS_SHAPE)
+            res = ej.shape_geodesic(f1, f2, METRIC_SHAPE, options=options)
         assert_area_bound(res.distance, f1, f2, METRIC_SHAPE)
         return float(res.distance), bool(res.converged)
 
-    d, converged = distance(cat1, cat2)
+    d, converged = distance(cat1, cat2, OPTIONS_SHAPE)
     assert converged
-    # A registration that stops early is an upper bound on the converged distance, so
-    # these hold for the converged ones too.
-    d_rt, _ = distance(rt1, rt2)
-    d_self, _ = distance(cat1, rt1)
+    # Every registration's distance is an upper bound on the exact one, so these hold for
+    # the exact distances too. The two sphere maps are both turned to their meshes'
+    # directions (Kabsch), so the identity is the natural start for the resampled pair;
+    # the default Moebius start search lands in a worse minimum there (1.295x, converged:
+    # the registration's global search, not the resampling).
+    d_rt, _ = distance(rt1, rt2, OPTIONS_SHAPE.replace(init="none"))
+    d_self, _ = distance(cat1, rt1, OPTIONS_SHAPE)
     print(f"d(cat1, cat2) {d:.4f}; resampled {d_rt / d:.3f}x; cat1 to its own {d_self / d:.3f}x")
-    assert d_rt <= d
-    assert d_self <= 0.75 * d
+    assert d_rt <= d  # measured 0.606x
+    assert d_self <= 0.75 * d  # measured 0.533x
 
 
 @pytest.mark.parametrize("make", [dumbbell, u_tube])
@@ -199,13 +213,12 @@ def test_the_map_follows_rigid_motions_and_ignores_scale():
     r, shift = np.asarray(shapes.random_rotation(3)), np.array([0.3, -2.0, 1.0])
     moved = trimesh.Trimesh(np.asarray(tube.vertices) @ r.T + shift, tube.faces, process=False)
     small = trimesh.Trimesh(np.asarray(tube.vertices) * 1e-3, tube.faces, process=False)
-    # Converged further than the default (rtol 1e-5): the map is the energy's minimizer up
-    # to rotation only at convergence (measured at 1e-5: 1.2 deg, at 1e-6: 0.22 / 0.40 deg).
-    base, turned, scaled = (
-        io.spherical_parametrization(m, rtol=1e-6) for m in (tube, moved, small)
-    )
-    assert _max_angle(turned.sphere, base.sphere @ r.T) <= 1.0
-    assert _max_angle(scaled.sphere, base.sphere) <= 1.0
+    # The map is the energy's minimizer up to rotation only at convergence: measured at the
+    # default rtol 1e-5 0.016 / 0.014 deg (0.0018 / 0.0021 at 1e-6; 1.2 / 1.1 deg before the
+    # solve was preconditioned).
+    base, turned, scaled = (io.spherical_parametrization(m) for m in (tube, moved, small))
+    assert _max_angle(turned.sphere, base.sphere @ r.T) <= 0.1
+    assert _max_angle(scaled.sphere, base.sphere) <= 0.1
 
 
 def test_a_tangled_start_is_untangled_or_refused():
@@ -330,3 +343,46 @@ def test_load_surface_reads_a_non_star_shaped_mesh_file(tmp_path):
     f = io.load_surface(path, 13, 25, progress=lines.append)
     assert off_mesh(trimesh.load(path), f) <= 1e-10  # the file's (rounded) vertices
     assert any("spherical parametrization" in line for line in lines)
+
+
+def test_the_preconditioner_is_an_exact_change_of_variables():
+    from elastic_jax import _sphere_map
+
+    mesh = u_tube()
+    faces, n = np.asarray(mesh.faces), len(mesh.vertices)
+    pre = _sphere_map._Preconditioner(faces, n)
+    rng = np.random.default_rng(0)
+    x, g = rng.standard_normal((n, 3)), rng.standard_normal((n, 3))
+    y = pre.to_y(x)
+    assert np.abs(pre.to_x(y) - x).max() <= 1e-12 * np.abs(x).max()
+    # y = C^T P^T x with C C^T = P^T A P, A the graph Laplacian + delta I: |y|^2 = x^T A x.
+    ends = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    edges = np.unique(np.sort(ends, axis=1), axis=0)
+    quad = np.sum((x[edges[:, 0]] - x[edges[:, 1]]) ** 2) + pre.delta * np.sum(x**2)
+    assert abs(np.sum(y**2) - quad) <= 1e-10 * quad
+    # The custom VJP's pullback is the transpose of to_x, in a jitted gradient.
+    token = next(_sphere_map._TOKENS)
+    _sphere_map._PRECONDITIONERS[token] = pre
+    try:
+        grad = jax.jit(jax.grad(lambda v: jnp.sum(_sphere_map._to_x(token, v) * g)))(y)
+    finally:
+        del _sphere_map._PRECONDITIONERS[token]
+    assert np.abs(np.asarray(grad) - pre.pullback(g)).max() <= 1e-12 * np.abs(grad).max()
+    assert abs(np.sum(pre.to_x(y) * g) - np.sum(y * pre.pullback(g))) <= 1e-10 * np.abs(g).sum()
+
+
+def test_the_map_does_not_depend_on_the_global_precision(tmp_path):
+    # parametrize works in float64 under a local enable_x64; its host callbacks run outside
+    # that context, where JAX once cast their arrays to float32 silently.
+    out = tmp_path / "sphere.npy"
+    code = (
+        "import numpy as np\n"
+        "from elastic_jax import io\n"
+        "from tests.test_sphere_map import u_tube\n"
+        f"np.save({str(out)!r}, io.spherical_parametrization(u_tube()).sphere)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    root = pathlib.Path(__file__).resolve().parents[1]
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=root, env=env, timeout=300)
+    here = io.spherical_parametrization(u_tube()).sphere
+    assert np.abs(np.load(out) - here).max() <= 1e-12
