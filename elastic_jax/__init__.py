@@ -21,6 +21,10 @@ from ._srnf import srnf as srnf
 from ._srnf import srnf_distance as srnf_distance
 from ._srnf import srnf_path_length as srnf_path_length
 from ._srnf import surface_area as surface_area
+from ._srnf_inverse import SrnfGeodesic as SrnfGeodesic
+from ._srnf_inverse import SrnfInversion as SrnfInversion
+from ._srnf_inverse import srnf_geodesic as srnf_geodesic
+from ._srnf_inverse import srnf_invert as srnf_invert
 from ._validation import validate_surface as validate_surface
 
 __version__ = "0.1.0"
@@ -39,6 +43,9 @@ from ._karcher import KarcherResult as KarcherResult
 from ._karcher import distance_matrix as distance_matrix
 from ._karcher import karcher_mean as karcher_mean
 from ._options import ShapeOptions as ShapeOptions
+from ._pca import TangentPCA as TangentPCA
+from ._pca import mode_path as mode_path
+from ._pca import tangent_pca as tangent_pca
 from ._reparam import diffeomorphism as diffeomorphism
 from ._reparam import diffeomorphism_bound as diffeomorphism_bound
 from ._reparam import jacobian_determinant as jacobian_determinant
@@ -48,6 +55,11 @@ from ._reparam import rotate_parametrization as rotate_parametrization
 from ._shape import Refinement as Refinement
 from ._shape import ShapeGeodesicResult as ShapeGeodesicResult
 from ._shape import shape_geodesic as shape_geodesic
+from ._shooting import LogResult as LogResult
+from ._shooting import ShootingResult as ShootingResult
+from ._shooting import exp as exp
+from ._shooting import log as log
+from ._shooting import shoot as shoot
 from ._so3 import hat as hat
 from ._so3 import icosahedral_group as icosahedral_group
 from ._so3 import so3_exp as so3_exp

@@ -1,0 +1,361 @@
+"""Geodesic shooting: the discrete exponential map of the path energy, and its inverse.
+
+The paper poses the initial value problem next to the boundary value one (Introduction;
+Appendix, the geodesic equation). Discretely (Rumpf and Wirth's discrete exponential map)
+a geodesic is a path whose energy is stationary in every interior node: for the midpoint
+and forward schemes (MATH.md 4) the energy couples f_k only to f_{k-1} and f_{k+1}, so
+
+    d/d f_k [ G_{b_{k-1}}(T (f_k - f_{k-1})) + G_{b_k}(T (f_{k+1} - f_k)) ] = 0
+
+determines f_{k+1} from f_{k-1} and f_k, one node at a time. The unknown is taken in the
+geodesic solver's own space, f_{k+1} = 2 f_k - f_{k-1} + sum_j c_j S_j with S_j the
+surface basis of :func:`surface_basis` (degree 1..d), and the equation is projected on
+the same basis: B^T r_k(c) = 0, L = 3((d + 1)^2 - 1) equations in L unknowns, solved by
+optimistix's Newton method. A path from :func:`geodesic` (same degree, N and scheme) is
+stationary in exactly these projected equations, so shooting its first step reproduces it.
+
+The central scheme couples f_k to f_{k-2} .. f_{k+2}; its recursion has a parasitic
+odd-even mode, and shooting refuses it.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from ._checks import (
+    InputError,
+    check_choice,
+    check_finite,
+    check_int,
+    check_positive,
+    is_concrete,
+    real_array,
+)
+from ._differential import interior_frame
+from ._energy import frame_energy, frame_speeds2
+from ._geodesic import (
+    ConvergenceWarning,
+    GeodesicResult,
+    _basis_np,
+    _check_pair,
+    geodesic,
+    safe_sqrt,
+)
+from ._harmonics import check_degree
+from ._metric import SplitMetric
+from ._options import ShapeOptions
+from ._units import units_of
+from ._validation import as_surface
+
+# Schemes whose energy couples each node to its two neighbours only.
+SHOOTING_SCHEMES = ("midpoint", "forward")
+
+
+class ShootingResult(NamedTuple):
+    """A geodesic shot from a surface with an initial velocity; a pytree (vmappable).
+
+    Attributes:
+        path: ``(N, 3, m, n)`` f_0 = f, f_1 = f + v / T, then one node per Newton solve.
+        endpoint: ``(3, m, n)`` f_{N-1} = exp_f(v).
+        velocity: ``(3, m, n)`` T (f_{N-1} - f_{N-2}), the final velocity.
+        speeds: ``(N - 1,)`` sqrt(G_b(T (f_{k+1} - f_k))) per step, b the scheme's base
+            point; constant along an exact geodesic.
+        residuals: ``(N - 2,)`` per step, the 2-norm of the projected equation at the
+            solution divided by the 2-norm of its known half (the step from f_{k-1} to
+            f_k alone): the balance error of the two terms, 0 on an exact solution.
+        coefficients: ``(N - 2, L)`` the c of each step.
+        newton_steps: ``(N - 2,)`` Newton iterations per step.
+        converged: ``()`` every step's Newton solve met its tolerance.
+    """
+
+    path: Float[Array, "N 3 m n"]
+    endpoint: Float[Array, "3 m n"]
+    velocity: Float[Array, "3 m n"]
+    speeds: Float[Array, " T"]
+    residuals: Float[Array, " K"]
+    coefficients: Float[Array, "K L"]
+    newton_steps: Int[Array, " K"]
+    converged: Array
+
+
+class LogResult(NamedTuple):
+    """The initial velocity of the geodesic from f1 to (the registered) f2.
+
+    Attributes:
+        velocity: ``(3, m, n)`` T (f_1 - f_0) of the geodesic's path: shooting it from f1
+            with the same degree, N and scheme gives that path back.
+        target: ``(3, m, n)`` the surface the velocity reaches: f2 for modulo="none",
+            R^T f2 o gamma-registered f2 otherwise (f2 reparametrized and turned onto f1).
+        distance: ``()`` the geodesic distance.
+        path: ``(N, 3, m, n)`` the geodesic from f1 to ``target``.
+        converged: ``()`` the geodesic solve's own convergence.
+    """
+
+    velocity: Float[Array, "3 m n"]
+    target: Float[Array, "3 m n"]
+    distance: Float[Array, ""]
+    path: Float[Array, "N 3 m n"]
+    converged: Array
+
+
+def default_newton_tol(dtype) -> float:
+    """Tolerance of each step's Newton solve: on the relative residual and on the change of
+    the coefficients (in units of the surface's size). Newton converges quadratically, so
+    the result is near rounding level: 1e-10 in float64, 1e-4 in float32."""
+    return 1e-10 if jnp.dtype(dtype) == jnp.float64 else 1e-4
+
+
+def _frames_of(coefficients, dframe, shape):
+    """The interior frames of sum_j c_j S_j, from the basis' precomputed differentials."""
+    k = dframe.shape[0]
+    points = dframe.shape[1] // 2
+    pert = coefficients.reshape(3, k) @ dframe
+    return pert[:, :points].reshape(shape), pert[:, points:].reshape(shape)
+
+
+def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
+    """Traceable shooting in the units of f (the jitted entry point is ``_shoot_jit``)."""
+    import optimistix as optx
+
+    t = n_times - 1
+    size = dframe.shape[0] * 3
+    m, n = f.shape[-2:]
+    frame_shape = (3, m - 2, n - 1)
+    solver = optx.Newton(rtol=tol, atol=tol)
+
+    def window(a_prev, a_here, a_next):
+        # The energy terms of the two steps next to the middle node (a 3-node path; the
+        # factor from its own T is the same in both and drops out of the equation).
+        a1 = jnp.stack([a_prev[0], a_here[0], a_next[0]])
+        a2 = jnp.stack([a_prev[1], a_here[1], a_next[1]])
+        return frame_energy(metric, a1, a2, scheme)
+
+    def known_half(a_prev, a_here):
+        # The first step's term alone: its gradient in the middle node sets the scale.
+        a1 = jnp.stack([a_prev[0], a_here[0]])
+        a2 = jnp.stack([a_prev[1], a_here[1]])
+        return frame_energy(metric, a1, a2, scheme)
+
+    def step(carry, _):
+        f_prev, f_here, c_guess = carry
+        a_prev, a_here = interior_frame(f_prev), interior_frame(f_here)
+        # The straight continuation's frames; the unknown adds the basis' frames to them.
+        a_line = tuple(2.0 * h - p for h, p in zip(a_here, a_prev, strict=True))
+
+        def moved(c):
+            return tuple(
+                x + y for x, y in zip(a_here, _frames_of(c, dframe, frame_shape), strict=True)
+            )
+
+        zero = jnp.zeros(size, f.dtype)
+        scale = jnp.linalg.norm(jax.grad(lambda c: known_half(a_prev, moved(c)))(zero))
+        # v = 0 shoots the constant path: nothing to balance, the residual is 0 at c = 0.
+        scale = jnp.where(scale > 0, scale, 1.0)
+
+        def residual(c, _):
+            nxt = tuple(
+                x + y for x, y in zip(a_line, _frames_of(c, dframe, frame_shape), strict=True)
+            )
+            return jax.grad(lambda d: window(a_prev, moved(d), nxt))(zero) / scale
+
+        sol = optx.root_find(residual, solver, c_guess, max_steps=max_newton, throw=False)
+        c = sol.value
+        f_next = 2.0 * f_here - f_prev + (c.reshape(3, -1) @ values).reshape(3, m, n)
+        ok = sol.result == optx.RESULTS.successful
+        info = (c, jnp.linalg.norm(residual(c, None)), sol.stats["num_steps"], ok)
+        return (f_here, f_next, c), (f_next, info)
+
+    f_first = f + v / t
+    carry = (f, f_first, jnp.zeros(size, f.dtype))
+    _, (nodes, (coefficients, residuals, newton_steps, ok)) = jax.lax.scan(
+        step, carry, None, length=n_times - 2
+    )
+    path = jnp.concatenate([f[None], f_first[None], nodes])
+    speeds2, _ = frame_speeds2(metric, *interior_frame(path), scheme)
+    return path, safe_sqrt(speeds2), residuals, coefficients, newton_steps, jnp.all(ok)
+
+
+_shoot_jit = jax.jit(_shoot, static_argnames=("n_times", "scheme", "tol", "max_newton"))
+
+
+def _check_scheme(scheme: str) -> None:
+    if scheme == "central":
+        raise InputError(
+            'scheme="central" cannot be shot: its energy couples each node to two neighbours '
+            "on each side, and the recursion has a parasitic odd-even mode; use "
+            '"midpoint" (default) or "forward"'
+        )
+    check_choice("scheme", scheme, SHOOTING_SCHEMES)
+
+
+def shoot(
+    f: Float[ArrayLike, "3 m n"],
+    v: Float[ArrayLike, "3 m n"],
+    metric: SplitMetric,
+    *,
+    n_times: int = 13,
+    degree: int = 7,
+    scheme: str = "midpoint",
+    tol: float | None = None,
+    max_newton: int = 20,
+) -> ShootingResult:
+    """Shoot the discrete geodesic from f with initial velocity v (the discrete exp map).
+
+    f_0 = f, f_1 = f + v / T (T = N - 1), then for k = 1 .. N - 2 the node f_{k+1} =
+    2 f_k - f_{k-1} + sum_j c_j S_j whose c makes the path energy stationary in f_k,
+    projected on the surface basis of ``degree`` (module docstring; the Euler-Lagrange
+    equation of MATH.md 4's energy, paper Appendix). The scheme is first order in 1/N
+    (the start f + v / T); a path of :func:`geodesic` with the same degree, N and scheme
+    is reproduced node by node from its T (f_1 - f_0) (see :func:`log`).
+
+    Args:
+        f: ``(3, m, n)`` the starting immersion.
+        v: ``(3, m, n)`` the initial velocity (a vector field on the grid).
+        metric: the split metric coefficients.
+        n_times: N >= 3 time points, f and the endpoint included.
+        degree: the surface basis' degree (limit: min(m - 3, (n - 3) // 2)).
+        scheme: ``"midpoint"`` (default) or ``"forward"``; ``"central"`` is refused.
+        tol: each Newton solve's tolerance (:func:`default_newton_tol`).
+        max_newton: Newton iterations per step.
+
+    Returns:
+        :class:`ShootingResult`; a ConvergenceWarning when a step's solve failed.
+        Vmappable over f and v; differentiable (optimistix's implicit adjoint per step).
+    """
+    _check_scheme(scheme)
+    f = as_surface(f, "f")
+    if f.ndim != 3:
+        raise InputError(f"f must be one surface (3, m, n); got {f.shape}. Batch with jax.vmap.")
+    v = _as_velocity(v, f)
+    m, n = f.shape[-2:]
+    degree = check_degree(degree, m, n)
+    n_times = check_int("n_times", n_times, 3)
+    max_newton = check_int("max_newton", max_newton, 1)
+    tol = default_newton_tol(f.dtype) if tol is None else check_positive("tol", tol)
+    values, dframe = (jnp.asarray(a, f.dtype) for a in _basis_np(m, n, degree))
+    # In units of f's size (see _units): the energy is homogeneous, the path scales.
+    units = units_of(f)
+    s = units.scale
+    path, speeds, residuals, coefficients, newton_steps, converged = _shoot_jit(
+        metric,
+        units.remove(f),
+        v / s,
+        values,
+        dframe,
+        n_times=n_times,
+        scheme=scheme,
+        tol=float(tol),
+        max_newton=max_newton,
+    )
+    path = units.restore(path).at[0].set(f)
+    t = n_times - 1
+    result = ShootingResult(
+        path=path,
+        endpoint=path[-1],
+        velocity=t * (path[-1] - path[-2]),
+        speeds=speeds * s,
+        residuals=residuals,
+        coefficients=coefficients * s,
+        newton_steps=newton_steps,
+        converged=converged,
+    )
+    if is_concrete(converged) and not bool(converged):
+        worst = float(jnp.max(residuals))
+        warnings.warn(
+            f"shoot: a step's Newton solve did not meet tol={tol:g} in {max_newton} "
+            f"iterations (largest relative residual {worst:.3g})",
+            ConvergenceWarning,
+            stacklevel=2,
+        )
+    return result
+
+
+def _as_velocity(v, f: Array) -> Array:
+    """v as a finite array of f's dtype and shape (a tangent vector: no immersion check)."""
+    v = real_array(v, "v")
+    check_finite(v, "v")
+    if v.shape != f.shape:
+        raise InputError(f"v must have the shape of f {f.shape}; got {v.shape}")
+    return v.astype(f.dtype)
+
+
+def exp(
+    f: Float[ArrayLike, "3 m n"], v: Float[ArrayLike, "3 m n"], metric: SplitMetric, **options
+) -> Float[Array, "3 m n"]:
+    """The discrete exponential map: :func:`shoot`'s endpoint (same arguments)."""
+    return shoot(f, v, metric, **options).endpoint
+
+
+def log(
+    f1: Float[ArrayLike, "3 m n"],
+    f2: Float[ArrayLike, "3 m n"],
+    metric: SplitMetric,
+    *,
+    modulo: str = "none",
+    options: ShapeOptions | None = None,
+    **changes,
+) -> LogResult:
+    """The initial velocity at f1 of the geodesic to f2 (the discrete log map).
+
+    modulo="none": :func:`geodesic` f1 -> f2 and v = T (f_1 - f_0) of its path, so that
+    ``shoot(f1, v, ...)`` with the same degree, N and scheme reproduces the path.
+    modulo="diff" / "rigid": :func:`shape_geodesic` from f2 to f1 (it reparametrizes its
+    first surface and turns its second), the path reversed and turned back by R^T so that
+    it starts at f1 as given: v is a tangent vector at f1 itself (as for a Karcher mean's
+    tangent space) and ``target`` the registered f2. The midpoint energy is symmetric
+    under reversal, so the reversed path is again a discrete geodesic.
+
+    Args:
+        f1, f2: ``(3, m, n)`` immersions on one grid.
+        metric: the split metric coefficients.
+        modulo: ``"none"``, ``"diff"`` or ``"rigid"``.
+        options: :class:`ShapeOptions` (degree, n_times, scheme, ... and the registration);
+            keyword changes apply on top (``degree=5``).
+
+    Returns:
+        :class:`LogResult`.
+    """
+    from ._shape import shape_geodesic
+
+    check_choice("modulo", modulo, ("none", "diff", "rigid"))
+    options = (ShapeOptions() if options is None else options).replace(**changes)
+    _check_scheme(options.scheme)
+    f1, f2 = _check_pair(f1, f2)
+    if modulo == "none":
+        res: GeodesicResult = geodesic(
+            f1,
+            f2,
+            metric,
+            degree=options.degree,
+            n_times=options.n_times,
+            solver=options.solver,
+            max_steps=options.max_steps,
+            tol=options.tol,
+            scheme=options.scheme,
+            saddle_checks=options.saddle_checks,
+        )
+        path = res.path
+    else:
+        if options.scheme != "midpoint":
+            raise InputError(
+                f'log modulo "{modulo}" needs scheme="midpoint": the registered geodesic runs '
+                "from f2 to f1 and is reversed, and only the midpoint energy is symmetric"
+            )
+        res = shape_geodesic(f2, f1, metric, modulo=modulo, options=options)
+        back = jnp.einsum("ji,tj...->ti...", res.rotation, res.path)[::-1]
+        # modulo="rigid" centres both ends: put the path's start on f1 as placed.
+        path = back + (f1 - back[0]).mean(axis=(-2, -1), keepdims=True)[None]
+        path = path.at[0].set(f1)
+    t = options.n_times - 1
+    return LogResult(
+        velocity=t * (path[1] - path[0]),
+        target=path[-1],
+        distance=res.distance,
+        path=path,
+        converged=res.converged,
+    )

@@ -1,0 +1,148 @@
+"""Geodesic shooting (discrete exponential map) and the log map."""
+
+from __future__ import annotations
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import elastic_jax as ej
+from elastic_jax import exp, log, shapes, shoot
+
+METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+M, N_GRID = 13, 25
+# One (degree, n_times) for most tests: they share the compiled shooting loop.
+DEGREE, N_TIMES = 3, 5
+
+
+def in_span_velocity(seed: int, degree: int = 2, size: float = 0.4):
+    """A smooth velocity inside the surface basis (so the shot path can keep its speed)."""
+    basis = ej.surface_basis(M, N_GRID, degree)
+    c = np.random.default_rng(seed).standard_normal(basis.shape[0])
+    v = jnp.einsum("l,l...->...", jnp.asarray(c / np.linalg.norm(c)), basis)
+    return size * v / jnp.max(jnp.abs(v))
+
+
+def relative(a, b) -> float:
+    return float(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)))
+
+
+def test_shooting_the_log_gives_the_geodesic_back_node_by_node():
+    f1 = shapes.sample(shapes.bumpy, M, N_GRID)
+    f2 = shapes.sample(shapes.bent_cylinder, M, N_GRID)
+    # The geodesic solved tighter than its default, so that its own error (its projected
+    # Euler-Lagrange residual) is far below what is asserted: node errors measured 8.5e-7
+    # at the default tol 1e-6, 3.9e-8 at 1e-7 (1e-8 stalls at rounding level).
+    lg = log(f1, f2, METRIC, degree=DEGREE, n_times=N_TIMES, tol=1e-7)
+    assert bool(lg.converged)
+    assert float(jnp.max(jnp.abs(lg.path[0] - f1))) == 0.0
+    assert float(jnp.max(jnp.abs(lg.target - f2))) == 0.0
+    shot = shoot(f1, lg.velocity, METRIC, degree=DEGREE, n_times=N_TIMES)
+    assert bool(shot.converged)
+    assert float(jnp.max(shot.residuals)) <= 1e-12
+    errors = [relative(a, b) for a, b in zip(shot.path, lg.path, strict=True)]
+    print("node errors", np.array(errors))
+    assert max(errors) <= 1e-6
+    assert relative(exp(f1, lg.velocity, METRIC, degree=DEGREE, n_times=N_TIMES), f2) <= 1e-6
+
+
+def test_concentric_spheres_are_shot_exactly():
+    # Radial scaling: every term of G_{rS}(h S, h S) is a ratio of derivatives times the
+    # area element, so the energy is C sum (r_{k+1} - r_k)^2 and the geodesic is linear
+    # in r (MATH.md 9): shooting v = 0.8 S from S reaches 1.8 S through r_k = 1 + 0.8 t_k.
+    f = ej.sphere_points(M, N_GRID)
+    shot = shoot(f, 0.8 * f, METRIC, degree=DEGREE, n_times=N_TIMES)
+    t = jnp.linspace(0.0, 1.0, N_TIMES)
+    exact = (1.0 + 0.8 * t)[:, None, None, None] * f[None]
+    assert relative(shot.path, exact) <= 1e-10
+    assert float(jnp.max(jnp.abs(shot.speeds / shot.speeds[0] - 1))) <= 1e-10
+
+
+def test_speed_is_conserved_and_endpoints_converge_at_first_order():
+    f = shapes.sample(shapes.ellipsoid, M, N_GRID)
+    v = in_span_velocity(0)
+    ends = []
+    for n_times in (N_TIMES, 9, 17, 33):
+        shot = shoot(f, v, METRIC, degree=DEGREE, n_times=n_times)
+        assert bool(shot.converged)
+        drift = float(abs(shot.speeds[-1] / shot.speeds[0] - 1))
+        print(n_times, "speed drift", drift)
+        assert drift <= 0.05 / (n_times - 1)
+        ends.append(shot.endpoint)
+    gaps = [float(jnp.max(jnp.abs(a - b))) for a, b in zip(ends[:-1], ends[1:], strict=True)]
+    ratios = [gaps[k] / gaps[k + 1] for k in range(len(gaps) - 1)]
+    print("gaps", gaps, "ratios", ratios)
+    assert all(1.7 <= r <= 2.3 for r in ratios)
+
+
+def test_shooting_is_vmappable_and_scale_covariant():
+    f = shapes.sample(shapes.ellipsoid, M, N_GRID)
+    vs = jnp.stack([in_span_velocity(1), in_span_velocity(2)])
+    one = [shoot(f, v, METRIC, degree=DEGREE, n_times=N_TIMES).path for v in vs]
+    both = jax.vmap(lambda v: shoot(f, v, METRIC, degree=DEGREE, n_times=N_TIMES).path)(vs)
+    assert relative(both, jnp.stack(one)) <= 1e-12
+    # The energy is homogeneous of degree 2: the geodesic of 1e3 f with 1e3 v is 1e3 times.
+    big = shoot(1e3 * f, 1e3 * vs[0], METRIC, degree=DEGREE, n_times=N_TIMES).path
+    assert relative(big, 1e3 * one[0]) <= 1e-10
+
+
+def test_shooting_refuses_what_it_cannot_do():
+    f = ej.sphere_points(M, N_GRID)
+    with pytest.raises(ej.InputError, match="central.*parasitic"):
+        shoot(f, f, METRIC, scheme="central")
+    with pytest.raises(ej.InputError, match="v must have the shape"):
+        shoot(f, f[:, :-1], METRIC)
+    with pytest.raises(ej.InputError, match="v contains 1 non-finite"):
+        shoot(f, f.at[0, 3, 3].set(jnp.nan), METRIC)
+    with pytest.raises(ej.InputError, match="n_times"):
+        shoot(f, f, METRIC, n_times=2)
+    with pytest.raises(ej.InputError, match="degree"):
+        shoot(f, f, METRIC, degree=40)
+    with pytest.raises(ej.InputError, match="scheme=.midpoint"):
+        log(f, 2.0 * f, METRIC, modulo="diff", scheme="forward")
+
+
+def test_a_failed_newton_solve_says_so():
+    f = shapes.sample(shapes.ellipsoid, M, N_GRID)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        shot = shoot(f, in_span_velocity(3), METRIC, degree=DEGREE, n_times=N_TIMES, max_newton=1)
+    assert not bool(shot.converged)
+    assert any(issubclass(w.category, ej.ConvergenceWarning) for w in caught)
+
+
+def test_log_modulo_diff_lives_at_f1_and_shoots_back():
+    f1 = shapes.sample(shapes.ellipsoid, M, N_GRID)
+    # The bumpy shape seen through a rotation of the parameter sphere: a reparametrization.
+    f2 = shapes.sample(shapes.bumpy, M, N_GRID, rotation=shapes.random_rotation(4))
+    options = ej.ShapeOptions(
+        degree=DEGREE, vf_degree=3, n_times=N_TIMES, tol=1e-7, refinement=False, outer_steps=3
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)  # the registration rounds
+        lg = log(f1, f2, METRIC, modulo="diff", options=options)
+        plain = log(f1, f2, METRIC, options=options)
+    assert float(jnp.max(jnp.abs(lg.path[0] - f1))) == 0.0
+    assert float(lg.distance) < float(plain.distance)  # registration shortened it
+    shot = shoot(f1, lg.velocity, METRIC, degree=DEGREE, n_times=N_TIMES)
+    errors = [relative(a, b) for a, b in zip(shot.path, lg.path, strict=True)]
+    print("modulo diff: node errors", np.array(errors), float(lg.distance), float(plain.distance))
+    assert max(errors) <= 1e-5
+
+
+def test_the_endpoint_is_differentiable_in_the_velocity():
+    f = shapes.sample(shapes.ellipsoid, M, N_GRID)
+    v, w = in_span_velocity(5), in_span_velocity(6)
+
+    def objective(s):
+        end = shoot(f, v + s * w, METRIC, degree=DEGREE, n_times=N_TIMES).endpoint
+        return jnp.sum(end**2)
+
+    grad = float(jax.grad(objective)(0.0))
+    h = 1e-5
+    central = (float(objective(h)) - float(objective(-h))) / (2 * h)
+    print("grad", grad, "central difference", central)
+    assert abs(grad - central) <= 1e-6 * abs(central)
