@@ -25,6 +25,8 @@ from ._srnf_inverse import SrnfGeodesic as SrnfGeodesic
 from ._srnf_inverse import SrnfInversion as SrnfInversion
 from ._srnf_inverse import srnf_geodesic as srnf_geodesic
 from ._srnf_inverse import srnf_invert as srnf_invert
+from ._transport import TransportResult as TransportResult
+from ._transport import parallel_transport as parallel_transport
 from ._validation import validate_surface as validate_surface
 
 __version__ = "0.1.0"

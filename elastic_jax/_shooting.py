@@ -65,9 +65,9 @@ class ShootingResult(NamedTuple):
         velocity: ``(3, m, n)`` T (f_{N-1} - f_{N-2}), the final velocity.
         speeds: ``(N - 1,)`` sqrt(G_b(T (f_{k+1} - f_k))) per step, b the scheme's base
             point; constant along an exact geodesic.
-        residuals: ``(N - 2,)`` per step, the 2-norm of the projected equation at the
-            solution divided by the 2-norm of its known half (the step from f_{k-1} to
-            f_k alone): the balance error of the two terms, 0 on an exact solution.
+        residuals: ``(N - 2,)`` per step, the 2-norm of J0^-1 r(c) at the solution (r the
+            projected equation, J0 its Jacobian at the step's start): the size of one
+            more Newton step, in coefficients of f's units; 0 on an exact solution.
         coefficients: ``(N - 2, L)`` the c of each step.
         newton_steps: ``(N - 2,)`` Newton iterations per step.
         converged: ``()`` every step's Newton solve met its tolerance.
@@ -118,57 +118,91 @@ def _frames_of(coefficients, dframe, shape):
     return pert[:, :points].reshape(shape), pert[:, points:].reshape(shape)
 
 
-def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
-    """Traceable shooting in the units of f (the jitted entry point is ``_shoot_jit``)."""
+def _frames_plus(frames, coefficients, dframe):
+    """frames + the frames of sum_j c_j S_j."""
+    shape = frames[0].shape
+    return tuple(
+        x + y for x, y in zip(frames, _frames_of(coefficients, dframe, shape), strict=True)
+    )
+
+
+def _energy_of(metric, scheme, *frames):
+    """The energy of the short path through the given frames (the factor from its own T
+    is common to all its terms and drops out of a stationarity equation)."""
+    a1 = jnp.stack([a[0] for a in frames])
+    a2 = jnp.stack([a[1] for a in frames])
+    return frame_energy(metric, a1, a2, scheme)
+
+
+def _node_solve(metric, scheme, f_a, f_b, c_guess, values, dframe, *, unknown, tol, max_newton):
+    """One node of a discrete geodesic f_a, f_mid, f_b by Newton's method on the energy's
+    Euler-Lagrange equation in the middle node, projected on the surface basis.
+
+    unknown="next": f_a, f_mid = f_b are known and the unknown is the third node,
+    2 f_b - f_a + sum_j c_j S_j (a shooting step). unknown="middle": the ends are known and
+    the unknown is the middle, (f_a + f_b) / 2 + sum_j c_j S_j (the discrete midpoint).
+    Returns (the unknown node, c, the residual as a Newton step's size, Newton steps,
+    success).
+    """
     import optimistix as optx
 
+    m, n = f_a.shape[-2:]
+    a_a, a_b = interior_frame(f_a), interior_frame(f_b)
+    zero = jnp.zeros(c_guess.shape, f_a.dtype)
+    if unknown == "next":
+        base = 2.0 * f_b - f_a
+        a_base = tuple(2.0 * x - y for x, y in zip(a_b, a_a, strict=True))
+
+        def frames(c, d):  # (first, middle, last)
+            return a_a, _frames_plus(a_b, d, dframe), _frames_plus(a_base, c, dframe)
+
+    else:
+        base = 0.5 * (f_a + f_b)
+        a_base = tuple(0.5 * (x + y) for x, y in zip(a_a, a_b, strict=True))
+
+        def frames(c, d):
+            return a_a, _frames_plus(a_base, c + d, dframe), a_b
+
+    def gradient(c):
+        return jax.grad(lambda d: _energy_of(metric, scheme, *frames(c, d)))(zero)
+
+    # The equation is solved as J0^-1 r(c) = 0, J0 its Jacobian at the start: Newton's
+    # iterates are the same (it is affine invariant), and the residual is then the size of
+    # a Newton step, in the surface's units, whatever the scale of r: a ladder's rung
+    # along the path has nearly coinciding known nodes and a vanishing r.
+    factor = jax.scipy.linalg.lu_factor(jax.jacfwd(gradient)(c_guess))
+
+    def residual(c, _):
+        return jax.scipy.linalg.lu_solve(factor, gradient(c))
+
+    solver = optx.Newton(rtol=tol, atol=tol)
+    sol = optx.root_find(residual, solver, c_guess, max_steps=max_newton, throw=False)
+    c = sol.value
+    node = base + (c.reshape(3, -1) @ values).reshape(3, m, n)
+    ok = sol.result == optx.RESULTS.successful
+    return node, c, jnp.linalg.norm(residual(c, None)), sol.stats["num_steps"], ok
+
+
+def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
+    """Traceable shooting in the units of f (the jitted entry point is ``_shoot_jit``)."""
     t = n_times - 1
     size = dframe.shape[0] * 3
-    m, n = f.shape[-2:]
-    frame_shape = (3, m - 2, n - 1)
-    solver = optx.Newton(rtol=tol, atol=tol)
-
-    def window(a_prev, a_here, a_next):
-        # The energy terms of the two steps next to the middle node (a 3-node path; the
-        # factor from its own T is the same in both and drops out of the equation).
-        a1 = jnp.stack([a_prev[0], a_here[0], a_next[0]])
-        a2 = jnp.stack([a_prev[1], a_here[1], a_next[1]])
-        return frame_energy(metric, a1, a2, scheme)
-
-    def known_half(a_prev, a_here):
-        # The first step's term alone: its gradient in the middle node sets the scale.
-        a1 = jnp.stack([a_prev[0], a_here[0]])
-        a2 = jnp.stack([a_prev[1], a_here[1]])
-        return frame_energy(metric, a1, a2, scheme)
 
     def step(carry, _):
         f_prev, f_here, c_guess = carry
-        a_prev, a_here = interior_frame(f_prev), interior_frame(f_here)
-        # The straight continuation's frames; the unknown adds the basis' frames to them.
-        a_line = tuple(2.0 * h - p for h, p in zip(a_here, a_prev, strict=True))
-
-        def moved(c):
-            return tuple(
-                x + y for x, y in zip(a_here, _frames_of(c, dframe, frame_shape), strict=True)
-            )
-
-        zero = jnp.zeros(size, f.dtype)
-        scale = jnp.linalg.norm(jax.grad(lambda c: known_half(a_prev, moved(c)))(zero))
-        # v = 0 shoots the constant path: nothing to balance, the residual is 0 at c = 0.
-        scale = jnp.where(scale > 0, scale, 1.0)
-
-        def residual(c, _):
-            nxt = tuple(
-                x + y for x, y in zip(a_line, _frames_of(c, dframe, frame_shape), strict=True)
-            )
-            return jax.grad(lambda d: window(a_prev, moved(d), nxt))(zero) / scale
-
-        sol = optx.root_find(residual, solver, c_guess, max_steps=max_newton, throw=False)
-        c = sol.value
-        f_next = 2.0 * f_here - f_prev + (c.reshape(3, -1) @ values).reshape(3, m, n)
-        ok = sol.result == optx.RESULTS.successful
-        info = (c, jnp.linalg.norm(residual(c, None)), sol.stats["num_steps"], ok)
-        return (f_here, f_next, c), (f_next, info)
+        f_next, c, residual, steps, ok = _node_solve(
+            metric,
+            scheme,
+            f_prev,
+            f_here,
+            c_guess,
+            values,
+            dframe,
+            unknown="next",
+            tol=tol,
+            max_newton=max_newton,
+        )
+        return (f_here, f_next, c), (f_next, (c, residual, steps, ok))
 
     f_first = f + v / t
     carry = (f, f_first, jnp.zeros(size, f.dtype))
@@ -275,12 +309,12 @@ def shoot(
     return result
 
 
-def _as_velocity(v, f: Array) -> Array:
+def _as_velocity(v, f: Array, name: str = "v") -> Array:
     """v as a finite array of f's dtype and shape (a tangent vector: no immersion check)."""
-    v = real_array(v, "v")
-    check_finite(v, "v")
+    v = real_array(v, name)
+    check_finite(v, name)
     if v.shape != f.shape:
-        raise InputError(f"v must have the shape of f {f.shape}; got {v.shape}")
+        raise InputError(f"{name} must have the shape of its surface {f.shape}; got {v.shape}")
     return v.astype(f.dtype)
 
 

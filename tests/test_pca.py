@@ -31,6 +31,7 @@ def ellipsoid_family(count: int = 10, seed: int = 0):
     return factors, mean, jnp.stack([lg.velocity for lg in logs])
 
 
+@pytest.mark.slow
 def test_pca_of_a_two_factor_family_finds_two_modes():
     factors, mean, velocities = ellipsoid_family()
     pca = tangent_pca((mean, velocities), METRIC, n_modes=4)

@@ -30,6 +30,7 @@ def relative(a, b) -> float:
     return float(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)))
 
 
+@pytest.mark.slow
 def test_shooting_the_log_gives_the_geodesic_back_node_by_node():
     f1 = shapes.sample(shapes.bumpy, M, N_GRID)
     f2 = shapes.sample(shapes.bent_cylinder, M, N_GRID)
@@ -61,6 +62,7 @@ def test_concentric_spheres_are_shot_exactly():
     assert float(jnp.max(jnp.abs(shot.speeds / shot.speeds[0] - 1))) <= 1e-10
 
 
+@pytest.mark.slow
 def test_speed_is_conserved_and_endpoints_converge_at_first_order():
     f = shapes.sample(shapes.ellipsoid, M, N_GRID)
     v = in_span_velocity(0)
@@ -78,6 +80,7 @@ def test_speed_is_conserved_and_endpoints_converge_at_first_order():
     assert all(1.7 <= r <= 2.3 for r in ratios)
 
 
+@pytest.mark.slow
 def test_shooting_is_vmappable_and_scale_covariant():
     f = shapes.sample(shapes.ellipsoid, M, N_GRID)
     vs = jnp.stack([in_span_velocity(1), in_span_velocity(2)])
@@ -105,6 +108,7 @@ def test_shooting_refuses_what_it_cannot_do():
         log(f, 2.0 * f, METRIC, modulo="diff", scheme="forward")
 
 
+@pytest.mark.slow
 def test_a_failed_newton_solve_says_so():
     f = shapes.sample(shapes.ellipsoid, M, N_GRID)
     with warnings.catch_warnings(record=True) as caught:
@@ -114,6 +118,7 @@ def test_a_failed_newton_solve_says_so():
     assert any(issubclass(w.category, ej.ConvergenceWarning) for w in caught)
 
 
+@pytest.mark.slow
 def test_log_modulo_diff_lives_at_f1_and_shoots_back():
     f1 = shapes.sample(shapes.ellipsoid, M, N_GRID)
     # The bumpy shape seen through a rotation of the parameter sphere: a reparametrization.
@@ -133,6 +138,7 @@ def test_log_modulo_diff_lives_at_f1_and_shoots_back():
     assert max(errors) <= 1e-5
 
 
+@pytest.mark.slow
 def test_the_endpoint_is_differentiable_in_the_velocity():
     f = shapes.sample(shapes.ellipsoid, M, N_GRID)
     v, w = in_span_velocity(5), in_span_velocity(6)
