@@ -90,7 +90,7 @@ class LogResult(NamedTuple):
         velocity: ``(3, m, n)`` T (f_1 - f_0) of the geodesic's path: shooting it from f1
             with the same degree, N and scheme gives that path back.
         target: ``(3, m, n)`` the surface the velocity reaches: f2 for modulo="none",
-            R^T f2 o gamma-registered f2 otherwise (f2 reparametrized and turned onto f1).
+            R^T (f2 o gamma) otherwise: f2 reparametrized and turned onto f1.
         distance: ``()`` the geodesic distance.
         path: ``(N, 3, m, n)`` the geodesic from f1 to ``target``.
         converged: ``()`` the geodesic solve's own convergence.
