@@ -147,6 +147,13 @@ def _geodesic_kwargs(options: ShapeOptions) -> dict:
     }
 
 
+def turned_back(res, end):
+    """A shape geodesic's path (from f1 o gamma to R f2) turned by R^T and moved so that it
+    ends at ``end`` (its f2) as parametrized and placed (modulo "rigid" centres both)."""
+    back = jnp.einsum("ji,tj...->ti...", res.rotation, res.path)
+    return back + (end - back[-1]).mean(axis=(-2, -1), keepdims=True)[None]
+
+
 def _one_geodesic(mean, shape, metric, modulo, options):
     """Distance, registered shape, initial velocity at the mean and status, for one shape.
 
@@ -159,10 +166,7 @@ def _one_geodesic(mean, shape, metric, modulo, options):
         back = res.path
     else:
         res = shape_geodesic(shape, mean, metric, modulo=modulo, options=options)
-        # The path runs from shape o gamma to R (mean); turn it by R^T so that it ends at
-        # the mean as parametrized and placed (rigid centers both).
-        back = jnp.einsum("ji,tj...->ti...", res.rotation, res.path)
-        back = back + (mean - back[-1]).mean(axis=(-2, -1), keepdims=True)[None]
+        back = turned_back(res, mean)
     return res.distance, back[0], initial_velocity(back[::-1]), res.converged
 
 

@@ -354,6 +354,7 @@ def log(
     Returns:
         :class:`LogResult`.
     """
+    from ._karcher import _geodesic_kwargs, turned_back
     from ._shape import shape_geodesic
 
     check_choice("modulo", modulo, ("none", "diff", "rigid"))
@@ -361,18 +362,7 @@ def log(
     _check_scheme(options.scheme)
     f1, f2 = _check_pair(f1, f2)
     if modulo == "none":
-        res: GeodesicResult = geodesic(
-            f1,
-            f2,
-            metric,
-            degree=options.degree,
-            n_times=options.n_times,
-            solver=options.solver,
-            max_steps=options.max_steps,
-            tol=options.tol,
-            scheme=options.scheme,
-            saddle_checks=options.saddle_checks,
-        )
+        res: GeodesicResult = geodesic(f1, f2, metric, **_geodesic_kwargs(options))
         path = res.path
     else:
         if options.scheme != "midpoint":
@@ -381,10 +371,7 @@ def log(
                 "from f2 to f1 and is reversed, and only the midpoint energy is symmetric"
             )
         res = shape_geodesic(f2, f1, metric, modulo=modulo, options=options)
-        back = jnp.einsum("ji,tj...->ti...", res.rotation, res.path)[::-1]
-        # modulo="rigid" centres both ends: put the path's start on f1 as placed.
-        path = back + (f1 - back[0]).mean(axis=(-2, -1), keepdims=True)[None]
-        path = path.at[0].set(f1)
+        path = turned_back(res, f1)[::-1].at[0].set(f1)
     t = options.n_times - 1
     return LogResult(
         velocity=t * (path[1] - path[0]),
