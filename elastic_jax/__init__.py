@@ -30,6 +30,7 @@ from ._transport import parallel_transport as parallel_transport
 from ._validation import validate_surface as validate_surface
 
 __version__ = "0.1.0"
+from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._geodesic import ConvergenceWarning as ConvergenceWarning
 from ._geodesic import GeodesicResult as GeodesicResult
 from ._geodesic import geodesic as geodesic

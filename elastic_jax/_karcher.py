@@ -10,11 +10,13 @@ options travel as one :class:`ShapeOptions` record; the Karcher iteration's own 
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import json
 import os
 import pathlib
+import time
 import warnings
 from collections.abc import Callable
 from typing import NamedTuple
@@ -218,6 +220,42 @@ def _batched(batch_call: Callable, single_call: Callable, batch, strategy: str) 
     return batch_call(batch, strategy)
 
 
+def _velocity_chunk(mean, chunk, metric, modulo, options, strategy, size) -> tuple:
+    """The geodesics from ``chunk`` (b, 3, m, n) to ``mean``: the _Solved fields for the b
+    shapes. The chunk is padded to ``size`` shapes (the compiled batch shape; the padding
+    is dropped): every chunk of a job runs one compiled program, here or on a worker."""
+
+    def batch_call(batch, mode):
+        return _velocities_batch(mean, batch, metric, modulo=modulo, options=options, mode=mode)
+
+    def single_call(shape):
+        return _one_geodesic(mean, shape, metric, modulo, options)
+
+    b = chunk.shape[0]
+    # The loop strategy solves one shape at a time: nothing to pad.
+    padded = chunk if strategy == "loop" else _padded(chunk, size)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)  # reported per shape
+        return tuple(out[:b] for out in _batched(batch_call, single_call, padded, strategy))
+
+
+def _distance_chunk(first, second, metric, modulo, options, strategy, size) -> tuple:
+    """Distance, status and refinement change of the pairs (first[i], second[i]), padded
+    to ``size`` pairs as :func:`_velocity_chunk` pads."""
+
+    def batch_call(batch, mode):
+        return _distances_batch(batch, metric, modulo=modulo, options=options, mode=mode)
+
+    def single_call(pair):
+        return _pair_distance(pair[0], pair[1], metric, modulo, options)
+
+    b = first.shape[0]
+    pairs = (first, second) if strategy == "loop" else _padded((first, second), size)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)  # reported in `converged`
+        return tuple(out[:b] for out in _batched(batch_call, single_call, pairs, strategy))
+
+
 def _chunks(n: int, size: int | None):
     size = n if size is None else size
     return [(start, min(start + size, n)) for start in range(0, n, size)]
@@ -394,6 +432,7 @@ def karcher_mean(
     checkpoint: str | os.PathLike | None = None,
     resume: bool = False,
     progress: Callable[[dict], None] | None = None,
+    client=None,
 ) -> KarcherResult:
     """Karcher (Frechet) mean of a collection of surfaces (paper section 4.1, MATH.md 7).
 
@@ -433,7 +472,11 @@ def karcher_mean(
             every accepted step (the mean and its geodesics).
         resume: continue from ``checkpoint`` (refused if it belongs to other inputs).
         progress: called after each accepted step with a dict (step, sum_sq_distances,
-            mean_velocity_norm, step_size, num_solves).
+            mean_velocity_norm, step_size, num_solves, seconds since the call began).
+        client: a ``dask.distributed.Client`` or a scheduler address: each step's
+            chunks of shapes (``batch_size``; default one shape per chunk for "loop",
+            all for "vmap", 8 for "map") run as tasks on its workers (the ``dask``
+            extra). The numbers equal the in-process ones. None: this process.
 
     Returns:
         :class:`KarcherResult`. One that did not converge also warns
@@ -467,28 +510,18 @@ def karcher_mean(
     fingerprint = _fingerprint(shapes, mean, **settings)
     path = None if checkpoint is None else pathlib.Path(checkpoint)
 
+    if batch_size is None and client is not None:
+        batch_size = _default_chunk(strategy)
+    chunks = _chunks(shapes.shape[0], batch_size)
+    size = chunks[0][1] - chunks[0][0]
+
     def solve_at(at) -> _Solved:
-        def batch_call(batch, mode):
-            return _velocities_batch(at, batch, metric, modulo=modulo, options=options, mode=mode)
-
-        def single_call(shape):
-            return _one_geodesic(at, shape, metric, modulo, options)
-
-        chunks = _chunks(shapes.shape[0], batch_size)
-        # The loop strategy solves one shape at a time: nothing to pad.
-        size = 1 if strategy == "loop" else chunks[0][1] - chunks[0][0]
-        with warnings.catch_warnings():
-            # Reported per shape in geodesics_converged.
-            warnings.simplefilter("ignore", ConvergenceWarning)
-            parts = [
-                tuple(
-                    out[: b - a]
-                    for out in _batched(
-                        batch_call, single_call, _padded(shapes[a:b], size), strategy
-                    )
-                )
-                for a, b in chunks
-            ]
+        if pool is not None:
+            return _Solved(*(jnp.asarray(x) for x in pool.velocities(at, chunks, size)))
+        parts = [
+            _velocity_chunk(at, shapes[a:b], metric, modulo, options, strategy, size)
+            for a, b in chunks
+        ]
         return _Solved(*(jnp.concatenate(p) for p in zip(*parts, strict=True)))
 
     def save(step):
@@ -503,62 +536,70 @@ def karcher_mean(
                 **{f"solved_{k}": np.asarray(v) for k, v in solved._asdict().items()},
             )
 
-    saved = _load_checkpoint(path, fingerprint) if path is not None and resume else None
-    if saved is not None:
-        mean, step = jnp.asarray(saved["mean"]), int(saved["step"])
-        history = [tuple(row) for row in saved["history"].tolist()]
-        num_solves = int(saved["num_solves"])
-        solved = _Solved(*(jnp.asarray(saved[f"solved_{k}"]) for k in _Solved._fields))
-        direction = _direction(metric, mean, solved, modulo, options)
-    else:
-        step, num_solves = 0, 1
-        solved = solve_at(mean)
-        direction = _direction(metric, mean, solved, modulo, options)
-        history = [(direction.sum_sq, direction.norm, 0.0)]
-        save(step)
+    started = time.perf_counter()
+    with contextlib.ExitStack() as stack:
+        pool = None
+        if client is not None:
+            from ._distributed import Pool
 
-    while True:
-        sum_sq, norm = direction.sum_sq, direction.norm
-        rms = np.sqrt(sum_sq / shapes.shape[0])
-        if not np.isfinite(sum_sq):
-            result = "not_finite"
-            break
-        if norm <= tol * max(rms, np.finfo(np.float64).tiny):
-            result = "mean_velocity_small"
-            break
-        if step >= max_steps:
-            result = "max_steps_reached"
-            break
-        s = step_size
-        for _ in range(_HALVINGS + 1):
-            trial_mean = mean + s * direction.velocity
-            trial = solve_at(trial_mean)
-            num_solves += 1
-            trial_sum_sq = float(jnp.sum(trial.distances**2))
-            # NaN compares False: a non-finite trial is never accepted.
-            if trial_sum_sq <= sum_sq:
-                break
-            s *= 0.5
+            pool = stack.enter_context(Pool(client, shapes, metric, modulo, options, strategy))
+        saved = _load_checkpoint(path, fingerprint) if path is not None and resume else None
+        if saved is not None:
+            mean, step = jnp.asarray(saved["mean"]), int(saved["step"])
+            history = [tuple(row) for row in saved["history"].tolist()]
+            num_solves = int(saved["num_solves"])
+            solved = _Solved(*(jnp.asarray(saved[f"solved_{k}"]) for k in _Solved._fields))
+            direction = _direction(metric, mean, solved, modulo, options)
         else:
-            result = "line_search_failed"
-            break
-        mean, solved, step = trial_mean, trial, step + 1
-        direction = _direction(metric, mean, solved, modulo, options)
-        history.append((direction.sum_sq, direction.norm, s))
-        save(step)
-        if progress is not None:
-            progress(
-                {
-                    "step": step,
-                    "sum_sq_distances": history[-1][0],
-                    "mean_velocity_norm": history[-1][1],
-                    "step_size": s,
-                    "num_solves": num_solves,
-                }
-            )
-        if s == step_size and sum_sq - trial_sum_sq <= tol * sum_sq:
-            result = "sum_sq_stalled"
-            break
+            step, num_solves = 0, 1
+            solved = solve_at(mean)
+            direction = _direction(metric, mean, solved, modulo, options)
+            history = [(direction.sum_sq, direction.norm, 0.0)]
+            save(step)
+
+        while True:
+            sum_sq, norm = direction.sum_sq, direction.norm
+            rms = np.sqrt(sum_sq / shapes.shape[0])
+            if not np.isfinite(sum_sq):
+                result = "not_finite"
+                break
+            if norm <= tol * max(rms, np.finfo(np.float64).tiny):
+                result = "mean_velocity_small"
+                break
+            if step >= max_steps:
+                result = "max_steps_reached"
+                break
+            s = step_size
+            for _ in range(_HALVINGS + 1):
+                trial_mean = mean + s * direction.velocity
+                trial = solve_at(trial_mean)
+                num_solves += 1
+                trial_sum_sq = float(jnp.sum(trial.distances**2))
+                # NaN compares False: a non-finite trial is never accepted.
+                if trial_sum_sq <= sum_sq:
+                    break
+                s *= 0.5
+            else:
+                result = "line_search_failed"
+                break
+            mean, solved, step = trial_mean, trial, step + 1
+            direction = _direction(metric, mean, solved, modulo, options)
+            history.append((direction.sum_sq, direction.norm, s))
+            save(step)
+            if progress is not None:
+                progress(
+                    {
+                        "step": step,
+                        "sum_sq_distances": history[-1][0],
+                        "mean_velocity_norm": history[-1][1],
+                        "step_size": s,
+                        "num_solves": num_solves,
+                        "seconds": time.perf_counter() - started,
+                    }
+                )
+            if s == step_size and sum_sq - trial_sum_sq <= tol * sum_sq:
+                result = "sum_sq_stalled"
+                break
 
     res = KarcherResult(
         mean=mean,
@@ -593,6 +634,7 @@ def distance_matrix(
     checkpoint: str | os.PathLike | None = None,
     resume: bool = False,
     progress: Callable[[dict], None] | None = None,
+    client=None,
 ) -> DistanceMatrixResult:
     """Pairwise shape distances: K(K-1)/2 geodesics, batched (MATH.md 7).
 
@@ -604,9 +646,14 @@ def distance_matrix(
     Args:
         shapes: ``(K, 3, m, n)`` surfaces on one grid; metric: split metric coefficients.
         modulo, options, strategy, checkpoint, resume: as in :func:`karcher_mean`.
-        progress: called after each chunk with pairs done and pairs in all.
+        progress: called after each chunk with a dict: pairs_done, pairs (in all),
+            seconds (since the call began) and eta_s (the time left at this run's rate).
         batch_size: pairs per chunk (one batched call, one checkpoint); default all pairs
             for "vmap", 8 for "map" and 1 for "loop", which gain nothing from big chunks.
+        client: a ``dask.distributed.Client`` or a scheduler address: the chunks run as
+            tasks on its workers, checkpointed as they arrive (in any order); a worker
+            lost mid-task has its task rerun by Dask. The numbers equal the in-process
+            ones (each pair is solved on its own). None: this process.
 
     Returns:
         :class:`DistanceMatrixResult`. If some pair did not converge it also warns
@@ -629,24 +676,14 @@ def distance_matrix(
             saved[key] for key in ("values", "converged", "refinement_change", "done")
         )
 
-    def batch_call(batch, mode):
-        return _distances_batch(batch, metric, modulo=modulo, options=options, mode=mode)
-
-    def single_call(pair):
-        return _pair_distance(pair[0], pair[1], metric, modulo, options)
-
     chunk_size = _default_chunk(strategy) if batch_size is None else batch_size
-    for a, b in _chunks(rows.size, chunk_size):
-        if done[a:b].all():
-            continue
-        # Index per chunk: all K(K-1)/2 pairs at once would copy every surface K - 1 times.
-        chunk_pairs = (shapes[rows[a:b]], shapes[cols[a:b]])
-        if strategy != "loop":
-            chunk_pairs = _padded(chunk_pairs, min(chunk_size or rows.size, rows.size))
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ConvergenceWarning)  # reported in `converged`
-            chunk = _batched(batch_call, single_call, chunk_pairs, strategy)
-        values[a:b], converged[a:b], change[a:b] = (np.asarray(c)[: b - a] for c in chunk)
+    size = min(chunk_size or rows.size, rows.size)
+    todo = [(a, b) for a, b in _chunks(rows.size, chunk_size) if not done[a:b].all()]
+    started, done_before = time.perf_counter(), int(done.sum())
+
+    def finished(chunk, out):
+        a, b = chunk
+        values[a:b], converged[a:b], change[a:b] = (np.asarray(c)[: b - a] for c in out)
         done[a:b] = True
         if path is not None:
             save_npz_atomic(
@@ -658,7 +695,30 @@ def distance_matrix(
                 fingerprint=fingerprint,
             )
         if progress is not None:
-            progress({"pairs_done": int(done.sum()), "pairs": int(rows.size)})
+            seconds = time.perf_counter() - started
+            now, left = int(done.sum()), int((~done).sum())
+            rate = (now - done_before) / seconds if seconds > 0 else 0.0
+            progress(
+                {
+                    "pairs_done": now,
+                    "pairs": int(rows.size),
+                    "seconds": seconds,
+                    "eta_s": left / rate if rate > 0 else None,
+                }
+            )
+
+    if client is not None:
+        from ._distributed import Pool
+
+        with Pool(client, shapes, metric, modulo, options, strategy) as pool:
+            pool.distances(rows, cols, todo, size, finished)
+    else:
+        for a, b in todo:
+            # Index per chunk: all K(K-1)/2 pairs at once would copy every surface K - 1 times.
+            first, second = shapes[rows[a:b]], shapes[cols[a:b]]
+            finished(
+                (a, b), _distance_chunk(first, second, metric, modulo, options, strategy, size)
+            )
 
     def symmetric(upper, diagonal, dtype):
         matrix = np.zeros((k, k), dtype)

@@ -15,6 +15,9 @@ __all__ = ["InputError", "ShapeOptions", "check_choice", "check_int", "check_pos
 
 SOLVERS = ("bfgs", "lbfgs")
 SCHEMES = ("forward", "central", "midpoint")
+# Schemes whose energy couples each node to its two neighbours only: they can be shot
+# (the central scheme couples five nodes; see _shooting).
+SHOOTING_SCHEMES = ("midpoint", "forward")
 METHODS = ("joint", "coordinate")
 INITS = ("moebius", "icosahedral", "none")
 INTERPOLATIONS = ("bilinear", "bicubic")

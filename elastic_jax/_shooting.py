@@ -48,12 +48,9 @@ from ._geodesic import (
 )
 from ._harmonics import check_degree
 from ._metric import SplitMetric
-from ._options import ShapeOptions
+from ._options import SHOOTING_SCHEMES, ShapeOptions
 from ._units import units_of
 from ._validation import as_surface
-
-# Schemes whose energy couples each node to its two neighbours only.
-SHOOTING_SCHEMES = ("midpoint", "forward")
 
 
 class ShootingResult(NamedTuple):

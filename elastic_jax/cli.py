@@ -28,19 +28,24 @@ import signal
 import sys
 import tempfile
 import time
+import warnings
 from collections.abc import Callable, Sequence
 
 from ._atomic import TEMPORARY, stale_temporaries
 from ._checks import InputError, check_grid_shape, check_int, check_positive
-from ._options import INITS, METHODS, SCHEMES, SOLVERS, ShapeOptions
+from ._options import INITS, METHODS, SCHEMES, SHOOTING_SCHEMES, SOLVERS, ShapeOptions
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_NOT_CONVERGED = 0, 1, 2, 3
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # 128 + SIGINT, 128 + SIGTERM
 LOCK_NAME = ".elastic-jax.lock"
-CHECKPOINTS = {"karcher": "karcher_checkpoint.npz", "distances": "distances_checkpoint.npz"}
+CHECKPOINTS = {
+    "karcher": "karcher_checkpoint.npz",
+    "pca": "karcher_checkpoint.npz",
+    "distances": "distances_checkpoint.npz",
+}
 DEFAULT_METRIC = (1.0, 1.0, 0.1, 0.0)
 SURFACE_FILE = "a surface: .npz (array f), .mat (the authors'), or a mesh trimesh reads"
-SHAPE_COMMANDS = ("shape-geodesic", "karcher", "distances")
+SHAPE_COMMANDS = ("shape-geodesic", "karcher", "pca", "distances")
 _SHAPE_DEFAULTS = ShapeOptions()
 # ShapeOptions field -> (argparse destination, flag): one record is built from these.
 SHAPE_FLAGS = {
@@ -100,14 +105,8 @@ def _default_cache_dir() -> pathlib.Path:
     return pathlib.Path(base) / "elastic-jax"
 
 
-def _common(
-    parser: argparse.ArgumentParser,
-    *,
-    degree: int,
-    times: int,
-    max_steps: int | None = None,
-    max_steps_help: str = "solver step limit (library default)",
-) -> None:
+def _io_options(parser: argparse.ArgumentParser) -> None:
+    """The options every command has: metric, grid, precision, output, progress, cache."""
     parser.add_argument(
         "--metric",
         type=_metric,
@@ -124,17 +123,6 @@ def _common(
         help="resample every input onto this grid (default: the first input's grid, "
         "50 99 for meshes)",
     )
-    parser.add_argument(
-        "--degree", type=int, default=degree, help="spherical-harmonic degree of the path"
-    )
-    parser.add_argument("--times", type=int, default=times, help="time points N, ends included")
-    parser.add_argument(
-        "--solver",
-        choices=SOLVERS,
-        default="bfgs",
-        help="optimistix BFGS or jaxopt L-BFGS",
-    )
-    parser.add_argument("--max-steps", type=int, default=max_steps, help=max_steps_help)
     parser.add_argument(
         "--dtype",
         choices=("float64", "float32"),
@@ -156,6 +144,28 @@ def _common(
         "(ELASTIC_JAX_CACHE or XDG_CACHE_HOME move it)",
     )
     parser.add_argument("--no-cache", action="store_true", help="compile from scratch")
+
+
+def _common(
+    parser: argparse.ArgumentParser,
+    *,
+    degree: int,
+    times: int,
+    max_steps: int | None = None,
+    max_steps_help: str = "solver step limit (library default)",
+) -> None:
+    _io_options(parser)
+    parser.add_argument(
+        "--degree", type=int, default=degree, help="spherical-harmonic degree of the path"
+    )
+    parser.add_argument("--times", type=int, default=times, help="time points N, ends included")
+    parser.add_argument(
+        "--solver",
+        choices=SOLVERS,
+        default="bfgs",
+        help="optimistix BFGS or jaxopt L-BFGS",
+    )
+    parser.add_argument("--max-steps", type=int, default=max_steps, help=max_steps_help)
 
 
 def _shape_options(parser: argparse.ArgumentParser, *, modulo: str, inner: str = "") -> None:
@@ -209,6 +219,20 @@ def _batch_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--batch-size", type=int, default=None, help="geodesics per batched call (bounds memory)"
     )
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="solve on a local Dask cluster of this many worker processes (the dask extra)",
+    )
+    where.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="solve on the Dask cluster whose scheduler is at ADDRESS (tcp://host:8786); "
+        "--cache-dir must then be a path every worker can reach",
+    )
     parser.add_argument(
         "--resume", action="store_true", help="continue from the checkpoint in --out"
     )
@@ -217,6 +241,29 @@ def _batch_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="discard a checkpoint in --out and start over (without it or --resume, a "
         "checkpoint there is refused)",
+    )
+
+
+def _karcher_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--karcher-steps",
+        type=int,
+        default=10,
+        help="most Karcher steps (accepted updates of the mean)",
+    )
+    parser.add_argument(
+        "--tol",
+        type=float,
+        default=1e-3,
+        help="Karcher convergence: |mean velocity| <= tol x RMS distance, or a full step "
+        "lowers the sum of squared distances by less than tol (relative)",
+    )
+    parser.add_argument(
+        "--step-size",
+        type=float,
+        default=1.0,
+        help="first trial step along the mean velocity (halved while it raises the sum "
+        "of squared distances)",
     )
 
 
@@ -255,31 +302,70 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("files", nargs="+", help=SURFACE_FILE)
     _shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
     _batch_options(p)
-    p.add_argument(
-        "--karcher-steps",
-        type=int,
-        default=10,
-        help="most Karcher steps (accepted updates of the mean)",
-    )
-    p.add_argument(
-        "--tol",
-        type=float,
-        default=1e-3,
-        help="Karcher convergence: |mean velocity| <= tol x RMS distance, or a full step "
-        "lowers the sum of squared distances by less than tol (relative)",
-    )
-    p.add_argument(
-        "--step-size",
-        type=float,
-        default=1.0,
-        help="first trial step along the mean velocity (halved while it raises the sum "
-        "of squared distances)",
-    )
+    _karcher_options(p)
 
     p = command("distances", help="matrix of pairwise shape distances")
     p.add_argument("files", nargs="+", help=SURFACE_FILE)
     _shape_options(p, modulo="rigid")
     _batch_options(p)
+
+    p = command(
+        "pca",
+        help="Karcher mean, tangent PCA and mode paths of a collection of shapes",
+        description="The Karcher mean of the shapes (as the karcher command), the metric "
+        "PCA of their velocities at the mean (tangent_pca) and the geodesics through the "
+        "mean along the first modes (mode_path). Writes the mean and each mode's +-sigma "
+        "shapes as meshes, each mode's one-sigma velocity (modeK_velocity.npz, for the "
+        "shoot command), pca.npz, scores.json and a figure.",
+    )
+    p.add_argument("files", nargs="+", help=SURFACE_FILE)
+    _shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
+    _batch_options(p)
+    _karcher_options(p)
+    p.add_argument("--modes", type=int, default=3, help="modes to keep (at most shapes - 1)")
+    p.add_argument(
+        "--sigmas", type=float, default=2.0, help="mode paths reach +-sigmas standard deviations"
+    )
+    p.add_argument(
+        "--mode-times",
+        type=int,
+        default=7,
+        help="time points of each half of a mode path (mean to +-sigmas)",
+    )
+
+    p = command(
+        "shoot",
+        help="geodesic from a surface with an initial velocity (exponential map)",
+        description="Shoot the discrete geodesic from the source surface with initial "
+        "velocity --scale times the velocity file's (elastic_jax.shoot). Writes the path "
+        "(path/: a mesh per time point and path.npz), shoot.npz (endpoint, final "
+        "velocity, speeds, residuals) and a figure.",
+    )
+    p.add_argument("source", help=SURFACE_FILE)
+    p.add_argument(
+        "velocity",
+        help="the initial velocity: .npz with array v (or velocity) of the surface's shape "
+        "(3, m, n), e.g. the pca command's modeK_velocity.npz",
+    )
+    _io_options(p)
+    p.add_argument(
+        "--degree", type=int, default=7, help="spherical-harmonic degree of each step's solve"
+    )
+    p.add_argument("--times", type=int, default=13, help="time points N, ends included")
+    p.add_argument("--scale", type=float, default=1.0, help="multiplies the velocity")
+    p.add_argument(
+        "--scheme",
+        choices=SHOOTING_SCHEMES,
+        default="midpoint",
+        help="time discretization of the path energy (central cannot be shot)",
+    )
+    p.add_argument(
+        "--tol",
+        type=float,
+        default=None,
+        help="each step's Newton tolerance (default: 1e-10 in float64, 1e-4 in float32)",
+    )
+    p.add_argument("--max-newton", type=int, default=20, help="Newton iterations per step")
 
     p = command("demo", help="a geodesic between two built-in surfaces, with figures")
     _common(p, degree=7, times=10)
@@ -570,7 +656,9 @@ def _collection_settings(args, m: int, n: int, options: ShapeOptions) -> dict:
     }
 
 
-def _run_karcher(args, progress: Progress) -> dict:
+def _karcher(args, progress: Progress):
+    """The Karcher mean of ``args.files`` with its files and summary: (result, metric,
+    options, summary), the summary holding ``files`` already written."""
     import numpy as np
 
     from . import io, plot
@@ -581,7 +669,7 @@ def _run_karcher(args, progress: Progress) -> dict:
     m, n = shapes.shape[2:]
     settings = _collection_settings(args, m, n, options)
     settings.update(karcher_steps=args.karcher_steps, tol=args.tol, step_size=args.step_size)
-    checkpoint = args.out / "karcher_checkpoint.npz"
+    checkpoint = args.out / CHECKPOINTS["karcher"]
 
     def report(info):
         progress(
@@ -608,6 +696,7 @@ def _run_karcher(args, progress: Progress) -> dict:
         checkpoint=checkpoint,
         resume=args.resume,
         progress=report,
+        client=args.client,
     )
     seconds = time.perf_counter() - start
     mean = np.asarray(res.mean)
@@ -629,7 +718,7 @@ def _run_karcher(args, progress: Progress) -> dict:
     history = np.asarray(res.history)
     columns = {"sum of squared distances": history[:, 0], "mean velocity norm": history[:, 1]}
     files += _figure(args.out / "history.png", lambda: plot.plot_energy(columns), progress)
-    return {
+    summary = {
         "command": args.command,
         "inputs": list(args.files),
         "settings": settings,
@@ -650,6 +739,204 @@ def _run_karcher(args, progress: Progress) -> dict:
         "files": files,
         "environment": _environment(),
     }
+    return res, metric, options, summary
+
+
+def _run_karcher(args, progress: Progress) -> dict:
+    return _karcher(args, progress)[-1]
+
+
+def _run_pca(args, progress: Progress) -> dict:
+    import numpy as np
+
+    from . import io, plot
+    from ._atomic import save_npz_atomic, write_text_atomic
+    from ._geodesic import ConvergenceWarning
+    from ._pca import mode_path, tangent_pca
+
+    karcher, metric, options, summary = _karcher(args, progress)
+    files = summary["files"]
+    if not np.isfinite(np.asarray(karcher.velocities)).all():
+        # Nothing to analyse; the Karcher part of the summary says what failed.
+        progress("the velocities at the mean are not finite: no PCA")
+        summary.update(converged=False, pca=None)
+        return summary
+    k = len(args.files)
+    n_modes = min(args.modes, k - 1)
+    if n_modes < args.modes:
+        progress(f"{k} shapes span at most {k - 1} modes: keeping {n_modes}")
+    # Modes whose variance is at round-off (tangent_pca's rtol) are not modes: fewer kept.
+    full = tangent_pca(karcher, metric)
+    n_modes = min(n_modes, int(full.modes.shape[0]))
+    pca = tangent_pca(karcher, metric, n_modes=n_modes)
+    explained = np.asarray(pca.explained)
+    progress("explained variance by mode: " + ", ".join(f"{100 * e:.1f} %" for e in explained))
+    # Shot with the scheme of the mean's geodesics (central is refused by _preflight).
+    shoot_options = {"n_times": args.mode_times, "degree": options.degree, "scheme": options.scheme}
+    paths, unconverged = [], []
+    for mode in range(n_modes):
+        progress(f"mode {mode + 1}: shooting +-{args.sigmas:g} sigma from the mean")
+        # mode_path returns the path only; a failed Newton step shows as its warning.
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", ConvergenceWarning)
+            path = mode_path(pca, mode, metric, sigmas=args.sigmas, **shoot_options)
+        paths.append(np.asarray(path))
+        if any(issubclass(w.category, ConvergenceWarning) for w in caught):
+            progress(f"mode {mode + 1}: a shooting step did not converge")
+            unconverged.append(mode + 1)
+    paths = np.stack(paths)
+    sigma = np.sqrt(np.asarray(pca.variances))
+    mean = np.asarray(pca.mean)
+    for mode, path in enumerate(paths, start=1):
+        files.append(
+            str(
+                save_npz_atomic(
+                    args.out / f"mode{mode}_velocity.npz",
+                    v=sigma[mode - 1] * np.asarray(pca.modes[mode - 1]),
+                    f=mean,
+                )
+            )
+        )
+        if np.isfinite(path).all():
+            for end, name in ((path[0], "minus"), (path[-1], "plus")):
+                files.append(str(io.save_surface(end, args.out / f"mode{mode}_{name}.ply")))
+        else:
+            progress(f"mode {mode}'s path is not finite: no meshes written for it")
+    files.append(
+        str(
+            save_npz_atomic(
+                args.out / "pca.npz",
+                mean=mean,
+                modes=np.asarray(pca.modes),
+                variances=np.asarray(pca.variances),
+                explained=explained,
+                scores=np.asarray(pca.scores),
+                mean_velocity=np.asarray(pca.mean_velocity),
+                mode_paths=paths,
+                settings=json.dumps(summary["settings"]),
+            )
+        )
+    )
+    names = [pathlib.Path(f).stem for f in args.files]
+    scores = {
+        "files": list(args.files),
+        "modes": n_modes,
+        "sigmas": args.sigmas,
+        "variances": _json_floats(pca.variances),
+        "explained": _json_floats(explained),
+        "scores": {
+            name: _json_floats(row) for name, row in zip(names, np.asarray(pca.scores), strict=True)
+        },
+    }
+    text = json.dumps(_json_safe(scores), indent=2, allow_nan=False)
+    files.append(str(write_text_atomic(args.out / "scores.json", text + "\n")))
+    files += _figure(
+        args.out / "modes.png",
+        lambda: plot.plot_modes(paths, explained=explained, sigmas=args.sigmas),
+        progress,
+    )
+    summary["settings"].update(modes=n_modes, sigmas=args.sigmas, mode_times=args.mode_times)
+    summary["pca"] = {
+        "variances": _json_floats(pca.variances),
+        "explained": _json_floats(explained),
+        # All modes' variance against the mean squared distance: equal when every
+        # velocity's G-norm is its distance and the mean velocity vanishes.
+        "total_variance": float(np.sum(np.asarray(full.variances))),
+        "mean_sq_distance": float(np.mean(np.asarray(karcher.distances) ** 2)),
+        "mode_paths_unconverged": unconverged,
+        "scores": scores["scores"],
+    }
+    summary["converged"] = bool(karcher.converged) and not unconverged
+    return summary
+
+
+def _load_velocity(name: str, shape: tuple, dtype: str):
+    """The array ``v`` (or ``velocity``) of an .npz, checked against the surface's shape."""
+    import numpy as np
+
+    try:
+        with np.load(name) as data:
+            key = next((k for k in ("v", "velocity") if k in data.files), None)
+            if key is None:
+                found = ", ".join(data.files) or "none"
+                raise BadInput(f"{name}: no array v or velocity in it (it has {found})")
+            v = np.asarray(data[key])
+    except BadInput:
+        raise
+    except (OSError, ValueError) as err:
+        raise BadInput(f"{name}: not a readable .npz ({err})") from err
+    if v.shape != shape:
+        raise BadInput(
+            f"{name}: the velocity has shape {v.shape}, the surface {shape}; a velocity "
+            "lives on its surface's grid (resampling one would change what it means)"
+        )
+    if not np.issubdtype(v.dtype, np.floating) or not np.isfinite(v).all():
+        raise BadInput(f"{name}: the velocity must be finite real numbers")
+    return v.astype(dtype)
+
+
+def _run_shoot(args, progress: Progress) -> dict:
+    import jax
+    import numpy as np
+
+    from ._atomic import save_npz_atomic
+    from ._shooting import shoot
+
+    (f,), metric, _ = _prepare(args, progress, [args.source], lambda a: None)
+    m, n = f.shape[1:]
+    v = args.scale * _load_velocity(args.velocity, f.shape, args.dtype)
+    options = {"n_times": args.times, "degree": args.degree, "scheme": args.scheme}
+    options.update(tol=args.tol, max_newton=args.max_newton)
+    progress(
+        f"shooting on {m} x {n}, degree {args.degree}, N = {args.times} "
+        "(one Newton solve per step; the first call compiles)"
+    )
+    start = time.perf_counter()
+    res = jax.block_until_ready(shoot(f, v, metric, **options))
+    seconds = time.perf_counter() - start
+    speeds = np.asarray(res.speeds)
+    residuals = np.asarray(res.residuals)
+    progress(
+        f"speed {speeds[0]:.6g} -> {speeds[-1]:.6g}, largest step residual "
+        f"{residuals.max():.3g}, converged {bool(res.converged)}"
+    )
+    settings = {
+        "metric": list(args.metric),
+        "grid": [m, n],
+        "scale": args.scale,
+        **options,
+        "dtype": args.dtype,
+    }
+    path = np.asarray(res.path)
+    files = _write_path(args.out, path, settings, progress)
+    files.append(
+        str(
+            save_npz_atomic(
+                args.out / "shoot.npz",
+                endpoint=path[-1],
+                velocity=np.asarray(res.velocity),
+                speeds=speeds,
+                residuals=residuals,
+                newton_steps=np.asarray(res.newton_steps),
+                settings=json.dumps(settings),
+            )
+        )
+    )
+    return {
+        "command": args.command,
+        "inputs": [args.source, args.velocity],
+        "settings": settings,
+        # The path's length: the sum of its steps' speeds over T (constant on a geodesic).
+        "length": float(np.mean(speeds)),
+        "speeds": _json_floats(speeds),
+        "speed_drift": _json_float(speeds[-1] / speeds[0] - 1) if speeds[0] > 0 else None,
+        "residuals": _json_floats(residuals),
+        "newton_steps": [int(x) for x in np.asarray(res.newton_steps)],
+        "converged": bool(res.converged),
+        "seconds": seconds,
+        "files": files,
+        "environment": _environment(),
+    }
 
 
 def _run_distances(args, progress: Progress) -> dict:
@@ -665,7 +952,10 @@ def _run_distances(args, progress: Progress) -> dict:
     checkpoint = args.out / "distances_checkpoint.npz"
 
     def report(info):
-        progress(f"pairs done {info['pairs_done']}/{info['pairs']} (checkpoint {checkpoint.name})")
+        eta = "" if info["eta_s"] is None else f", about {info['eta_s']:.0f} s left"
+        progress(
+            f"pairs done {info['pairs_done']}/{info['pairs']}{eta} (checkpoint {checkpoint.name})"
+        )
 
     progress(
         f"{k * (k - 1) // 2} shape geodesics modulo {args.modulo} on {m} x {n} (the first compiles)"
@@ -681,6 +971,7 @@ def _run_distances(args, progress: Progress) -> dict:
         checkpoint=checkpoint,
         resume=args.resume,
         progress=report,
+        client=args.client,
     )
     seconds = time.perf_counter() - start
     matrix = np.asarray(res.distances)
@@ -821,16 +1112,35 @@ def _preflight(args) -> None:
     else:
         _checked("--degree", check_int, args.degree, 1)
         _checked("--times", check_int, args.times, 3)
-        if args.max_steps is not None:
+        if getattr(args, "max_steps", None) is not None:
             _checked("--max-steps", check_int, args.max_steps, 1)
-    if args.command in ("karcher", "distances") and len(args.files) < 2:
+    if args.command in ("karcher", "pca", "distances") and len(args.files) < 2:
         raise BadInput(f"{args.command} needs at least 2 surface files; got {len(args.files)}")
-    if args.command == "karcher":
+    if args.command in ("karcher", "pca"):
         _checked("--karcher-steps", check_int, args.karcher_steps, 0)
         _checked("--tol", check_positive, args.tol)
         _checked("--step-size", check_positive, args.step_size)
+    if args.command == "pca":
+        _checked("--modes", check_int, args.modes, 1)
+        _checked("--sigmas", check_positive, args.sigmas)
+        _checked("--mode-times", check_int, args.mode_times, 3)
+        if args.scheme == "central":
+            raise BadInput(
+                "--scheme central: the mode paths are shot, and the central scheme cannot be "
+                "(its energy couples five nodes); use midpoint or forward"
+            )
+    if args.command == "shoot":
+        if not math.isfinite(args.scale):
+            raise BadInput(f"--scale {args.scale}: must be a finite number")
+        if args.tol is not None:
+            _checked("--tol", check_positive, args.tol)
+        _checked("--max-newton", check_int, args.max_newton, 1)
+        if not pathlib.Path(args.velocity).is_file():
+            raise BadInput(f"{args.velocity}: no such file (the velocity .npz)")
     if getattr(args, "batch_size", None) is not None:
         _checked("--batch-size", check_int, args.batch_size, 1)
+    if getattr(args, "workers", None) is not None:
+        _checked("--workers", check_int, args.workers, 1)
     if args.command == "bench":
         _checked("--repeat", check_int, args.repeat, 1)
 
@@ -873,6 +1183,39 @@ def _claim_out(args, stack: contextlib.ExitStack) -> None:
             f"--out {out} holds the checkpoint {checkpoint} of an earlier run; continue it "
             "with --resume or discard it with --overwrite"
         )
+
+
+def _dask_client(args, stack: contextlib.ExitStack, progress: Progress):
+    """The Dask client of --workers or --scheduler (None without them), closed with the
+    stack; its workers share the compilation cache unless --no-cache."""
+    workers, address = getattr(args, "workers", None), getattr(args, "scheduler", None)
+    if workers is None and address is None:
+        return None
+    try:
+        import distributed
+    except ImportError:
+        raise BadInput(
+            '--workers and --scheduler need Dask distributed: pip install "elastic-jax[dask]"'
+        ) from None
+    if workers is not None:
+        progress(f"starting a local Dask cluster of {workers} worker processes")
+        cluster = stack.enter_context(
+            distributed.LocalCluster(
+                n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
+            )
+        )
+        client = stack.enter_context(distributed.Client(cluster))
+    else:
+        progress(f"connecting to the Dask scheduler at {address}")
+        try:
+            client = stack.enter_context(distributed.Client(address, timeout="30s"))
+        except OSError as err:
+            raise BadInput(f"--scheduler {address}: cannot connect ({err})") from err
+    if not args.no_cache:
+        from ._cache import enable_compilation_cache
+
+        enable_compilation_cache(args.cache_dir, client=client)
+    return client
 
 
 def _remove_if_empty(directory: pathlib.Path) -> None:
@@ -923,6 +1266,8 @@ COMMANDS = {
     "shape-geodesic": _run_shape_geodesic,
     "karcher": _run_karcher,
     "distances": _run_distances,
+    "pca": _run_pca,
+    "shoot": _run_shoot,
     "demo": _run_demo,
     "bench": _run_bench,
 }
@@ -942,8 +1287,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         # executables on disk (a program's choice; the library itself never sets this).
         jax.config.update("jax_compilation_cache_dir", str(args.cache_dir))
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    import warnings
-
     from ._geodesic import ConvergenceWarning
 
     progress = Progress(args.quiet)
@@ -954,6 +1297,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             warnings.simplefilter("ignore", ConvergenceWarning)
             _preflight(args)
             _claim_out(args, stack)
+            args.client = _dask_client(args, stack, progress)
             summary = COMMANDS[args.command](args, progress)
             _write_summary(args.out, summary)
     except (BadInput, InputError) as err:
@@ -963,7 +1307,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         how = "terminated" if isinstance(err, Terminated) else "interrupted"
         print(
             f"elastic-jax {args.command}: {how}; every file in {args.out} is complete "
-            "(karcher and distances continue with --resume)",
+            "(karcher, pca and distances continue with --resume)",
             file=sys.stderr,
         )
         return EXIT_TERMINATED if isinstance(err, Terminated) else EXIT_INTERRUPTED

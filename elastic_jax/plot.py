@@ -1,4 +1,5 @@
-"""Figures: geodesic paths, optimisation histories and distance matrices (matplotlib).
+"""Figures: geodesic paths, principal modes, optimisation histories, distance matrices
+(matplotlib).
 
 Everything here builds a :class:`matplotlib.figure.Figure` directly, never through pyplot,
 so it works headless, needs no display backend and leaves pyplot's global state alone.
@@ -20,6 +21,7 @@ Example:
 
 from __future__ import annotations
 
+import operator
 import os
 import pathlib
 from collections.abc import Mapping, Sequence
@@ -32,12 +34,15 @@ from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the "3d" proje
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from ._atomic import atomic_path
-from ._checks import InputError
+from ._checks import InputError, check_int, check_positive
+from ._metric import SplitMetric
+from ._pca import TangentPCA, mode_path
 from ._validation import as_surface
 
 __all__ = [
     "parametrization_colors",
     "plot_path",
+    "plot_modes",
     "plot_energy",
     "plot_distance_matrix",
     "save_figure",
@@ -166,6 +171,40 @@ def _as_path(path) -> np.ndarray:
     return x[None] if ndim == 3 else x
 
 
+def _data_box(surfaces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper corners ``(3,)`` of the box holding every surface ``(K, 3, m, n)``."""
+    lo = surfaces.min(axis=(0, 2, 3))
+    hi = surfaces.max(axis=(0, 2, 3))
+    span = hi - lo
+    # A flat frame set (zero extent along one axis) would give a degenerate box.
+    floor = 1e-3 * span.max()
+    pad = np.maximum(floor - span, 0.0) / 2
+    return lo - pad, hi + pad
+
+
+def _light(elev: float, azim: float) -> np.ndarray:
+    """Unit vector towards the light: 45 degrees round from the camera (clockwise seen from
+    above; matplotlib's view azimuth is counterclockwise, LightSource's clockwise) and 30
+    degrees above it, so that the visible side is lit obliquely."""
+    return mcolors.LightSource(azdeg=90 - (azim - 45), altdeg=min(elev + 30, 90)).direction
+
+
+def _draw_surface(ax, surface, base, light, lo, hi, *, elev, azim, shade) -> None:
+    """Draw one surface ``(3, m, n)`` on a 3D axes as its grid cells, in the box [lo, hi]."""
+    quads = _cells(surface)
+    face = base.copy()
+    if shade:
+        face[:, :3] *= _shading(quads, light)[:, None]
+    # Thin edges in the face colour cover the antialiasing seams between cells.
+    ax.add_collection3d(Poly3DCollection(quads, facecolors=face, edgecolors=face, linewidths=0.25))
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_zlim(lo[2], hi[2])
+    ax.set_box_aspect(tuple(hi - lo))
+    ax.view_init(elev=elev, azim=azim)
+    ax.set_axis_off()
+
+
 def plot_path(
     path,
     *,
@@ -208,39 +247,199 @@ def plot_path(
     count, _, m, n = x.shape
     chosen = _choose_frames(frames, count)
     base = _cell_colors(colors, m, n).reshape(-1, 4)
-
-    shown = x[chosen]
-    lo = shown.min(axis=(0, 2, 3))
-    hi = shown.max(axis=(0, 2, 3))
-    span = hi - lo
-    # A flat frame set (zero extent along one axis) would give a degenerate box.
-    floor = 1e-3 * span.max()
-    pad = np.maximum(floor - span, 0.0) / 2
-    lo, hi = lo - pad, hi + pad
-
-    light = mcolors.LightSource(azdeg=90 - (azim - 45), altdeg=min(elev + 30, 90)).direction
+    lo, hi = _data_box(x[chosen])
+    light = _light(elev, azim)
 
     if figsize is None:
         figsize = (2.5 * len(chosen), 2.8)
     fig = Figure(figsize=figsize)
     for slot, k in enumerate(chosen):
         ax = fig.add_subplot(1, len(chosen), slot + 1, projection="3d")
-        quads = _cells(x[k])
-        face = base.copy()
-        if shade:
-            face[:, :3] *= _shading(quads, light)[:, None]
-        # Thin edges in the face colour cover the antialiasing seams between cells.
-        ax.add_collection3d(
-            Poly3DCollection(quads, facecolors=face, edgecolors=face, linewidths=0.25)
-        )
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(lo[1], hi[1])
-        ax.set_zlim(lo[2], hi[2])
-        ax.set_box_aspect(tuple(hi - lo))
-        ax.view_init(elev=elev, azim=azim)
-        ax.set_axis_off()
+        _draw_surface(ax, x[k], base, light, lo, hi, elev=elev, azim=azim, shade=shade)
         ax.set_title(f"t = {k}/{count - 1}" if count > 1 else "t = 0")
     fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.92, wspace=0.0)
+    return fig
+
+
+def _mode_rows(pca_or_paths, metric, modes, sigmas, explained, shooting):
+    """The paths to draw ``(R, P, 3, m, n)``, their mode numbers and explained fractions."""
+    if isinstance(pca_or_paths, TangentPCA):
+        if metric is None:
+            raise InputError("metric is needed to shoot the modes of a TangentPCA")
+        if explained is not None:
+            raise InputError(
+                "explained is read from the TangentPCA; give it only with precomputed paths"
+            )
+        pca = pca_or_paths
+        chosen = _choose_modes(modes, pca.modes.shape[0], "the PCA")
+        options = {k: v for k, v in shooting.items() if v is not None}
+        paths = [mode_path(pca, k, metric, sigmas=sigmas, **options) for k in chosen]
+        paths = np.stack([np.asarray(p, dtype=float) for p in paths])
+        fractions = np.asarray(pca.explained, dtype=float)[chosen]
+        return paths, chosen, fractions
+
+    if metric is not None:
+        raise InputError("metric is only used with a TangentPCA; precomputed paths need none")
+    unused = [k for k, v in shooting.items() if v is not None]
+    if unused:
+        raise InputError(f"{', '.join(unused)} only apply to a TangentPCA, not to given paths")
+    is_array = hasattr(pca_or_paths, "__array__") and np.ndim(pca_or_paths) > 0
+    is_sequence = isinstance(pca_or_paths, Sequence) and not isinstance(pca_or_paths, str)
+    if not (is_array or is_sequence):
+        raise InputError(
+            "pca_or_paths must be a TangentPCA or a sequence of mode paths (2N-1, 3, m, n); "
+            f"got {type(pca_or_paths).__name__}"
+        )
+    found = [np.shape(p) for p in pca_or_paths]
+    if any(len(shape) != 4 for shape in found) or len(set(found)) != 1:
+        raise InputError(
+            "mode paths must all have one shape (2N-1, 3, m, n), as mode_path returns; got "
+            f"shapes {found}"
+        )
+    count = found[0][0]
+    if count < 3 or count % 2 == 0:
+        raise InputError(
+            f"a mode path needs an odd number of frames 2N-1 >= 3, the mean in the middle; "
+            f"got {count}"
+        )
+    paths = np.asarray(
+        as_surface(np.stack(list(pca_or_paths)), "mode paths", check_immersion=False), float
+    )
+    chosen = _choose_modes(modes, len(paths), "the given paths")
+    fractions = None
+    if explained is not None:
+        fractions = np.asarray(explained, dtype=float)
+        if fractions.shape != (len(paths),):
+            raise InputError(
+                f"explained must hold one fraction per path, shape ({len(paths)},); got "
+                f"{fractions.shape}"
+            )
+        if not (np.all(np.isfinite(fractions)) and fractions.min() >= 0 and fractions.max() <= 1):
+            raise InputError(f"explained must hold fractions in [0, 1]; got {fractions.tolist()}")
+        fractions = fractions[chosen]
+    return paths[chosen], chosen, fractions
+
+
+def _choose_modes(modes, available: int, source: str) -> list[int]:
+    if isinstance(modes, int | np.integer) and not isinstance(modes, bool):
+        if not 1 <= modes <= available:
+            raise InputError(
+                f"modes={modes} must be between 1 and the {available} modes of {source}"
+            )
+        return list(range(int(modes)))
+    try:
+        chosen = [operator.index(k) for k in modes]
+    except TypeError:
+        raise InputError(
+            f"modes must be a number of leading modes or a sequence of mode indices; got {modes!r}"
+        ) from None
+    if not chosen:
+        raise InputError("modes is an empty sequence; give at least one mode index")
+    bad = [k for k in chosen if not 0 <= k < available]
+    if bad:
+        raise InputError(
+            f"mode indices {bad} are out of range: {source} has {available} modes (0 to "
+            f"{available - 1})"
+        )
+    return chosen
+
+
+def _sigma_label(sigma: float) -> str:
+    return "mean" if sigma == 0 else f"{sigma:+.3g}\N{GREEK SMALL LETTER SIGMA}"
+
+
+def plot_modes(
+    pca_or_paths,
+    metric: SplitMetric | None = None,
+    *,
+    modes: int | Sequence[int] = 2,
+    columns: int = 5,
+    sigmas: float = 2.0,
+    explained: Sequence[float] | None = None,
+    n_times: int | None = None,
+    degree: int | None = None,
+    scheme: str | None = None,
+    colors="parametrization",
+    elev: float = 20,
+    azim: float = -60,
+    figsize: tuple[float, float] | None = None,
+    shade: bool = True,
+) -> Figure:
+    """Draw principal modes of a tangent PCA: one row per mode, from -sigmas to +sigmas.
+
+    Row r shows the geodesic through the mean mu along the mode e_k,
+    exp_mu(s sqrt(lambda_k) e_k) for s from -sigmas to +sigmas (:func:`~elastic_jax.mode_path`),
+    at ``columns`` evenly chosen frames: the ends and the mean in the middle column. Each
+    axes is titled ``"mode k+1 (x%)"`` (the mode's explained-variance fraction in percent,
+    3 significant digits; left out when unknown) over the column's s in standard
+    deviations (``"-2σ"``, ``"mean"``, ``"+2σ"``). Colours, shading and the shared box
+    are those of :func:`plot_path`, the box now holding every drawn frame of every row.
+
+    Args:
+        pca_or_paths: a :class:`~elastic_jax.TangentPCA` (its modes are shot with
+            ``metric``), or a sequence of R mode paths, each ``(2N-1, 3, m, n)`` as
+            :func:`~elastic_jax.mode_path` returns, spanning -sigmas .. +sigmas.
+        metric: the split metric of the PCA; required with a TangentPCA, refused with paths.
+        modes: how many leading modes to draw, or a sequence of mode indices (0 is the
+            first mode; with paths, indices into the sequence).
+        columns: frames per row, odd and at least 3 (at most the 2N-1 frames of a path).
+        sigmas: the extent in standard deviations, passed to ``mode_path`` (with a
+            TangentPCA) or the one the given paths were made with (for the titles).
+        explained: with paths only: R fractions of variance in [0, 1], one per path.
+        n_times, degree, scheme: with a TangentPCA only: ``mode_path``'s settings
+            (its defaults when None).
+        colors, elev, azim, shade: as in :func:`plot_path`.
+        figsize: ``(width, height)`` in inches; default 2.2 inches per column and 2.6 per row.
+
+    Returns:
+        The figure; ``fig.axes`` row by row, ``len(modes) * columns`` axes.
+
+    Raises:
+        ValueError: for a mode index out of range, an even ``columns`` or one below 3 or
+            above the paths' frames, paths of different or wrong shapes, a metric missing
+            (TangentPCA) or given (paths), or shooting options with paths.
+
+    Example:
+        >>> import numpy as np
+        >>> from elastic_jax import plot, shapes
+        >>> f = np.asarray(shapes.sample(shapes.ellipsoid, 9, 17))
+        >>> path = np.stack([(1 + 0.1 * s) * f for s in range(-2, 3)])  # (5, 3, 9, 17)
+        >>> fig = plot.plot_modes([path], modes=1, columns=3, explained=[0.8])
+        >>> [ax.get_title() for ax in fig.axes]
+        ['mode 1 (80%)\\n-2σ', 'mode 1 (80%)\\nmean', 'mode 1 (80%)\\n+2σ']
+    """
+    columns = check_int("columns", columns, 3)
+    if columns % 2 == 0:
+        raise InputError(f"columns={columns} must be odd, so that the mean is the middle column")
+    sigmas = check_positive("sigmas", sigmas)
+    shooting = {"n_times": n_times, "degree": degree, "scheme": scheme}
+    paths, chosen, fractions = _mode_rows(pca_or_paths, metric, modes, sigmas, explained, shooting)
+    rows, count, _, m, n = paths.shape
+    if columns > count:
+        raise InputError(f"columns={columns} is more than the mode paths' {count} frames")
+    # An odd count of evenly spread frames over 2c + 1 frames puts frame c in the middle,
+    # and rounding is symmetric about it, so the columns' sigmas are symmetric too.
+    frames = _choose_frames(columns, count)
+    centre = (count - 1) // 2
+    base = _cell_colors(colors, m, n).reshape(-1, 4)
+    lo, hi = _data_box(paths[:, frames].reshape(-1, 3, m, n))
+    light = _light(elev, azim)
+
+    if figsize is None:
+        figsize = (2.2 * columns, 2.6 * rows)
+    fig = Figure(figsize=figsize)
+    for r, k in enumerate(chosen):
+        head = f"mode {k + 1}"
+        if fractions is not None:
+            head += f" ({100 * fractions[r]:.3g}%)"
+        for c, frame in enumerate(frames):
+            ax = fig.add_subplot(rows, columns, r * columns + c + 1, projection="3d")
+            _draw_surface(
+                ax, paths[r, frame], base, light, lo, hi, elev=elev, azim=azim, shade=shade
+            )
+            sigma = sigmas * (frame - centre) / centre
+            ax.set_title(f"{head}\n{_sigma_label(sigma)}", fontsize="medium")
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.9, wspace=0.0, hspace=0.15)
     return fig
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import atexit
+import os
 import pathlib
 import shutil
 import tempfile
@@ -14,11 +15,17 @@ import pytest
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
-# One persistent compilation cache for the session: the command line's subprocesses
+# One persistent compilation cache for the whole run: the command line's subprocesses
 # (tests/test_cli.py passes --cache-dir COMPILATION_CACHE) and the in-process calls that
-# check them compile the same solves; a shape solve compiles for 30-60 s on 2 cores.
-COMPILATION_CACHE = pathlib.Path(tempfile.mkdtemp(prefix="elastic-jax-tests-"))
-atexit.register(shutil.rmtree, COMPILATION_CACHE, ignore_errors=True)
+# check them compile the same solves, and so do test files that pytest-xdist hands to
+# different workers; a shape solve compiles for 30-60 s on 2 cores. The process that
+# imports this first (xdist's controller, or the only process with -n 0) makes the
+# directory and removes it at exit; the workers it starts inherit its path.
+_SHARED = "ELASTIC_JAX_TEST_COMPILATION_CACHE"
+if _SHARED not in os.environ:
+    os.environ[_SHARED] = tempfile.mkdtemp(prefix="elastic-jax-tests-")
+    atexit.register(shutil.rmtree, os.environ[_SHARED], ignore_errors=True)
+COMPILATION_CACHE = pathlib.Path(os.environ[_SHARED])
 jax.config.update("jax_compilation_cache_dir", str(COMPILATION_CACHE))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 

@@ -113,6 +113,9 @@ def test_bad_input_and_non_convergence_have_their_own_exit_codes(tmp_path, capsy
 
 def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, capsys):
     good = _save(tmp_path, "good.npz", shapes.sample(shapes.sphere, M, N))
+    velocity, wrong = str(tmp_path / "v.npz"), str(tmp_path / "wrong.npz")
+    np.savez(velocity, v=np.zeros((3, M, N)))
+    np.savez(wrong, v=np.zeros((3, 9, 17)))
     out = tmp_path / "out"
     cases = {  # argv, what the one-line message must contain
         "times": (["shape-geodesic", good, good, "--times", "2"], "--times 2"),
@@ -130,6 +133,18 @@ def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, caps
         "repeat 0": (["bench", "--repeat", "0"], "--repeat"),
         "geodesic max-steps": (["geodesic", good, good, "--max-steps", "0"], "--max-steps"),
         "geodesic times": (["geodesic", good, good, "--times", "2"], "--times"),
+        "pca one file": (["pca", good], "at least 2"),
+        "pca modes": (["pca", good, good, "--modes", "0"], "--modes"),
+        "pca sigmas": (["pca", good, good, "--sigmas", "-1"], "--sigmas"),
+        "pca mode-times": (["pca", good, good, "--mode-times", "2"], "--mode-times"),
+        "pca central": (["pca", good, good, "--scheme", "central"], "central"),
+        "shoot scale": (["shoot", good, velocity, "--scale", "nan"], "--scale"),
+        "shoot tol": (["shoot", good, velocity, "--tol", "0"], "--tol"),
+        "shoot max-newton": (["shoot", good, velocity, "--max-newton", "0"], "--max-newton"),
+        "shoot times": (["shoot", good, velocity, "--times", "2"], "--times"),
+        "shoot no file": (["shoot", good, str(tmp_path / "absent.npz")], "absent.npz"),
+        "shoot no v": (["shoot", good, good], "no array v"),
+        "shoot shape": (["shoot", good, wrong], "shape (3, 9, 17)"),
     }
     for key, (argv, word) in cases.items():
         code = cli.main(
@@ -333,7 +348,8 @@ def test_ctrl_c_then_resume_equals_the_library(tmp_path, capsys):
     files = [_save(tmp_path, f"s{i}.npz", f) for i, f in enumerate(fs)]
     out = tmp_path / "out"
     argv = ["distances", *files, *SHAPE, "--strategy", "loop", "--batch-size", "1"]
-    argv += ["--out", str(out)]
+    # On a local Dask cluster: its workers load the solve from the session's cache.
+    argv += ["--workers", "2", "--out", str(out)]
     # A real SIGINT (Ctrl-C) as soon as the first pair's checkpoint exists: 5 pairs remain.
     code, err = _signal_at_first_checkpoint(argv, out, signal.SIGINT)
     checkpoint = out / "distances_checkpoint.npz"
@@ -416,3 +432,74 @@ def test_bench_reports_the_library_distance(capsys, tmp_path):
     assert solve["distance"] == pytest.approx(float(res.distance), rel=1e-12)
     assert solve["num_steps"] == int(res.num_steps)
     assert len(solve["runs_s"]) == 1 and summary["settings"]["grid"] == [M, N]
+
+
+def test_pca_and_shoot_equal_the_library_and_compose(tmp_path, capsys, monkeypatch):
+    """pca on a collection whose velocities at the mean span two known directions (the
+    Karcher part, tested above, replaced by a record): its modes, scores and mode paths
+    are the library's; shoot from its mean with its mode velocity lands where mode_path
+    does."""
+    from elastic_jax import _karcher
+
+    mean = np.asarray(shapes.sample(shapes.ellipsoid, M, N, axes=(1.0, 0.8, 0.6)))
+    x, y, z = mean
+    stretch = np.stack([x, -0.5 * y, -0.5 * z])
+    squash = np.stack([0 * x, y, -z])
+    a, b = np.array([0.3, -0.1, 0.2, -0.4]), np.array([0.1, 0.2, -0.2, -0.1])
+    velocities = 0.5 * (a[:, None, None, None] * stretch + b[:, None, None, None] * squash)
+
+    def karcher_mean(collection, metric, **kwargs):
+        k = collection.shape[0]
+        return ej.KarcherResult(
+            mean=mean,
+            distances=np.ones(k),
+            registered=collection,
+            velocities=velocities,
+            geodesics_converged=np.ones(k, bool),
+            history=np.array([[4.0, 1e-9, 0.0]]),
+            converged=True,
+            num_steps=0,
+            num_solves=1,
+            result="mean_velocity_small",
+        )
+
+    monkeypatch.setattr(_karcher, "karcher_mean", karcher_mean)
+    files = [_save(tmp_path, f"s{i}.npz", shapes.sample(shapes.sphere, M, N)) for i in range(4)]
+    out = tmp_path / "pca"
+    argv = ["pca", *files, *SHAPE, "--modes", "3", "--mode-times", "4", "--out", str(out)]
+    assert cli.main(argv) == 0
+    summary = json.loads(capsys.readouterr().out)
+
+    pca = ej.tangent_pca((mean, velocities), METRIC)
+    assert pca.modes.shape[0] == 2  # rank 2: a third mode asked for is not there
+    assert summary["settings"]["modes"] == 2
+    np.testing.assert_allclose(summary["pca"]["explained"], pca.explained, rtol=1e-12)
+    saved = np.load(out / "pca.npz")
+    np.testing.assert_allclose(saved["modes"], pca.modes, atol=1e-12)
+    centred = velocities - velocities.mean(axis=0)
+    rebuilt = np.einsum("ik,k...->i...", saved["scores"], saved["modes"])
+    assert np.max(np.abs(rebuilt - centred)) <= 1e-10 * np.max(np.abs(centred))
+    scores = json.loads((out / "scores.json").read_text())
+    assert scores["scores"]["s2"] == pytest.approx(np.asarray(pca.scores[2]).tolist(), rel=1e-12)
+    # All the variance is in the two modes: their sum is the centred velocities' mean G-norm^2.
+    norms2 = [float(ej.metric_inner(METRIC, mean, w, w)) for w in centred]
+    assert summary["pca"]["total_variance"] == pytest.approx(np.mean(norms2), rel=1e-10)
+
+    options = {"n_times": 4, "degree": 4, "sigmas": 2.0}
+    path = np.asarray(ej.mode_path(pca, 0, METRIC, **options))
+    np.testing.assert_allclose(saved["mode_paths"][0], path, atol=1e-9)
+    plus = trimesh.load(out / "mode1_plus.ply", process=False).vertices
+    assert np.max(np.abs(plus - io.grid_to_mesh(path[-1]).vertices)) < 1e-6
+
+    shot = tmp_path / "shoot"
+    argv = ["shoot", str(out / "mean.npz"), str(out / "mode1_velocity.npz"), "--scale", "2"]
+    argv += ["--degree", "4", "--times", "4", "--quiet", *CACHE, "--out", str(shot)]
+    assert cli.main(argv) == 0
+    summary = json.loads(capsys.readouterr().out)
+    endpoint = np.load(shot / "shoot.npz")["endpoint"]
+    np.testing.assert_array_equal(np.load(shot / "path" / "path.npz")["path"][-1], endpoint)
+    assert np.max(np.abs(endpoint - path[-1])) <= 1e-9 * np.max(np.abs(path[-1]))
+    # The shot's length is the initial velocity's G-norm, 2 sigma_1, to first order in 1/N.
+    sigma = float(np.sqrt(pca.variances[0]))
+    assert summary["length"] == pytest.approx(2 * sigma, rel=0.05)
+    assert summary["converged"] is True and len(summary["speeds"]) == 3

@@ -364,3 +364,53 @@ def test_mean_is_invariant_to_reparametrization_and_rotation():
     )
     assert float(to_f) < 0.1 * float(reference.distance)
     assert float(jnp.max(res.distances)) < 0.1 * float(reference.distance)
+
+
+def _top_level_traces(call) -> list[str]:
+    """The functions JAX traced for a new compiled program while ``call()`` ran."""
+    import jax
+
+    names = []
+
+    def listener(event, duration_secs, **kwargs):
+        if event == "/jax/core/compile/jaxpr_trace_duration":
+            names.append(kwargs.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        call()
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    return names
+
+
+@pytest.mark.filterwarnings("ignore::elastic_jax.ConvergenceWarning")  # max_steps=1
+def test_new_surfaces_on_the_same_grid_trace_nothing_new():
+    """Everything that changes a compiled program is static (grid, options, dtype): a
+    second call with other surfaces reuses the first call's programs, for a geodesic, a
+    shape geodesic and a Karcher step."""
+    first = _collection()
+    second = jnp.stack(
+        [
+            shapes.sample(shapes.ellipsoid, M, N, axes=(0.9, 1.2, 0.8)),
+            shapes.sample(shapes.bumpy, M, N, scale=0.8, rotation=shapes.random_rotation(4)),
+            shapes.sample(shapes.sphere, M, N, radius=1.4),
+        ]
+    )
+    calls = {
+        "geodesic": lambda c: ej.geodesic(c[0], c[1], METRIC, degree=3, n_times=5).distance,
+        "shape_geodesic": lambda c: ej.shape_geodesic(
+            c[0], c[2], METRIC, modulo="rigid", options=SHAPE
+        ).distance,
+        "karcher step": lambda c: ej.karcher_mean(
+            c, METRIC, modulo="rigid", options=SHAPE, strategy="loop", max_steps=1
+        ).mean,
+    }
+    import jax
+
+    # The listener sees a new program's trace (and only the outermost one).
+    assert _top_level_traces(lambda: jax.jit(lambda x: jnp.sin(x) + 1)(2.0)) == ["<lambda>"]
+    for name, call in calls.items():
+        _top_level_traces(lambda call=call: np.asarray(call(first)))
+        again = _top_level_traces(lambda call=call: np.asarray(call(second)))
+        assert again == [], (name, again)

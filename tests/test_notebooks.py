@@ -1,4 +1,4 @@
-"""The four notebooks run top to bottom (nbclient) and reach the numbers they promise.
+"""The notebooks run top to bottom (nbclient) and reach the numbers they promise.
 
 Each notebook's last cell prints a JSON line of its results; the tests read it back.
 """
@@ -60,3 +60,30 @@ def test_any_mesh_notebook():
     assert out["min_jacobian"] > 0
     # MATH.md 9: the area bound holds for every quotient; registration lowers the distance.
     assert out["area_bound"] <= out["shape"] < out["parametrized"]
+
+
+def test_statistics_notebook():
+    out, figures = _run("05_statistics")
+    assert figures == 2  # the modes, then A, A', B, B'
+    assert out["karcher_result"] in ("mean_velocity_small", "sum_sq_stalled")
+    history = np.asarray(out["karcher_history"])
+    assert history[-1, 0] < 0.9 * history[0, 0]  # measured 2.29 from 2.84
+    assert history[-1, 1] < 1e-3 * history[0, 1]  # measured 4.6e-5 from 0.30
+    # Two factors, two modes: measured 0.761 + 0.239 = 0.99953 of the variance, and each
+    # factor read back from the two scores with R^2 0.995 and 0.998.
+    explained = np.asarray(out["explained"])
+    assert explained[:2].sum() >= 0.998 and explained[1] >= 0.15
+    assert min(out["factor_r2"]) >= 0.98
+    # Transport keeps the deformation's size (drift measured -6.1e-3; d(B, B') / d(A, A')
+    # - 1 measured -9e-5), which copying the vector's coordinates does not (+13 %).
+    assert out["transport_converged"]
+    assert abs(out["norm_drift"]) <= 0.02
+    assert out["distance_b"] == pytest.approx(out["distance_a"], rel=0.01)
+    assert out["norm_a"] == pytest.approx(out["distance_a"], rel=0.02)
+    assert out["copied_norm_b"] > 1.05 * out["norm_a"]
+    # The 25 % stretch along x carries over as a stretch along x: B' / B measured
+    # (1.290, 0.952, 0.995) against A' / A = (1.25, 1, 1).
+    ratio_a, ratio_b = np.log(out["ratio_a"]), np.log(out["ratio_b"])
+    np.testing.assert_allclose(ratio_a, [np.log(1.25), 0.0, 0.0], atol=1e-12)
+    assert abs(ratio_b[0] - ratio_a[0]) <= 0.06
+    assert np.max(np.abs(ratio_b[1:])) <= 0.08

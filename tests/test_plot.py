@@ -261,3 +261,134 @@ def test_plot_distance_matrix_rejects_bad_matrices(change, message):
 def test_plot_distance_matrix_rejects_wrong_labels():
     with pytest.raises(ValueError, match=r"got 2 labels for a 4 x 4 matrix"):
         plot.plot_distance_matrix(_distances(), labels=["a", "b"])
+
+
+# plot_modes: tiny grids, so that shooting a mode compiles and runs in seconds.
+MM, NM = 9, 17
+
+
+def _drawn_quads(ax):
+    # A 3D collection keeps its faces only privately (``_faces``, matplotlib >= 3.10).
+    (coll,) = ax.collections
+    return np.asarray(coll._faces)
+
+
+def _mode_paths(count=9):
+    """Two synthetic mode paths through one ellipsoid: x stretched, then z stretched."""
+    mean = np.array(shapes.sample(shapes.ellipsoid, MM, NM))
+    s = np.linspace(-1.0, 1.0, count)[:, None, None, None]
+    along_x = mean * (1 + 0.2 * s * np.array([1.0, 0.0, 0.0])[:, None, None])
+    along_z = mean * (1 + 0.3 * s * np.array([0.0, 0.0, 1.0])[:, None, None])
+    return mean, [along_x, along_z]
+
+
+def test_plot_modes_draws_rows_of_modes_through_the_mean():
+    mean, paths = _mode_paths(9)
+    fig = plot.plot_modes(paths, explained=[0.7312, 0.2449], columns=5, sigmas=1.5)
+    assert len(fig.axes) == 2 * 5
+    assert [ax.name for ax in fig.axes] == ["3d"] * 10
+    sigmas = ["-1.5σ", "-0.75σ", "mean", "+0.75σ", "+1.5σ"]
+    assert _titles(fig) == [f"mode 1 (73.1%)\n{s}" for s in sigmas] + [
+        f"mode 2 (24.5%)\n{s}" for s in sigmas
+    ]
+    # Frames 0, 2, 4, 6, 8 of each path, cell by cell; the middle column is the mean.
+    for r in range(2):
+        for c, frame in enumerate((0, 2, 4, 6, 8)):
+            drawn = _drawn_quads(fig.axes[5 * r + c])
+            np.testing.assert_array_equal(drawn, plot._cells(paths[r][frame]))
+        np.testing.assert_array_equal(_drawn_quads(fig.axes[5 * r + 2]), plot._cells(mean))
+    # One box for every row and column: sizes compare across modes.
+    shown = np.stack([p[::2] for p in paths])
+    lo, hi = shown.min(axis=(0, 1, 3, 4)), shown.max(axis=(0, 1, 3, 4))
+    for ax in fig.axes:
+        limits = np.array([ax.get_xlim(), ax.get_ylim(), ax.get_zlim()])
+        np.testing.assert_allclose(limits, np.column_stack([lo, hi]), rtol=0, atol=1e-12)
+
+
+def test_plot_modes_selects_modes_and_columns():
+    _, paths = _mode_paths(9)
+    fig = plot.plot_modes(paths, modes=[1], columns=3)
+    # Without fractions the title has the mode number and the column's sigma only.
+    assert _titles(fig) == ["mode 2\n-2σ", "mode 2\nmean", "mode 2\n+2σ"]
+    np.testing.assert_array_equal(_drawn_quads(fig.axes[2]), plot._cells(paths[1][8]))
+    # Nine columns over 9 frames: every frame, in steps of sigmas / 4.
+    fig = plot.plot_modes(paths, modes=1, columns=9, explained=[0.99951, 0.0004])
+    assert len(fig.axes) == 9
+    assert _titles(fig)[5] == "mode 1 (100%)\n+0.5σ"
+
+
+@pytest.mark.slow  # shooting compiles for about 20 s on 2 cores
+def test_plot_modes_shoots_the_modes_of_a_tangent_pca():
+    import elastic_jax as ej
+
+    metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+    mean = np.array(shapes.sample(shapes.ellipsoid, MM, NM))
+    # Two hand-made directions (not from a solve): stretch along x, bulge along z.
+    modes = np.stack([mean * np.eye(3)[k][:, None, None] for k in (0, 2)])
+    pca = ej.TangentPCA(
+        mean=mean,
+        modes=modes,
+        variances=np.array([0.02, 0.005]),
+        explained=np.array([0.8, 0.2]),
+        scores=np.zeros((3, 2)),
+        mean_velocity=np.zeros_like(mean),
+    )
+    fig = plot.plot_modes(pca, metric, columns=5, sigmas=1.0, n_times=3, degree=3)
+    assert _titles(fig)[:3] == ["mode 1 (80%)\n-1σ", "mode 1 (80%)\n-0.5σ", "mode 1 (80%)\nmean"]
+    assert _titles(fig)[7] == "mode 2 (20%)\nmean"
+    for r in range(2):
+        path = np.asarray(ej.mode_path(pca, r, metric, sigmas=1.0, n_times=3, degree=3))
+        assert path.shape == (5, 3, MM, NM)
+        for c in range(5):
+            np.testing.assert_array_equal(_drawn_quads(fig.axes[5 * r + c]), plot._cells(path[c]))
+        np.testing.assert_array_equal(_drawn_quads(fig.axes[5 * r + 2]), plot._cells(mean))
+    # The shot ends are not the mean: the modes were drawn, not the base point five times.
+    ends = _drawn_quads(fig.axes[0]), _drawn_quads(fig.axes[4])
+    assert all(np.max(np.abs(e - plot._cells(mean))) > 0.02 for e in ends)
+    with pytest.raises(ValueError, match=r"mode indices \[2\] are out of range: the PCA has 2"):
+        plot.plot_modes(pca, metric, modes=[2])
+    with pytest.raises(ValueError, match=r"metric is needed to shoot the modes"):
+        plot.plot_modes(pca)
+    with pytest.raises(ValueError, match=r"explained is read from the TangentPCA"):
+        plot.plot_modes(pca, metric, explained=[0.5, 0.5])
+
+
+@pytest.mark.parametrize(
+    ("change", "kwargs", "message"),
+    [
+        (None, {"columns": 4}, r"columns=4 must be odd"),
+        (None, {"columns": 1}, r"columns must be an integer >= 3; got 1"),
+        (None, {"columns": 11}, r"columns=11 is more than the mode paths' 9 frames"),
+        (None, {"modes": 3}, r"modes=3 must be between 1 and the 2 modes of the given paths"),
+        (None, {"modes": [0, 2]}, r"mode indices \[2\] are out of range"),
+        (None, {"modes": []}, r"modes is an empty sequence"),
+        (None, {"modes": [0.5]}, r"modes must be a number of leading modes or a sequence"),
+        (None, {"sigmas": 0}, r"sigmas must be a positive finite number"),
+        (None, {"explained": [0.5]}, r"explained must hold one fraction per path, shape \(2,\)"),
+        (None, {"explained": [0.5, 1.5]}, r"explained must hold fractions in \[0, 1\]"),
+        (None, {"n_times": 5}, r"n_times only apply to a TangentPCA"),
+        (lambda p: [p[0], p[1][:, :, :-1]], {}, r"mode paths must all have one shape"),
+        (lambda p: [p[0][4]], {}, r"mode paths must all have one shape \(2N-1, 3, m, n\)"),
+        (lambda p: [p[0][:8]], {}, r"odd number of frames 2N-1 >= 3.*got 8"),
+        (lambda p: "paths", {}, r"pca_or_paths must be a TangentPCA or a sequence"),
+        (
+            lambda p: [np.where(np.arange(NM) == 3, np.nan, p[0])],
+            {},
+            r"mode paths contains 243 non-finite",
+        ),
+    ],
+)
+def test_plot_modes_rejects_bad_input(change, kwargs, message):
+    _, paths = _mode_paths(9)
+    if change is not None:
+        paths = change(paths)
+    with pytest.raises(ValueError, match=message):
+        plot.plot_modes(paths, **kwargs)
+
+
+def test_plot_modes_refuses_a_metric_with_paths():
+    import elastic_jax as ej
+
+    _, paths = _mode_paths(5)
+    with pytest.raises(ValueError, match=r"metric is only used with a TangentPCA"):
+        plot.plot_modes(paths, ej.SplitMetric(1.0, 1.0, 0.1, 0.0))

@@ -42,3 +42,25 @@ def test_readme_first_command_is_the_installed_demo():
     module, name = scripts["elastic-jax"].split(":")
     main = getattr(importlib.import_module(module), name)
     assert "demo" in main.__globals__["COMMANDS"]
+
+
+def test_readme_command_lines_parse():
+    """Every ``elastic-jax ...`` line README shows is accepted by the parser (no flag or
+    command that was renamed or never existed)."""
+    import shlex
+
+    from elastic_jax import cli
+
+    readme = (ROOT / "README.md").read_text()
+    lines = [
+        line.split("#")[0]
+        for block in re.findall(r"```bash\n(.*?)```", readme, re.S)
+        for line in block.splitlines()
+        if line.startswith("elastic-jax ")
+    ]
+    commands = {shlex.split(line)[1] for line in lines}
+    assert {"pca", "shoot", "karcher", "distances"} <= commands
+    parser = cli.build_parser()
+    for line in lines:
+        args = parser.parse_args(shlex.split(line)[1:])
+        assert args.command in cli.COMMANDS, line

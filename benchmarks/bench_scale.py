@@ -1,0 +1,211 @@
+"""Scale-out and first calls: distance matrices on Dask clusters, time to first result, memory.
+
+Three measurements, one JSON record each (settings, figures, environment):
+
+1. ``matrix``: pairs per second of a distance matrix of K shapes at 25 x 49 (metric
+   (1, 1, 0.1, 0), modulo "rigid", ShapeOptions(degree=5, vf_degree=5, n_times=7),
+   strategy "map", chunks of 4 pairs): in this process, and on LocalClusters of 1 and 2
+   worker processes (one thread each). Each configuration runs in a fresh process with
+   its own empty compilation cache, so every one pays its compilations; the record gives
+   the wall time, pairs per second, and the largest difference from the in-process
+   matrix. Shapes: the shared cats, horse and hand at unit area when ../shared/data is
+   there, then rotated ellipsoids and bumpy surfaces.
+2. ``first_call``: a fresh Python process solving one shape geodesic (the cats, modulo
+   "diff"), cold (empty persistent compilation cache) and warm (the cache filled by the
+   cold run): the paper's low row (12 x 25, degree 5 / 5, N = 5) and middle row
+   (25 x 49, 7 / 8, N = 10). Time from the start of the process (imports included) to
+   the result, the solve call alone, and the process's peak RSS.
+3. ``memory``: peak RSS of a fresh process for one 50 x 99 geodesic (degree 7, N = 13)
+   and one 25 x 49 shape geodesic at the defaults.
+
+Run: python benchmarks/bench_scale.py [--shapes 32] [--parts matrix,first_call,memory]
+     [--workers 1,2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+
+from _common import emit, environment
+
+HERE = __file__.rsplit("/", 1)[0]
+
+PRELUDE = r"""
+import json, resource, sys, time, warnings
+START = time.perf_counter()
+import jax
+jax.config.update("jax_enable_x64", True)
+import numpy as np
+sys.path.insert(0, {here!r})
+from _common import DATA
+import elastic_jax as ej
+from elastic_jax import shapes
+warnings.simplefilter("ignore", ej.ConvergenceWarning)
+metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+
+def rss_mb():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+def cats(m, n):
+    f1, f2 = (np.load(DATA / f"cat{{i}}_50x99.npz")["f"] for i in (1, 2))
+    return tuple(np.asarray(ej.resample(f, m, n)) for f in (f1, f2))
+"""
+
+MATRIX = r"""
+ej.enable_compilation_cache({cache!r})
+k, workers = {shapes}, {workers}
+m, n = 25, 49
+coll = []
+for name in ("cat1", "cat2", "horse0", "hand4"):
+    p = DATA / f"{{name}}_50x99.npz"
+    if p.exists() and len(coll) < k:
+        f = np.asarray(ej.center(ej.resample(np.load(p)["f"], m, n)))
+        coll.append(f / np.sqrt(float(ej.surface_area(f))))
+i = 0
+while len(coll) < k:
+    r = shapes.random_rotation(i)
+    if i % 2:
+        f = shapes.sample(shapes.ellipsoid, m, n, axes=(1.0, 0.8 + 0.02 * i, 0.6), rotation=r)
+    else:
+        f = shapes.sample(shapes.bumpy, m, n, scale=1.0 + 0.02 * i, rotation=r)
+    coll.append(np.asarray(f))
+    i += 1
+coll = np.stack(coll)
+options = ej.ShapeOptions(degree=5, vf_degree=5, n_times=7)
+kwargs = dict(modulo="rigid", options=options, strategy="map", batch_size=4)
+client = None
+if workers:
+    from dask.distributed import Client, LocalCluster
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           dashboard_address=None)
+    client = Client(cluster)
+    ej.enable_compilation_cache({cache!r}, client=client)
+t0 = time.perf_counter()
+res = ej.distance_matrix(coll, metric, client=client, **kwargs)
+seconds = time.perf_counter() - t0
+np.save({out!r}, np.asarray(res.distances))
+print(json.dumps({{"seconds": seconds, "pairs": k * (k - 1) // 2,
+                  "converged": int(np.asarray(res.converged).sum() - k) // 2,
+                  "rss_mb": rss_mb()}}))
+if client is not None:
+    client.close(); cluster.close()
+"""
+
+FIRST = r"""
+ej.enable_compilation_cache({cache!r})
+m, n = {grid}
+f1, f2 = cats(m, n)
+options = ej.ShapeOptions(degree={degree}, vf_degree={vf_degree}, n_times={n_times})
+t0 = time.perf_counter()
+res = ej.shape_geodesic(f1, f2, metric, modulo="diff", options=options)
+d = float(res.distance)
+t1 = time.perf_counter()
+print(json.dumps({{"to_result_s": t1 - START, "solve_s": t1 - t0, "distance": d,
+                  "converged": bool(res.converged), "rss_mb": rss_mb()}}))
+"""
+
+MEMORY = r"""
+m, n = {grid}
+f1, f2 = cats(m, n)
+if {shape}:
+    res = ej.shape_geodesic(f1, f2, metric, modulo="diff")
+else:
+    res = ej.geodesic(f1, f2, metric, degree=7, n_times=13)
+d = float(res.distance)
+print(json.dumps({{"distance": d, "rss_mb": rss_mb()}}))
+"""
+
+ROWS = {
+    "low": {"grid": (12, 25), "degree": 5, "vf_degree": 5, "n_times": 5},
+    "middle": {"grid": (25, 49), "degree": 7, "vf_degree": 8, "n_times": 10},
+}
+
+
+def run(script: str) -> dict:
+    start = time.perf_counter()
+    out = subprocess.run(
+        [sys.executable, "-c", PRELUDE.format(here=HERE) + script],
+        capture_output=True,
+        text=True,
+        timeout=7200,
+    )
+    if out.returncode != 0:
+        return {"error": out.stderr[-2000:], "process_s": time.perf_counter() - start}
+    record = json.loads(out.stdout.strip().splitlines()[-1])
+    record["process_s"] = time.perf_counter() - start
+    return record
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--shapes", type=int, default=32)
+    parser.add_argument("--workers", default="1,2", help="LocalCluster sizes")
+    parser.add_argument("--parts", default="matrix,first_call,memory")
+    args = parser.parse_args()
+    parts = args.parts.split(",")
+    env = environment()
+    import numpy as np
+
+    if "matrix" in parts:
+        reference = None
+        for workers in [0, *(int(w) for w in args.workers.split(",") if w)]:
+            with tempfile.TemporaryDirectory() as tmp:
+                out = f"{tmp}/d.npy"
+                record = run(
+                    MATRIX.format(
+                        cache=f"{tmp}/cache", shapes=args.shapes, workers=workers, out=out
+                    )
+                )
+                matrix = np.load(out) if "error" not in record else None
+            if matrix is not None:
+                if reference is None:
+                    reference = matrix
+                record["max_abs_diff_vs_in_process"] = float(np.abs(matrix - reference).max())
+                record["pairs_per_s"] = record["pairs"] / record["seconds"]
+            emit(
+                {
+                    "benchmark": "matrix",
+                    "where": "in process" if workers == 0 else f"LocalCluster({workers} workers)",
+                    "settings": {
+                        "shapes": args.shapes,
+                        "grid": [25, 49],
+                        "modulo": "rigid",
+                        "options": {"degree": 5, "vf_degree": 5, "n_times": 7},
+                        "strategy": "map",
+                        "batch_size": 4,
+                    },
+                    **record,
+                    "environment": env,
+                }
+            )
+    if "first_call" in parts:
+        for row, settings in ROWS.items():
+            with tempfile.TemporaryDirectory() as tmp:
+                script = FIRST.format(cache=f"{tmp}/cache", **settings)
+                cold, warm = run(script), run(script)
+            emit(
+                {
+                    "benchmark": "first_call",
+                    "row": row,
+                    "settings": {**settings, "modulo": "diff", "pair": "cat1 -> cat2"},
+                    "cold": cold,
+                    "warm": warm,
+                    "environment": env,
+                }
+            )
+    if "memory" in parts:
+        for label, grid, shape in (
+            ("geodesic 50 x 99, degree 7, N 13", (50, 99), False),
+            ("shape_geodesic 25 x 49, defaults", (25, 49), True),
+        ):
+            record = run(MEMORY.format(grid=grid, shape=shape))
+            emit({"benchmark": "memory", "solve": label, **record, "environment": env})
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,145 @@
+"""Distance matrices and Karcher steps on a Dask cluster (``pip install "elastic-jax[dask]"``).
+
+Dask distributed is the scientific Python stack's engine for independent tasks of unequal
+length on many machines (LocalCluster on a laptop, dask-jobqueue on Slurm or PBS,
+dask-kubernetes): it moves the data, balances the load by work stealing and reruns the
+task of a worker that died. This module only cuts a job into tasks and collects them:
+
+- A task is one chunk of pairs (or of shapes, for a Karcher step), padded to the job's
+  chunk size like an in-process chunk, and computed by the same function
+  (``_karcher._distance_chunk`` / ``_velocity_chunk``): each worker compiles one program
+  for the whole job, and each pair's numbers do not depend on where it ran (lax.map and
+  the loop solve every item on its own; vmap runs a chunk in lockstep, as in process).
+- The collection is scattered to the workers once; a task carries only its indices.
+- A task runs under the caller's 64-bit setting (``jax.enable_x64`` as a context, so the
+  worker's global configuration is left alone): float64 stays float64 on every worker.
+- Results are handed back as they finish (``as_completed``): the caller checkpoints
+  each one, so a job stopped at any point resumes with what had arrived.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+
+import jax
+import numpy as np
+
+from ._checks import InputError
+
+try:
+    import distributed
+    from distributed.diagnostics.plugin import WorkerPlugin
+except ImportError as err:  # pragma: no cover - the extra is part of the test install
+    raise ImportError(
+        'a Dask client needs Dask distributed: pip install "elastic-jax[dask]"'
+    ) from err
+
+
+class CompilationCache(WorkerPlugin):
+    """Turns JAX's persistent compilation cache on in every worker, those that join or
+    restart later included (a worker is a process of its own)."""
+
+    def __init__(self, path: str, min_compile_time_s: float):
+        self.path, self.min_compile_time_s = path, min_compile_time_s
+
+    def setup(self, worker) -> None:
+        from ._cache import _enable_here
+
+        _enable_here(self.path, self.min_compile_time_s)
+
+
+def connect(client):
+    """``(client, owned)``: a ``distributed.Client`` as given, or a new one for a scheduler
+    address (owned: the caller closes it when the job ends)."""
+    if isinstance(client, distributed.Client):
+        return client, False
+    if isinstance(client, str | os.PathLike):
+        return distributed.Client(os.fspath(client)), True
+    raise InputError(
+        "client must be a dask.distributed.Client or a scheduler address such as "
+        f"'tcp://host:8786'; got {type(client).__name__}"
+    )
+
+
+def _pairs_task(shapes, rows, cols, settings, size, x64):
+    from ._karcher import _distance_chunk
+
+    with jax.enable_x64(x64):
+        out = _distance_chunk(shapes[rows], shapes[cols], *settings, size)
+        return tuple(np.asarray(x) for x in out)
+
+
+def _shapes_task(shapes, index, mean, settings, size, x64):
+    from ._karcher import _velocity_chunk
+
+    with jax.enable_x64(x64):
+        out = _velocity_chunk(mean, shapes[index], *settings, size)
+        return tuple(np.asarray(x) for x in out)
+
+
+class Pool:
+    """One job's link to a cluster: the scattered collection and the solve's settings.
+
+    Use as a context manager: a client made from an address is closed at the end, and the
+    collection is released from the workers' memory.
+    """
+
+    def __init__(self, client, shapes, metric, modulo, options, strategy):
+        self.client, self._owned = connect(client)
+        self._x64 = bool(jax.config.read("jax_enable_x64"))
+        self._dtype = np.asarray(shapes).dtype
+        # Every worker gets the collection once (broadcast): tasks carry indices only.
+        self._shapes = self.client.scatter(np.asarray(shapes), broadcast=True, hash=False)
+        self._settings = (metric, modulo, options, strategy)
+
+    def __enter__(self) -> Pool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._shapes.release()
+        if self._owned:
+            self.client.close()
+
+    def _as_completed(self, futures: dict, finished: Callable) -> None:
+        """Call ``finished(key, result)`` as each task ends, in the order they end."""
+        try:
+            for future in distributed.as_completed(list(futures)):
+                finished(futures[future], future.result())
+        finally:
+            # On an error or Ctrl-C, the tasks not collected are not left running.
+            self.client.cancel([f for f in futures if not f.done()])
+
+    def _submit(self, task, *args, size: int):
+        """One task on the scattered collection with this job's settings; never cached
+        by Dask (pure=False): a rerun after a resume solves again."""
+        return self.client.submit(
+            task, self._shapes, *args, self._settings, size, self._x64, pure=False
+        )
+
+    def distances(self, rows, cols, chunks, size: int, finished: Callable) -> None:
+        """Solve the pairs (rows[a:b], cols[a:b]) of every chunk (a, b);
+        ``finished((a, b), (distances, converged, refinement_change))`` as each ends."""
+        futures = {
+            self._submit(_pairs_task, rows[a:b], cols[a:b], size=size): (a, b) for a, b in chunks
+        }
+        self._as_completed(futures, finished)
+
+    def velocities(self, mean, chunks, size: int) -> tuple:
+        """The geodesics from every shape to ``mean``, chunk by chunk: the ``_Solved``
+        fields, each with the shapes' leading axis."""
+        mean = np.asarray(mean, self._dtype)
+        futures = {
+            self._submit(_shapes_task, np.arange(a, b), mean, size=size): i
+            for i, (a, b) in enumerate(chunks)
+        }
+        parts = [None] * len(chunks)
+
+        def finished(i, result):
+            parts[i] = result
+
+        self._as_completed(futures, finished)
+        return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
