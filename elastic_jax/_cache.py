@@ -12,7 +12,13 @@ from ._checks import check_positive
 
 
 def _enable_here(path: str, min_compile_time_s: float) -> None:
-    jax.config.update("jax_compilation_cache_dir", path)
+    from jax.experimental.compilation_cache import compilation_cache
+
+    if jax.config.jax_compilation_cache_dir != path:
+        jax.config.update("jax_compilation_cache_dir", path)
+        # JAX opens the cache directory once, at the first compilation that uses it, and
+        # keeps it: a new directory needs the cache started again.
+        compilation_cache.reset_cache()
     jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_time_s)
 
 
@@ -28,8 +34,8 @@ def enable_compilation_cache(
     A shape solve compiles for 15-60 s on 2 CPU cores and loads from the cache in about
     a second. This sets two global JAX options of this process
     (``jax_compilation_cache_dir`` and ``jax_persistent_cache_min_compile_time_secs``);
-    it is the one place where the library does, and only when called. Call it before the
-    first solve: JAX reads the directory when it first compiles.
+    it is the one place where the library does, and only when called. Programs compiled
+    before the call are not stored; later ones are.
 
     Args:
         path: a directory (created). With ``client``, a path every worker can reach
