@@ -473,6 +473,8 @@ def test_pca_and_shoot_equal_the_library_and_compose(tmp_path, capsys, monkeypat
     pca = ej.tangent_pca((mean, velocities), METRIC)
     assert pca.modes.shape[0] == 2  # rank 2: a third mode asked for is not there
     assert summary["settings"]["modes"] == 2
+    written = {pathlib.Path(f).name for f in summary["files"]}
+    assert {"modes.png", "mode2_minus.ply", "mode2_velocity.npz", "scores.json"} <= written
     np.testing.assert_allclose(summary["pca"]["explained"], pca.explained, rtol=1e-12)
     saved = np.load(out / "pca.npz")
     np.testing.assert_allclose(saved["modes"], pca.modes, atol=1e-12)
