@@ -55,7 +55,10 @@ def connect(client):
     if isinstance(client, distributed.Client):
         return client, False
     if isinstance(client, str | os.PathLike):
-        return distributed.Client(os.fspath(client)), True
+        try:
+            return distributed.Client(os.fspath(client)), True
+        except OSError as err:  # unreachable, refused or timed out
+            raise InputError(f"client {os.fspath(client)!r}: cannot connect ({err})") from err
     raise InputError(
         "client must be a dask.distributed.Client or a scheduler address such as "
         f"'tcp://host:8786'; got {type(client).__name__}"

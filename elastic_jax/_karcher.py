@@ -220,10 +220,21 @@ def _batched(batch_call: Callable, single_call: Callable, batch, strategy: str) 
     return batch_call(batch, strategy)
 
 
+def _solve_chunk(batch_call: Callable, single_call: Callable, batch, strategy: str, size: int):
+    """``_batched`` over a chunk (a pytree, leading axis b) padded to ``size`` items, the
+    compiled batch shape (the padding is dropped): every chunk of a job runs one compiled
+    program, here or on a Dask worker. The loop strategy solves one item at a time and is
+    not padded. The solves' ConvergenceWarnings are silenced: callers report each item's
+    status."""
+    b = jax.tree_util.tree_leaves(batch)[0].shape[0]
+    padded = batch if strategy == "loop" else _padded(batch, size)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        return tuple(out[:b] for out in _batched(batch_call, single_call, padded, strategy))
+
+
 def _velocity_chunk(mean, chunk, metric, modulo, options, strategy, size) -> tuple:
-    """The geodesics from ``chunk`` (b, 3, m, n) to ``mean``: the _Solved fields for the b
-    shapes. The chunk is padded to ``size`` shapes (the compiled batch shape; the padding
-    is dropped): every chunk of a job runs one compiled program, here or on a worker."""
+    """The geodesics from ``chunk`` (b, 3, m, n) to ``mean``: the _Solved fields."""
 
     def batch_call(batch, mode):
         return _velocities_batch(mean, batch, metric, modulo=modulo, options=options, mode=mode)
@@ -231,17 +242,11 @@ def _velocity_chunk(mean, chunk, metric, modulo, options, strategy, size) -> tup
     def single_call(shape):
         return _one_geodesic(mean, shape, metric, modulo, options)
 
-    b = chunk.shape[0]
-    # The loop strategy solves one shape at a time: nothing to pad.
-    padded = chunk if strategy == "loop" else _padded(chunk, size)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)  # reported per shape
-        return tuple(out[:b] for out in _batched(batch_call, single_call, padded, strategy))
+    return _solve_chunk(batch_call, single_call, chunk, strategy, size)
 
 
 def _distance_chunk(first, second, metric, modulo, options, strategy, size) -> tuple:
-    """Distance, status and refinement change of the pairs (first[i], second[i]), padded
-    to ``size`` pairs as :func:`_velocity_chunk` pads."""
+    """Distance, status and refinement change of the pairs (first[i], second[i])."""
 
     def batch_call(batch, mode):
         return _distances_batch(batch, metric, modulo=modulo, options=options, mode=mode)
@@ -249,11 +254,7 @@ def _distance_chunk(first, second, metric, modulo, options, strategy, size) -> t
     def single_call(pair):
         return _pair_distance(pair[0], pair[1], metric, modulo, options)
 
-    b = first.shape[0]
-    pairs = (first, second) if strategy == "loop" else _padded((first, second), size)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)  # reported in `converged`
-        return tuple(out[:b] for out in _batched(batch_call, single_call, pairs, strategy))
+    return _solve_chunk(batch_call, single_call, (first, second), strategy, size)
 
 
 def _chunks(n: int, size: int | None):

@@ -766,9 +766,16 @@ def _run_pca(args, progress: Progress) -> dict:
     if n_modes < args.modes:
         progress(f"{k} shapes span at most {k - 1} modes: keeping {n_modes}")
     # Modes whose variance is at round-off (tangent_pca's rtol) are not modes: fewer kept.
+    # The kept ones are the leading ones of the full decomposition (explained is already
+    # relative to the total variance).
     full = tangent_pca(karcher, metric)
     n_modes = min(n_modes, int(full.modes.shape[0]))
-    pca = tangent_pca(karcher, metric, n_modes=n_modes)
+    pca = full._replace(
+        modes=full.modes[:n_modes],
+        variances=full.variances[:n_modes],
+        explained=full.explained[:n_modes],
+        scores=full.scores[:, :n_modes],
+    )
     explained = np.asarray(pca.explained)
     progress("explained variance by mode: " + ", ".join(f"{100 * e:.1f} %" for e in explained))
     # Shot with the scheme of the mean's geodesics (central is refused by _preflight).
@@ -856,15 +863,13 @@ def _load_velocity(name: str, shape: tuple, dtype: str):
 
     try:
         with np.load(name) as data:
-            key = next((k for k in ("v", "velocity") if k in data.files), None)
-            if key is None:
-                found = ", ".join(data.files) or "none"
-                raise BadInput(f"{name}: no array v or velocity in it (it has {found})")
-            v = np.asarray(data[key])
-    except BadInput:
-        raise
+            arrays = {k: np.asarray(data[k]) for k in ("v", "velocity") if k in data.files}
+            found = ", ".join(data.files) or "none"
     except (OSError, ValueError) as err:
         raise BadInput(f"{name}: not a readable .npz ({err})") from err
+    if not arrays:
+        raise BadInput(f"{name}: no array v or velocity in it (it has {found})")
+    v = arrays.get("v", arrays.get("velocity"))
     if v.shape != shape:
         raise BadInput(
             f"{name}: the velocity has shape {v.shape}, the surface {shape}; a velocity "

@@ -145,6 +145,7 @@ def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, caps
         "shoot no file": (["shoot", good, str(tmp_path / "absent.npz")], "absent.npz"),
         "shoot no v": (["shoot", good, good], "no array v"),
         "shoot shape": (["shoot", good, wrong], "shape (3, 9, 17)"),
+        "workers": (["distances", good, good, "--workers", "0"], "--workers"),
     }
     for key, (argv, word) in cases.items():
         code = cli.main(

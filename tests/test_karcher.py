@@ -399,12 +399,14 @@ def test_new_surfaces_on_the_same_grid_trace_nothing_new():
     )
     calls = {
         "geodesic": lambda c: ej.geodesic(c[0], c[1], METRIC, degree=3, n_times=5).distance,
-        "shape_geodesic": lambda c: ej.shape_geodesic(
-            c[0], c[2], METRIC, modulo="rigid", options=SHAPE
-        ).distance,
-        "karcher step": lambda c: ej.karcher_mean(
-            c, METRIC, modulo="rigid", options=SHAPE, strategy="loop", max_steps=1
-        ).mean,
+        "shape_geodesic": lambda c: (
+            ej.shape_geodesic(c[0], c[2], METRIC, modulo="rigid", options=SHAPE).distance
+        ),
+        "karcher step": lambda c: (
+            ej.karcher_mean(
+                c, METRIC, modulo="rigid", options=SHAPE, strategy="loop", max_steps=1
+            ).mean
+        ),
     }
     import jax
 
