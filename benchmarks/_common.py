@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import pathlib
 import platform
@@ -47,9 +48,20 @@ def time_calls(fn: Callable[[], object], repeats: int) -> dict:
     return {"min_s": min(times), "median_s": statistics.median(times), "repeats": repeats}
 
 
+def _finite(value):
+    """NaN and inf (a failed step's figures) as null: JSON has no such numbers."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
+
+
 def emit(record: dict) -> None:
-    """Print one JSON record per line (machine-readable)."""
-    print(json.dumps(record, sort_keys=True), flush=True)
+    """Print one JSON record per line (machine-readable; NaN and inf as null)."""
+    print(json.dumps(_finite(record), sort_keys=True, allow_nan=False), flush=True)
 
 
 DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data"

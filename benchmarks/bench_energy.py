@@ -6,6 +6,16 @@ between two built-in synthetic surfaces. Prints one JSON record per dtype: compi
 (ahead of time, separately) and the min and median of repeated calls.
 Target on a 2-core CPU: float64 median at most 10 ms.
 
+Roofline (issue 14: within 3x of it where the authors' code cannot be run alongside):
+XLA's cost analysis of the compiled value-and-gradient gives its floating-point
+operations and bytes accessed; this machine's attainable peaks are measured here, in the
+same process and dtype: a 1024 x 1024 matrix product (2 n^3 flops) and a 32 MiB
+elementwise add (bytes read and written). flop_bound_s = flops / peak_flops,
+byte_bound_s = bytes / peak_bandwidth, roofline_s the larger; the record gives
+median_s over each. XLA counts every operation's operands and results as memory traffic
+(as if nothing stayed in cache), so its byte bound is an upper bound on the traffic and
+the flop bound is the one a fused kernel can approach.
+
 Run: python benchmarks/bench_energy.py [--repeats 50] [--m 50 --n 99 --n-times 13]
 """
 
@@ -39,6 +49,40 @@ def end_surfaces(m: int, n: int) -> tuple[np.ndarray, np.ndarray, str]:
     return f1, f2, "bumpy -> bent_cylinder (synthetic)"
 
 
+def machine_peaks(dtype, repeats: int = 10) -> dict:
+    """Attainable flop rate (a matrix product) and memory bandwidth (an elementwise add)."""
+    n = 1024
+    a = jnp.ones((n, n), dtype)
+    matmul = jax.jit(lambda x: x @ x).lower(a).compile()
+    flops = time_calls(lambda: matmul(a), repeats)["min_s"]
+    size = 32 * 2**20 // jnp.dtype(dtype).itemsize
+    x = jnp.ones(size, dtype)
+    add = jax.jit(lambda x: x + 1).lower(x).compile()
+    stream = time_calls(lambda: add(x), repeats)["min_s"]
+    return {
+        "peak_flops_per_s": 2.0 * n**3 / flops,
+        "peak_bytes_per_s": 2.0 * size * jnp.dtype(dtype).itemsize / stream,
+    }
+
+
+def roofline_of(compiled, dtype) -> dict:
+    """XLA's flop and byte counts of a compiled function and the time they bound it to."""
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, list | tuple) else cost
+    flops, moved = float(cost.get("flops", 0.0)), float(cost.get("bytes accessed", 0.0))
+    peaks = machine_peaks(dtype)
+    flop_bound = flops / peaks["peak_flops_per_s"]
+    byte_bound = moved / peaks["peak_bytes_per_s"]
+    return {
+        "xla_flops": flops,
+        "xla_bytes_accessed": moved,
+        **peaks,
+        "flop_bound_s": flop_bound,
+        "byte_bound_s": byte_bound,
+        "roofline_s": max(flop_bound, byte_bound),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--m", type=int, default=50)
@@ -70,6 +114,7 @@ def main() -> None:
         timing = time_calls(
             lambda compiled=compiled, interior=interior: compiled(interior), args.repeats
         )
+        roofline = roofline_of(compiled, dtype)
         emit(
             {
                 "benchmark": "path_energy_value_and_grad",
@@ -88,6 +133,9 @@ def main() -> None:
                 "grad_norm": float(jnp.linalg.norm(grad)),
                 "grad_rel_l2_error_vs_float64": float(grad_error),
                 "target_median_s": 0.010 if dtype == jnp.float64 else None,
+                **roofline,
+                "median_over_roofline": timing["median_s"] / roofline["roofline_s"],
+                "median_over_flop_bound": timing["median_s"] / roofline["flop_bound_s"],
                 "environment": env,
             }
         )

@@ -40,13 +40,14 @@ class CompilationCache(WorkerPlugin):
     """Turns JAX's persistent compilation cache on in every worker, those that join or
     restart later included (a worker is a process of its own)."""
 
-    def __init__(self, path: str, min_compile_time_s: float):
+    def __init__(self, path: str, min_compile_time_s: float, exported: bool = True):
         self.path, self.min_compile_time_s = path, min_compile_time_s
+        self.exported = exported
 
     def setup(self, worker) -> None:
         from ._cache import _enable_here
 
-        _enable_here(self.path, self.min_compile_time_s)
+        _enable_here(self.path, self.min_compile_time_s, self.exported)
 
 
 def connect(client):

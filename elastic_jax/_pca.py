@@ -144,7 +144,9 @@ def mode_path(
     +-sigmas sqrt(lambda_k) e_k.
 
     Returns:
-        ``(2 n_times - 1, 3, m, n)``: exp(-s sigma e) ... mean ... exp(+s sigma e).
+        ``(2 n_times - 1, 3, m, n)``: exp(-s sigma e) ... mean ... exp(+s sigma e). A
+        shot whose Newton solve fails warns (ConvergenceWarning) and leaves NaN nodes at
+        that end of the path (see :func:`shoot`); a finite path converged.
     """
     mode = check_int("mode", mode, 0)
     if mode >= pca.modes.shape[0]:

@@ -26,6 +26,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ._cache import exported_call
 from ._checks import is_concrete
 from ._differential import area_element, interior_frame
 from ._energy import frame_energy
@@ -759,6 +760,9 @@ def _shape_solve(metric, f1, f2, bases, cfg, rigid):
 
 
 _shape_geodesic = jax.jit(_shape_solve, static_argnames=("cfg", "rigid"))
+# The structure of _shape_solve's result (leaves are placeholders), to rebuild it from an
+# exported program's flat outputs (see _cache.exported_call).
+_RESULT_SKELETON = ShapeGeodesicResult(*([0] * 12), RESULTS.successful, 0, 0, Refinement(0, 0, 0))
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "rigid"))
@@ -875,8 +879,13 @@ def shape_geodesic(
     # As in geodesic: the solve runs on constants and the energy is evaluated again,
     # differentiably, at the solution (envelope theorem: the derivative of the minimal
     # energy in f1, f2 and the metric, with gamma, R and C held).
-    solved = _shape_geodesic(
-        constant(metric), jax.lax.stop_gradient(g1), jax.lax.stop_gradient(g2), bases, cfg, rigid
+    solved = exported_call(
+        "shape_solve",
+        _shape_solve,
+        _shape_geodesic,
+        (constant(metric), jax.lax.stop_gradient(g1), jax.lax.stop_gradient(g2), bases),
+        {"cfg": cfg, "rigid": rigid},
+        _RESULT_SKELETON,
     )
     gamma, rotation, coefficients = (
         jax.lax.stop_gradient(x) for x in (solved.gamma, solved.rotation, solved.coefficients)

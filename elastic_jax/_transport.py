@@ -24,7 +24,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._checks import InputError, check_choice, check_int, check_positive, is_concrete
 from ._energy import as_path
@@ -44,7 +44,9 @@ class TransportResult(NamedTuple):
         norms: ``(N,)`` sqrt(G_{f_k}(w_k, w_k)); constant under exact transport.
         norm_drift: ``()`` norms[-1] / norms[0] - 1.
         residuals: ``(N - 1, 2)`` relative residuals of each rung's midpoint and reflection
-            solves (the midpoint's is 0 for ``midpoint="affine"``).
+            solves (the midpoint's is 0 for ``midpoint="affine"``); NaN after a failed rung.
+        n_valid: ``()`` how many leading vectors are transports: N when converged; the
+            rung that failed and the later ones give NaN vectors and norms.
         converged: ``()`` every Newton solve met its tolerance.
     """
 
@@ -53,6 +55,7 @@ class TransportResult(NamedTuple):
     norms: Float[Array, " N"]
     norm_drift: Float[Array, ""]
     residuals: Float[Array, "K 2"]
+    n_valid: Int[Array, ""]
     converged: Array
 
 
@@ -63,26 +66,40 @@ def _ladder(metric, w, path, values, dframe, *, scheme, midpoint, tol, max_newto
     options = {"tol": tol, "max_newton": max_newton}
 
     def rung(carry, nodes):
-        w_k, c_mid, c_ref = carry
+        w_k, c_mid, c_ref, alive = carry
         f_k, f_next = nodes
-        p = f_k + h * w_k
-        if midpoint == "exact":
-            m, c_mid, r_mid, _, ok_mid = _node_solve(
-                metric, scheme, p, f_next, c_mid, values, dframe, unknown="middle", **options
+
+        def solve(_):
+            p = f_k + h * w_k
+            if midpoint == "exact":
+                m, c_m, r_mid, _, ok_mid = _node_solve(
+                    metric, scheme, p, f_next, c_mid, values, dframe, unknown="middle", **options
+                )
+            else:
+                m, c_m = 0.5 * (p + f_next), c_mid
+                r_mid, ok_mid = jnp.zeros((), w.dtype), jnp.array(True)
+            q, c_r, r_ref, _, ok_ref = _node_solve(
+                metric, scheme, f_k, m, c_ref, values, dframe, unknown="next", **options
             )
-        else:
-            m, r_mid, ok_mid = 0.5 * (p + f_next), jnp.zeros((), w.dtype), jnp.array(True)
-        q, c_ref, r_ref, _, ok_ref = _node_solve(
-            metric, scheme, f_k, m, c_ref, values, dframe, unknown="next", **options
-        )
-        w_next = (q - f_next) / h
-        return (w_next, c_mid, c_ref), (w_next, jnp.stack([r_mid, r_ref]), ok_mid & ok_ref)
+            return (q - f_next) / h, c_m, c_r, jnp.stack([r_mid, r_ref]), ok_mid & ok_ref
+
+        def skip(_):
+            nan = jnp.asarray(jnp.nan, w.dtype)
+            return jnp.full_like(w_k, nan), c_mid, c_ref, jnp.full((2,), nan), alive
+
+        # As in shooting, a rung whose solve failed ends the ladder: its vector and every
+        # later one are NaN rather than built on a vector that is not a transport.
+        w_next, c_m, c_r, residuals, ok = jax.lax.cond(alive, solve, skip, None)
+        w_next = jnp.where(ok, w_next, jnp.nan)
+        c_m, c_r = jnp.where(ok, c_m, c_mid), jnp.where(ok, c_r, c_ref)
+        return (w_next, c_m, c_r, ok), (w_next, residuals, ok)
 
     zeros = jnp.zeros(size, w.dtype)
-    _, (vectors, residuals, ok) = jax.lax.scan(rung, (w, zeros, zeros), (path[:-1], path[1:]))
+    start = (w, zeros, zeros, jnp.asarray(True))
+    _, (vectors, residuals, ok) = jax.lax.scan(rung, start, (path[:-1], path[1:]))
     vectors = jnp.concatenate([w[None], vectors])
     norms = jnp.sqrt(jnp.clip(metric_inner(metric, path, vectors, vectors), 0.0))
-    return vectors, norms, residuals, jnp.all(ok)
+    return vectors, norms, residuals, 1 + jnp.sum(ok.astype(jnp.int32))
 
 
 _ladder_jit = jax.jit(_ladder, static_argnames=("scheme", "midpoint", "tol", "max_newton"))
@@ -129,7 +146,7 @@ def parallel_transport(
     # In units of the path's size: vectors scale like the surfaces, norms with them.
     units = units_of(path[0], path[-1])
     s = units.scale
-    vectors, norms, residuals, converged = _ladder_jit(
+    vectors, norms, residuals, n_valid = _ladder_jit(
         metric,
         w / s,
         units.remove(path),
@@ -141,10 +158,12 @@ def parallel_transport(
         max_newton=max_newton,
     )
     vectors, norms = vectors * s, norms * s
+    converged = n_valid == path.shape[0]
     if is_concrete(converged) and not bool(converged):
         warnings.warn(
-            f"parallel_transport: a Newton solve did not meet tol={tol:g} in {max_newton} "
-            f"iterations (largest relative residual {float(jnp.max(residuals)):.3g})",
+            f"parallel_transport: rung {int(n_valid)} of {path.shape[0] - 1} did not solve "
+            f"(Newton: {max_newton} iterations, step still {float(jnp.nanmax(residuals)):.3g}, "
+            f"tol={tol:g}); its vector and the later ones are NaN",
             ConvergenceWarning,
             stacklevel=2,
         )
@@ -154,5 +173,6 @@ def parallel_transport(
         norms=norms,
         norm_drift=norms[-1] / norms[0] - 1,
         residuals=residuals,
+        n_valid=n_valid,
         converged=converged,
     )

@@ -901,9 +901,10 @@ def _run_shoot(args, progress: Progress) -> dict:
     seconds = time.perf_counter() - start
     speeds = np.asarray(res.speeds)
     residuals = np.asarray(res.residuals)
+    n_valid = int(res.n_valid)
     progress(
         f"speed {speeds[0]:.6g} -> {speeds[-1]:.6g}, largest step residual "
-        f"{residuals.max():.3g}, converged {bool(res.converged)}"
+        f"{np.nanmax(residuals):.3g}, converged {bool(res.converged)}"
     )
     settings = {
         "metric": list(args.metric),
@@ -913,11 +914,15 @@ def _run_shoot(args, progress: Progress) -> dict:
         "dtype": args.dtype,
     }
     path = np.asarray(res.path)
-    files = _write_path(args.out, path, settings, progress)
+    if n_valid < path.shape[0]:
+        last = path.shape[0] - 1
+        progress(f"nodes {n_valid}..{last} did not solve: writing nodes 0..{n_valid - 1}")
+    files = _write_path(args.out, path[:n_valid], settings, progress)
     files.append(
         str(
             save_npz_atomic(
                 args.out / "shoot.npz",
+                n_valid=n_valid,
                 endpoint=path[-1],
                 velocity=np.asarray(res.velocity),
                 speeds=speeds,
@@ -932,7 +937,8 @@ def _run_shoot(args, progress: Progress) -> dict:
         "inputs": [args.source, args.velocity],
         "settings": settings,
         # The path's length: the sum of its steps' speeds over T (constant on a geodesic).
-        "length": float(np.mean(speeds)),
+        "length": _json_float(np.mean(speeds)),
+        "n_valid": n_valid,
         "speeds": _json_floats(speeds),
         "speed_drift": _json_float(speeds[-1] / speeds[0] - 1) if speeds[0] > 0 else None,
         "residuals": _json_floats(residuals),

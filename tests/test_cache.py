@@ -5,6 +5,9 @@ import json
 import subprocess
 import sys
 
+import jax
+import jax.numpy as jnp
+
 SCRIPT = """
 import json, pathlib, sys
 import jax
@@ -36,3 +39,101 @@ def test_the_cache_is_opt_in_and_works_after_earlier_compilations(tmp_path):
     # Each directory holds what was compiled while it was the cache: a second call moves
     # the cache (JAX alone would keep the directory it opened first).
     assert out["first"] >= 1 and out["entries"] >= 1
+
+
+def _solve(target, scale, *, max_steps):
+    """A small optimistix solve whose result holds a RESULTS code, as a shape solve's does."""
+    from elastic_jax._solvers import minimize
+
+    return minimize(
+        lambda y: scale * jnp.sum((y - target) ** 2) + jnp.sum(y**4),
+        jnp.zeros_like(target),
+        solver="bfgs",
+        max_steps=max_steps,
+        tol=1e-8,
+    )
+
+
+def _traced_names(call):
+    names = []
+
+    def listener(event, duration, **kwargs):
+        if event == "/jax/core/compile/jaxpr_trace_duration":
+            names.append(kwargs.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        out = call()
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    return out, names
+
+
+def test_an_exported_program_is_the_jitted_one_and_is_not_traced_again(tmp_path, monkeypatch):
+    from elastic_jax import _cache
+    from elastic_jax._solvers import RESULTS, Minimum
+
+    jitted = jax.jit(_solve, static_argnames=("max_steps",))
+    skeleton = Minimum(0, RESULTS.successful, 0, 0)
+    target = jnp.linspace(-1.0, 2.0, 5)
+    args, static = (target, 0.5), {"max_steps": 50}
+
+    def call():
+        return _cache.exported_call("solve", _solve, jitted, args, static, skeleton)
+
+    monkeypatch.setattr(_cache, "_EXPORTED", {})
+    monkeypatch.setattr(_cache, "_EXPORT_DIR", None)
+    plain = call()  # the cache off: the jitted call
+    assert not (tmp_path / "exported").exists()
+    monkeypatch.setattr(_cache, "_EXPORT_DIR", tmp_path / "exported")
+    first = call()
+    files = list((tmp_path / "exported").iterdir())
+    assert len(files) == 1 and files[0].name.startswith("solve-")
+    # A new process: nothing in memory, the program on disk.
+    monkeypatch.setattr(_cache, "_EXPORTED", {})
+    again, traced = _traced_names(call)
+    assert "_solve" not in traced and "flat" not in traced
+    for result in (first, again):
+        assert type(result) is Minimum and result.result == RESULTS.successful
+        for a, b in zip(
+            jax.tree_util.tree_leaves(result), jax.tree_util.tree_leaves(plain), strict=True
+        ):
+            assert a.dtype == b.dtype and bool(jnp.all(a == b))
+    assert float(jnp.max(jnp.abs(plain.x - first.x))) == 0.0 and int(plain.num_steps) > 3
+
+    # Under a transformation the arguments are tracers: the jitted call, nothing exported.
+    traced_x = jax.jit(
+        lambda t: _cache.exported_call("solve", _solve, jitted, (t, 0.5), static, skeleton).x
+    )(target)
+    assert bool(jnp.all(traced_x == plain.x)) and len(list((tmp_path / "exported").iterdir())) == 1
+
+    # What changes the program changes the key: options, dtypes, a Python number for an
+    # array (weakly typed), the package's source.
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    key = _cache._key("solve", static, treedef, leaves)
+    assert key != _cache._key("solve", {"max_steps": 51}, treedef, leaves)
+    assert key != _cache._key("solve", static, treedef, [target.astype(jnp.float32), 0.5])
+    assert key != _cache._key("solve", static, treedef, [target, jnp.asarray(0.5, target.dtype)])
+    monkeypatch.setattr(_cache, "_source_digest", lambda: "another version")
+    assert key != _cache._key("solve", static, treedef, leaves)
+
+
+def test_the_shape_solve_result_is_rebuilt_with_its_own_structure():
+    """The skeleton that rebuilds an exported shape solve's result has the structure the
+    solve returns (leaf count and node types: a mismatch would scramble the fields)."""
+    import elastic_jax as ej
+    from elastic_jax import _shape
+
+    f1 = ej.sphere_points(7, 13)
+    cfg = ej.ShapeOptions(degree=2, vf_degree=2, n_times=3, tol=1e-6, outer_steps=1)
+    bases = _shape._bases(7, 13, cfg, f1.dtype)
+    metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+    for rigid in (False, True):
+        shapes = jax.eval_shape(
+            lambda a, b, rigid=rigid: _shape._shape_solve(metric, a, b, bases, cfg, rigid),
+            f1,
+            2.0 * f1,
+        )
+        assert jax.tree_util.tree_structure(shapes) == jax.tree_util.tree_structure(
+            _shape._RESULT_SKELETON
+        )

@@ -115,7 +115,19 @@ def test_a_failed_newton_solve_says_so():
         warnings.simplefilter("always")
         shot = shoot(f, in_span_velocity(3), METRIC, degree=DEGREE, n_times=N_TIMES, max_newton=1)
     assert not bool(shot.converged)
-    assert any(issubclass(w.category, ej.ConvergenceWarning) for w in caught)
+    messages = [str(w.message) for w in caught if issubclass(w.category, ej.ConvergenceWarning)]
+    assert len(messages) == 1 and "node 2 of 4 did not solve" in messages[0]
+    assert "path[:2] is the solved part" in messages[0]
+    # One Newton iteration from the extrapolated start cannot meet 1e-10: the first step
+    # fails, and nothing is built on it.
+    assert int(shot.n_valid) == 2
+    assert bool(jnp.all(jnp.isfinite(shot.path[:2]))) and bool(jnp.all(jnp.isnan(shot.path[2:])))
+    assert float(shot.residuals[0]) > 1e-10 and bool(jnp.all(jnp.isnan(shot.residuals[1:])))
+    assert [int(x) for x in shot.newton_steps] == [1, 0, 0]
+    assert bool(jnp.isfinite(shot.speeds[0])) and bool(jnp.all(jnp.isnan(shot.speeds[1:])))
+    # With enough iterations the same shot solves every node.
+    full = shoot(f, in_span_velocity(3), METRIC, degree=DEGREE, n_times=N_TIMES)
+    assert bool(full.converged) and int(full.n_valid) == N_TIMES
 
 
 @pytest.mark.slow

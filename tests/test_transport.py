@@ -57,3 +57,22 @@ def test_transport_refuses_what_it_cannot_do():
         ej.parallel_transport(f, path, METRIC, midpoint="pole")
     with pytest.raises(ej.InputError, match="w must have the shape"):
         ej.parallel_transport(f[:, :-1], path, METRIC)
+
+
+@pytest.mark.slow
+def test_a_failed_rung_ends_the_ladder():
+    import warnings
+
+    f = shapes.sample(shapes.ellipsoid, M, N_GRID)
+    path = ej.shoot(f, in_span(0), METRIC, degree=DEGREE, n_times=5).path
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        moved = ej.parallel_transport(in_span(1), path, METRIC, degree=DEGREE, max_newton=1)
+    messages = [str(w.message) for w in caught if issubclass(w.category, ej.ConvergenceWarning)]
+    assert len(messages) == 1 and "rung 1 of 4 did not solve" in messages[0]
+    # One Newton iteration cannot meet 1e-10 from a zero start: the first rung fails and
+    # nothing is carried on from it.
+    assert int(moved.n_valid) == 1 and not bool(moved.converged)
+    assert bool(jnp.all(jnp.isfinite(moved.vectors[0])))
+    assert bool(jnp.all(jnp.isnan(moved.vectors[1:]))) and bool(jnp.all(jnp.isnan(moved.norms[1:])))
+    assert bool(jnp.all(jnp.isnan(moved.residuals[1:])))
