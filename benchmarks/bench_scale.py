@@ -31,6 +31,14 @@ included):
         targets (cold <= 6.9 s, warm <= 2 s at the low row) are not met.
     memory: geodesic 50 x 99, degree 7, N 13: 982 MB; shape_geodesic 25 x 49 at the
         defaults: 2010 MB.
+Again after the exported shape solve landed (same day, quiet; exported / plain jit):
+    first_call, low row: cold 46.2 / 48.1 s (RSS 2.24 / 2.22 GB), warm 7.2 / 12.8 s
+        (1.10 / 1.14 GB); middle row: cold 59.4 / 56.8 s, warm 24.5 / 24.3 s in this run,
+        17.2 and 20.0 s in two reruns with the exported solve (its solve alone runs 12-13
+        s); identical distances.
+    memory: geodesic 50 x 99: 938 MB; shape_geodesic 25 x 49 at the defaults 1960 MB with
+        no cache, 2157 MB filling it, 1112 MB loading it (the compiler's share is about
+        half; the target, half of 1.38 GB, is not met).
 
 Run: python benchmarks/bench_scale.py [--shapes 32] [--parts matrix,first_call,memory]
      [--workers 1,2]

@@ -144,6 +144,12 @@ def _io_options(parser: argparse.ArgumentParser) -> None:
         "(ELASTIC_JAX_CACHE or XDG_CACHE_HOME move it)",
     )
     parser.add_argument("--no-cache", action="store_true", help="compile from scratch")
+    parser.add_argument(
+        "--no-export",
+        action="store_true",
+        help="keep compiled programs only, not the traced shape solve (jax.export): a new "
+        "process then traces it again",
+    )
 
 
 def _common(
@@ -1225,7 +1231,7 @@ def _dask_client(args, stack: contextlib.ExitStack, progress: Progress):
     if not args.no_cache:
         from ._cache import enable_compilation_cache
 
-        enable_compilation_cache(args.cache_dir, client=client)
+        enable_compilation_cache(args.cache_dir, client=client, exported=not args.no_export)
     return client
 
 
@@ -1295,9 +1301,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         jax.config.update("jax_enable_x64", True)
     if not args.no_cache and jax.config.jax_compilation_cache_dir is None:
         # Solves compile for 5-60 s and a command runs once per process: keep the
-        # executables on disk (a program's choice; the library itself never sets this).
-        jax.config.update("jax_compilation_cache_dir", str(args.cache_dir))
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        # executables (and the exported shape solve) on disk; a program's choice, the
+        # library never sets this by itself. A caller that set a cache keeps its own.
+        from ._cache import enable_compilation_cache
+
+        enable_compilation_cache(args.cache_dir, exported=not args.no_export)
     from ._geodesic import ConvergenceWarning
 
     progress = Progress(args.quiet)

@@ -40,6 +40,17 @@ def _fresh_jit_caches():
     jax.clear_caches()
 
 
+@pytest.fixture(autouse=True)
+def _no_exported_programs_after_a_test():
+    """A test that turns the exported shape solve on (enable_compilation_cache, the
+    command line in process) leaves it off for the next one: the suite's in-process
+    solves share the compiled programs of the plain jitted path."""
+    from elastic_jax import _cache
+
+    yield
+    _cache._EXPORT_DIR = None
+
+
 DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 # Tolerances for float64 identities and for float32, in one place.
@@ -88,3 +99,20 @@ def assert_area_bound(distance, f1, f2, metric, slack: float = 0.01, areas=None)
     bound = float(np.sqrt(2.0 * float(metric.b))) * abs(np.sqrt(a2) - np.sqrt(a1))
     assert float(distance) >= (1.0 - slack) * bound, (float(distance), bound)
     return bound
+
+
+def traced_functions(call):
+    """``(call(), names)``: the functions JAX traced for new compiled programs while
+    ``call()`` ran (JAX's trace events)."""
+    names = []
+
+    def listener(event, duration_secs, **kwargs):
+        if event == "/jax/core/compile/jaxpr_trace_duration":
+            names.append(kwargs.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        out = call()
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    return out, names

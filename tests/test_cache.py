@@ -8,6 +8,8 @@ import sys
 import jax
 import jax.numpy as jnp
 
+from .conftest import traced_functions
+
 SCRIPT = """
 import json, pathlib, sys
 import jax
@@ -54,21 +56,6 @@ def _solve(target, scale, *, max_steps):
     )
 
 
-def _traced_names(call):
-    names = []
-
-    def listener(event, duration, **kwargs):
-        if event == "/jax/core/compile/jaxpr_trace_duration":
-            names.append(kwargs.get("fun_name"))
-
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
-        out = call()
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
-    return out, names
-
-
 def test_an_exported_program_is_the_jitted_one_and_is_not_traced_again(tmp_path, monkeypatch):
     from elastic_jax import _cache
     from elastic_jax._solvers import RESULTS, Minimum
@@ -91,7 +78,7 @@ def test_an_exported_program_is_the_jitted_one_and_is_not_traced_again(tmp_path,
     assert len(files) == 1 and files[0].name.startswith("solve-")
     # A new process: nothing in memory, the program on disk.
     monkeypatch.setattr(_cache, "_EXPORTED", {})
-    again, traced = _traced_names(call)
+    again, traced = traced_functions(call)
     assert "_solve" not in traced and "flat" not in traced
     for result in (first, again):
         assert type(result) is Minimum and result.result == RESULTS.successful

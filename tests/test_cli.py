@@ -20,7 +20,9 @@ from .conftest import COMPILATION_CACHE
 M, N = 13, 25
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 # The session's compilation cache (conftest): subprocesses and in-process checks share it.
-CACHE = ["--cache-dir", str(COMPILATION_CACHE)]
+# --no-export: the subprocesses then compile the very programs the in-process checks do
+# (an exported program compiles as a program of its own); test_demo... runs with export.
+CACHE = ["--cache-dir", str(COMPILATION_CACHE), "--no-export"]
 SMALL = ["--grid", str(M), str(N), "--degree", "3", "--times", "5", "--quiet", *CACHE]
 # Shape commands: the configuration of tests/test_karcher.py (one compilation for both).
 SHAPE = ["--grid", str(M), str(N), "--degree", "4", "--vf-degree", "4", "--times", "5"]
@@ -38,7 +40,8 @@ def _save(tmp_path, name, f):
 
 def test_demo_writes_what_it_promises_and_matches_the_library(tmp_path):
     out, cache = tmp_path / "demo", tmp_path / "cache"
-    argv = [sys.executable, "-m", "elastic_jax", "demo", *SMALL[:-2], "--cache-dir", str(cache)]
+    small = SMALL[: -len(CACHE)]
+    argv = [sys.executable, "-m", "elastic_jax", "demo", *small, "--cache-dir", str(cache)]
     runs = [
         subprocess.run([*argv, "--out", str(d)], capture_output=True, text=True, timeout=300)
         for d in (out, tmp_path / "again")

@@ -40,7 +40,7 @@ def client():
         distributed.Client(cluster) as client,
     ):
         # The workers load what this session compiled (and what the other one compiles).
-        ej.enable_compilation_cache(COMPILATION_CACHE, client=client)
+        ej.enable_compilation_cache(COMPILATION_CACHE, client=client, exported=False)
         yield client
 
 

@@ -11,6 +11,8 @@ import elastic_jax as ej
 from elastic_jax import shapes
 from elastic_jax._shape import moebius
 
+from .conftest import traced_functions
+
 M, N = 13, 25
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 # Parametrized geodesics (modulo="none"): the inner options of the "none" tests.
@@ -368,20 +370,7 @@ def test_mean_is_invariant_to_reparametrization_and_rotation():
 
 def _top_level_traces(call) -> list[str]:
     """The functions JAX traced for a new compiled program while ``call()`` ran."""
-    import jax
-
-    names = []
-
-    def listener(event, duration_secs, **kwargs):
-        if event == "/jax/core/compile/jaxpr_trace_duration":
-            names.append(kwargs.get("fun_name"))
-
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
-        call()
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
-    return names
+    return traced_functions(call)[1]
 
 
 @pytest.mark.filterwarnings("ignore::elastic_jax.ConvergenceWarning")  # max_steps=1
