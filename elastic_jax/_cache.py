@@ -20,7 +20,7 @@ import pathlib
 
 import jax
 
-from ._checks import check_positive
+from ._checks import check_bool, check_positive, is_concrete
 
 # Where exported programs are kept: set by enable_compilation_cache, None when off.
 _EXPORT_DIR: pathlib.Path | None = None
@@ -77,14 +77,15 @@ def enable_compilation_cache(
     min_compile_time_s = float(min_compile_time_s)
     if min_compile_time_s != 0.0:
         check_positive("min_compile_time_s", min_compile_time_s)
+    exported = check_bool("exported", exported)
     path.mkdir(parents=True, exist_ok=True)
-    _enable_here(str(path), min_compile_time_s, bool(exported))
+    _enable_here(str(path), min_compile_time_s, exported)
     if client is not None:
         from ._distributed import CompilationCache, connect
 
         client, _ = connect(client)
         client.register_plugin(
-            CompilationCache(str(path), min_compile_time_s, bool(exported)),
+            CompilationCache(str(path), min_compile_time_s, exported),
             name="elastic-jax-cache",
         )
     return path
@@ -140,7 +141,7 @@ def exported_call(name: str, function, jitted, args: tuple, static: dict, skelet
     flat outputs without tracing anything.
     """
     leaves, treedef = jax.tree_util.tree_flatten(args)
-    if _EXPORT_DIR is None or any(isinstance(x, jax.core.Tracer) for x in leaves):
+    if _EXPORT_DIR is None or not is_concrete(leaves):
         return jitted(*args, **static)
     from jax import export
 

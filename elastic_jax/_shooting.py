@@ -20,6 +20,7 @@ odd-even mode, and shooting refuses it.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from typing import NamedTuple
 
@@ -221,12 +222,11 @@ def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
 
         f_next, c, residual, steps, ok = jax.lax.cond(alive, solve, skip, None)
         f_next = jnp.where(ok, f_next, jnp.nan)
-        carry = jax.tree_util.tree_map(
-            lambda new, old: jnp.where(ok, new, old),
-            (f_here, f_next, c, ok),
-            (f_prev, f_here, c_guess, ok),
+        # After a failure the known pair stays the last solved one (the later steps skip).
+        kept = jax.tree_util.tree_map(
+            functools.partial(jnp.where, ok), (f_here, f_next, c), (f_prev, f_here, c_guess)
         )
-        return carry, (f_next, (c, residual, steps, ok))
+        return (*kept, ok), (f_next, (c, residual, steps, ok))
 
     f_first = f + v / t
     carry = (f, f_first, jnp.zeros(size, dtype), jnp.asarray(True))

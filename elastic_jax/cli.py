@@ -1305,7 +1305,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         # library never sets this by itself. A caller that set a cache keeps its own.
         from ._cache import enable_compilation_cache
 
-        enable_compilation_cache(args.cache_dir, exported=not args.no_export)
+        try:
+            enable_compilation_cache(args.cache_dir, exported=not args.no_export)
+        except OSError as err:  # e.g. a read-only home: the run goes on, compiling
+            print(
+                f"elastic-jax: --cache-dir {args.cache_dir}: cannot be created ({err}); "
+                "compiling without a cache",
+                file=sys.stderr,
+            )
     from ._geodesic import ConvergenceWarning
 
     progress = Progress(args.quiet)

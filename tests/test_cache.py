@@ -105,6 +105,17 @@ def test_an_exported_program_is_the_jitted_one_and_is_not_traced_again(tmp_path,
     assert key != _cache._key("solve", static, treedef, leaves)
 
 
+def test_exported_must_be_a_bool(tmp_path):
+    import pytest
+
+    import elastic_jax as ej
+
+    # Refused before anything is set or created.
+    with pytest.raises(ej.InputError, match="exported must be True or False; got 1"):
+        ej.enable_compilation_cache(tmp_path / "cache", exported=1)
+    assert not (tmp_path / "cache").exists()
+
+
 def test_the_shape_solve_result_is_rebuilt_with_its_own_structure():
     """The skeleton that rebuilds an exported shape solve's result has the structure the
     solve returns (leaf count and node types: a mismatch would scramble the fields)."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -61,8 +63,6 @@ def test_transport_refuses_what_it_cannot_do():
 
 @pytest.mark.slow
 def test_a_failed_rung_ends_the_ladder():
-    import warnings
-
     f = shapes.sample(shapes.ellipsoid, M, N_GRID)
     path = ej.shoot(f, in_span(0), METRIC, degree=DEGREE, n_times=5).path
     with warnings.catch_warnings(record=True) as caught:
