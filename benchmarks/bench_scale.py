@@ -1,6 +1,6 @@
 """Scale-out and first calls: distance matrices on Dask clusters, time to first result, memory.
 
-Three measurements, one JSON record each (settings, figures, environment):
+Four measurements, one JSON record each (settings, figures, environment):
 
 1. ``matrix``: pairs per second of a distance matrix of K shapes at 25 x 49 (metric
    (1, 1, 0.1, 0), modulo "rigid", ShapeOptions(degree=5, vf_degree=5, n_times=7),
@@ -18,6 +18,11 @@ Three measurements, one JSON record each (settings, figures, environment):
    solve kept in the cache (``exported=True``, the default) and without it.
 3. ``memory``: peak RSS of a fresh process for one 50 x 99 geodesic (degree 7, N = 13)
    and one 25 x 49 shape geodesic at the defaults.
+4. ``compile``: where a cold first call goes, for both rows: tracing, lowering and XLA's
+   compilation of the shape solve, its first run, and the compiled program's size
+   (StableHLO characters, HLO instructions, fusions). XLA:CPU generates code fusion by
+   fusion, and loading a cached executable links them again: both the cold and the warm
+   first call grow with the program, so its size is the figure to bring down.
 
 Measured (2026-11-23, 2 CPU cores, quiet, float64; each configuration's compilations
 included):
@@ -40,7 +45,7 @@ Again after the exported shape solve landed (same day, quiet; exported / plain j
         no cache, 2157 MB filling it, 1112 MB loading it (the compiler's share is about
         half; the target, half of 1.38 GB, is not met).
 
-Run: python benchmarks/bench_scale.py [--shapes 32] [--parts matrix,first_call,memory]
+Run: python benchmarks/bench_scale.py [--shapes 32] [--parts matrix,compile,first_call,memory]
      [--workers 1,2]
 """
 
@@ -144,6 +149,32 @@ d = float(res.distance)
 print(json.dumps({{"distance": d, "rss_mb": rss_mb()}}))
 """
 
+COMPILE = r"""
+import re
+from elastic_jax import _shape
+m, n = {grid}
+f1, f2 = cats(m, n)
+cfg = ej.ShapeOptions(degree={degree}, vf_degree={vf_degree}, n_times={n_times})
+cfg = cfg.replace(tol=_shape.default_tol(np.float64))
+bases = _shape._bases(m, n, cfg, np.float64)
+args = (_shape.constant(metric), f1, f2, bases)
+t0 = time.perf_counter()
+traced = _shape._shape_geodesic.trace(*args, cfg=cfg, rigid=False)
+t1 = time.perf_counter()
+lowered = traced.lower()
+t2 = time.perf_counter()
+compiled = lowered.compile()
+t3 = time.perf_counter()
+d = float(compiled(*args).distance)
+t4 = time.perf_counter()
+hlo = compiled.as_text()
+print(json.dumps({{"trace_s": t1 - t0, "lower_s": t2 - t1, "compile_s": t3 - t2,
+                  "run_s": t4 - t3, "distance": d,
+                  "stablehlo_chars": len(lowered.as_text()),
+                  "hlo_instructions": len(re.findall(r" = ", hlo)),
+                  "fusions": len(re.findall(r"\bfusion\(", hlo)), "rss_mb": rss_mb()}}))
+"""
+
 ROWS = {
     "low": {"grid": (12, 25), "degree": 5, "vf_degree": 5, "n_times": 5},
     "middle": {"grid": (25, 49), "degree": 7, "vf_degree": 8, "n_times": 10},
@@ -169,7 +200,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shapes", type=int, default=32)
     parser.add_argument("--workers", default="1,2", help="LocalCluster sizes")
-    parser.add_argument("--parts", default="matrix,first_call,memory")
+    parser.add_argument("--parts", default="matrix,compile,first_call,memory")
     args = parser.parse_args()
     parts = args.parts.split(",")
     env = environment()
@@ -228,6 +259,21 @@ def main() -> None:
                         "environment": env,
                     }
                 )
+    if "compile" in parts:
+        # Where a cold first call goes: tracing, lowering and XLA's compilation of the
+        # shape solve, and the size of the compiled program (its fusions are the kernels
+        # XLA:CPU generates code for one by one; loading a cached executable links them).
+        for row, settings in ROWS.items():
+            record = run(COMPILE.format(**settings))
+            emit(
+                {
+                    "benchmark": "compile",
+                    "row": row,
+                    "settings": {**settings, "modulo": "diff", "pair": "cat1 -> cat2"},
+                    **record,
+                    "environment": env,
+                }
+            )
     if "memory" in parts:
         for label, grid, shape in (
             ("geodesic 50 x 99, degree 7, N 13", (50, 99), False),

@@ -37,7 +37,7 @@ from ._harmonics import _harmonics_np, check_degree
 from ._interp import resample
 from ._metric import SplitMetric, _split_bilinear
 from ._options import SCHEMES, SOLVERS
-from ._solvers import RESULTS, lanczos_smallest, minimize, result_message
+from ._solvers import RESULTS, Minimum, lanczos_smallest, minimize, result_message
 from ._units import units_of
 from ._validation import as_surface
 
@@ -294,35 +294,39 @@ def _solve(
         return x + trials[jnp.argmin(energies)] * direction
 
     def solve_round(state):
-        x, direction, _, steps, _, rounds = state
+        found, direction, _, steps, rounds = state
         # One loop for the first solve and the escapes, so that the solver and the
         # Hessian-vector product are compiled once.
-        start = jax.lax.cond(rounds > 0, escape, lambda x, _: x, x, direction)
+        start = jax.lax.cond(rounds > 0, escape, lambda x, _: x, found.x, direction)
         found, curvature, direction = checked_minimum(start)
-        return found.x, direction, curvature, steps + found.num_steps, found.result, rounds + 1
+        return found, direction, curvature, steps + found.num_steps, rounds + 1
 
     def again(state):
-        curvature, rounds = state[2], state[5]
+        curvature, rounds = state[2], state[4]
         return (rounds == 0) | ((rounds <= saddle_checks) & (curvature < threshold))
 
     if saddle_checks is None:
         found = minimize(objective, x0, solver=solver, max_steps=max_steps, tol=tol)
-        x, num_steps, result = found.x, found.num_steps, found.result
+        num_steps = found.num_steps
         curvature = jnp.full((), jnp.nan, dtype)
     elif saddle_checks == 0:
         found, curvature, _ = checked_minimum(x0)
-        x, num_steps, result = found.x, found.num_steps, found.result
+        num_steps = found.num_steps
     else:
-        zero = jnp.zeros((), jnp.int32)
-        state = (x0, jnp.zeros_like(x0), jnp.zeros((), dtype), zero, RESULTS.successful, zero)
-        x, _, curvature, num_steps, result, _ = jax.lax.while_loop(again, solve_round, state)
+        zero, nothing = jnp.zeros((), jnp.int32), jnp.zeros((), dtype)
+        # The loop's first round overwrites this placeholder (rounds == 0 always runs).
+        empty = Minimum(x0, RESULTS.successful, zero, nothing, nothing)
+        state = (empty, jnp.zeros_like(x0), nothing, zero, zero)
+        found, _, curvature, num_steps, _ = jax.lax.while_loop(again, solve_round, state)
+    # The value and gradient norm at the end are the solver's own evaluations there (a
+    # new evaluation would compile the objective and its gradient once more).
+    x, result = found.x, found.result
     converged = result == RESULTS.successful
     if saddle_checks:
         # Escapes were asked for: a saddle still at the end is a failed solve.
         converged = converged & (curvature >= threshold)
-    value, grad = jax.value_and_grad(objective)(x)
     coefficients = scaling.coefficients(x)
-    energy = value * scaling.energy_scale
+    energy = found.value * scaling.energy_scale
     return GeodesicResult(
         path=_path(f1, f2, coefficients, values, n_times),
         distance=jnp.sqrt(energy),
@@ -332,7 +336,7 @@ def _solve(
         num_steps=num_steps,
         converged=converged,
         result=result,
-        grad_norm=jnp.linalg.norm(grad),
+        grad_norm=found.grad_norm,
         min_curvature=curvature,
     )
 

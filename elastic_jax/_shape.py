@@ -276,22 +276,33 @@ def _resolved(gammas, floor):
 
 
 def _safe_update(prob, cfg, gamma, y):
-    """The largest shrink of the step whose composition with gamma stays resolved."""
+    """The largest shrink of the step whose composition with gamma stays resolved.
+
+    The shrinks are tried one after the other (a loop, not one candidate per shrink in
+    the program): the first usually passes, and each candidate is a bicubic composition
+    whose kernels would otherwise be compiled six times over at each of three call sites.
+    """
     bases = prob.bases
-    candidates = jnp.stack(
-        [
-            _compose(
-                gamma,
-                _step_field(s * y, bases.fields, bases.field_scale, prob.e1),
-                cfg.interpolation,
-            )
-            for s in _STEP_SCALES
-        ]
-    )
-    ok = _resolved(candidates, bases.area_floor)
-    # The last candidate (scale 0) is gamma itself, which is valid.
-    first = jnp.argmax(ok.at[-1].set(True))
-    return candidates[first]
+    scales = jnp.asarray(_STEP_SCALES, y.dtype)
+    last = len(_STEP_SCALES) - 1
+
+    def candidate(i):
+        step = _step_field(scales[i] * y, bases.fields, bases.field_scale, prob.e1)
+        return _compose(gamma, step, cfg.interpolation)
+
+    def usable(i, g):
+        # The last shrink (scale 0) is gamma itself, which is valid.
+        return _resolved(g, bases.area_floor) | (i == last)
+
+    def next_shrink(carry):
+        i, _, _ = carry
+        g = candidate(i + 1)
+        return i + 1, g, usable(i + 1, g)
+
+    first = candidate(0)
+    start = (jnp.zeros((), jnp.int32), first, usable(0, first))
+    _, chosen, _ = jax.lax.while_loop(lambda c: ~c[2], next_shrink, start)
+    return chosen
 
 
 class _Problem(NamedTuple):
@@ -395,7 +406,7 @@ def _initialize(prob, cfg, rigid):
             restricted, vb0[:free], solver=cfg.solver, max_steps=max_steps, tol=cfg.tol
         )
         vb = vb0.at[:free].set(found.x) if free == 3 else found.x
-        value = objective(q, vb)
+        value = found.value  # objective(q, vb), as the solver evaluated it
         # A straight line through a fold has an infinite (midpoint) or NaN energy: last.
         return jnp.where(jnp.isfinite(value), value, jnp.inf), vb, found.num_steps
 

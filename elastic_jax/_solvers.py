@@ -26,12 +26,14 @@ class RESULTS(optx.RESULTS):  # pyright: ignore
 
 
 class Minimum(NamedTuple):
-    """What a solve returns: the minimizer, its result code, step count and gradient norm."""
+    """What a solve returns: the minimizer, its result code, step count, and the gradient
+    norm and value there (the solver's own evaluations)."""
 
     x: Array
     result: RESULTS
     num_steps: Array
     grad_norm: Array
+    value: Array
 
 
 def _jaxopt():
@@ -78,22 +80,15 @@ def minimize(
     stopped by that rule; lbfgs: ``jaxopt.LBFGS(tol=tol)``, whose own rule it is.
     Neither raises: a solve that hits ``max_steps`` returns
     ``RESULTS.nonlinear_max_steps_reached`` and one that stops moving before meeting tol
-    (rounding) ``RESULTS.stalled``.
+    (rounding) ``RESULTS.stalled``. A start that already meets tol stops after the
+    solver's first step, which evaluates it (``num_steps`` 1, x unchanged for bfgs). The
+    returned gradient norm is the solver's own, at the returned point.
     """
     check_solver(solver)
-    grad = jax.grad(fun)
-    # optimistix tests its stopping rule only after a step the line search accepts; at a
-    # start that is already optimal (f1 = f2) no step passes Armijo, so stop here first.
-    start_grad = optx.two_norm(grad(x0))
-    return jax.lax.cond(
-        start_grad <= tol,
-        lambda x: Minimum(x, RESULTS.successful, jnp.zeros((), jnp.int32), start_grad),
-        lambda x: _run(fun, grad, x, solver=solver, max_steps=max_steps, tol=tol),
-        x0,
-    )
+    return _run(fun, x0, solver=solver, max_steps=max_steps, tol=tol)
 
 
-def _run(fun, grad, x0, *, solver, max_steps, tol) -> Minimum:
+def _run(fun, x0, *, solver, max_steps, tol) -> Minimum:
     if solver == "bfgs":
         rounding = 100 * float(jnp.finfo(jax.tree_util.tree_leaves(x0)[0].dtype).eps)
         sol = optx.minimise(
@@ -104,6 +99,10 @@ def _run(fun, grad, x0, *, solver, max_steps, tol) -> Minimum:
             throw=False,
         )
         x, result, steps = sol.value, RESULTS.promote(sol.result), sol.stats["num_steps"]
+        # The value and gradient at the returned (last accepted) point, as the solver
+        # evaluated them: evaluating them again would put another copy of the objective
+        # and its gradient into the compiled program at every call site.
+        value, gradient = sol.state.f_info.f, sol.state.f_info.grad
     else:
         x, state = _jaxopt().LBFGS(fun=fun, maxiter=max_steps, tol=tol).run(x0)
         # jaxopt stops silently at maxiter; its other stops are judged below.
@@ -111,13 +110,14 @@ def _run(fun, grad, x0, *, solver, max_steps, tol) -> Minimum:
             state.iter_num >= max_steps, RESULTS.nonlinear_max_steps_reached, RESULTS.successful
         )
         steps = state.iter_num
-    grad_norm = optx.two_norm(grad(x))
-    ok = (grad_norm <= tol) & jnp.isfinite(fun(x))
+        value, gradient = state.value, state.grad
+    grad_norm = optx.two_norm(gradient)
+    ok = (grad_norm <= tol) & jnp.isfinite(value)
     # A solver that stopped on its own before meeting tol stalled (the step limit and
     # other failures keep their own codes).
     failed = RESULTS.where(result == RESULTS.successful, RESULTS.stalled, result)
     result = RESULTS.where(ok, RESULTS.successful, failed)
-    return Minimum(x, result, jnp.asarray(steps, jnp.int32), grad_norm)
+    return Minimum(x, result, jnp.asarray(steps, jnp.int32), grad_norm, value)
 
 
 def lanczos_smallest(

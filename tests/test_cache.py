@@ -61,7 +61,7 @@ def test_an_exported_program_is_the_jitted_one_and_is_not_traced_again(tmp_path,
     from elastic_jax._solvers import RESULTS, Minimum
 
     jitted = jax.jit(_solve, static_argnames=("max_steps",))
-    skeleton = Minimum(0, RESULTS.successful, 0, 0)
+    skeleton = Minimum(0, RESULTS.successful, 0, 0, 0)
     target = jnp.linspace(-1.0, 2.0, 5)
     args, static = (target, 0.5), {"max_steps": 50}
 

@@ -205,10 +205,15 @@ def test_shape_distance_is_below_the_parametrized_one_on_real_shapes(other):
 
 
 @pytest.mark.slow
-def test_vmap_over_targets_equals_a_loop(bumpy_pair):
-    f1, f2, _ = bumpy_pair
-    targets = jnp.stack([f2, shapes.sample(shapes.bumpy, M, N, rotation=shapes.random_rotation(2))])
-    solve = lambda g: ej.shape_geodesic(f1, g, METRIC, options=OPTIONS)  # noqa: E731
+def test_vmap_over_targets_equals_a_loop():
+    # At 13 x 25 in the configuration of tests/test_cli.py and tests/test_karcher.py, whose
+    # single solves this shares (the batched program compiles on its own).
+    m, n, options = 13, 25, ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+    f1 = shapes.sample(shapes.bumpy, m, n)
+    targets = jnp.stack(
+        [shapes.sample(shapes.bumpy, m, n, rotation=shapes.random_rotation(k)) for k in (11, 2)]
+    )
+    solve = lambda g: ej.shape_geodesic(f1, g, METRIC, options=options)  # noqa: E731
     batched = jax.vmap(solve)(targets)
     # Batched and single solves round differently, and the pipeline has discrete choices
     # (best of 60 rotations, step shrinking); agreement is judged at the problem's scale.
