@@ -44,6 +44,19 @@ Again after the exported shape solve landed (same day, quiet; exported / plain j
     memory: geodesic 50 x 99: 938 MB; shape_geodesic 25 x 49 at the defaults 1960 MB with
         no cache, 2157 MB filling it, 1112 MB loading it (the compiler's share is about
         half; the target, half of 1.38 GB, is not met).
+Again after the compiled program shrank (same day; minimize reuses the solver's own value
+and gradient, no start check, the Diff step's shrinks in a loop; exported / plain jit):
+    compile, low row: trace 2.4 s (3.1 before), lower 0.5 (0.8), XLA 17.3 s (25.8);
+        2312 fusions (3154), 56.9k HLO instructions (86.7k), 1.98 M StableHLO characters
+        (2.91 M). Middle row: XLA 15.6 s (23.3), 2415 fusions (3322).
+    first_call, low row: cold 24.6 / 23.4 s (RSS 1.71 / 1.66 GB), warm 4.1 / 7.0 s
+        (0.83 / 0.86 GB), distance 0.56172 both; middle row: cold 30.5 / 30.0 s, warm
+        11.1 / 13.9 s (the solve itself about 10 s), distance 0.8572 (0.8773 before: the
+        changed rounding moved this pair's registration to another start; both runs
+        converged).
+    memory: geodesic 50 x 99: 900 MB; shape_geodesic 25 x 49 at the defaults 1677 MB with
+        no cache, 1879 MB filling it, 931 MB loading it. Still missed: cold <= 6.9 s and
+        warm <= 2 s at the low row, and half of 1.38 GB.
 
 Run: python benchmarks/bench_scale.py [--shapes 32] [--parts matrix,compile,first_call,memory]
      [--workers 1,2]
