@@ -1,10 +1,45 @@
-"""The Lanczos estimate of the smallest eigenvalue (used by the geodesic saddle check)."""
+"""The minimizer wrapper, and the Lanczos estimate of the smallest eigenvalue (used by the
+geodesic saddle check)."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
+import pytest
 
-from elastic_jax._solvers import lanczos_smallest
+from elastic_jax._solvers import RESULTS, lanczos_smallest, minimize
+
+
+def _rosenbrock(x):
+    return jnp.sum(100.0 * (x[1:] - x[:-1] ** 2) ** 2 + (1.0 - x[:-1]) ** 2)
+
+
+@pytest.mark.parametrize("solver", ["bfgs", "lbfgs"])
+@pytest.mark.parametrize("max_steps", [3, 500])
+def test_minimum_reports_value_and_gradient_at_its_point(solver, max_steps):
+    # The value and gradient norm come from the solver's own evaluations, not from a new
+    # one: they must be those of the returned point, also when the step limit cuts a solve.
+    x0 = jnp.asarray([-1.2, 1.0, -0.5, 0.8])
+    found = minimize(_rosenbrock, x0, solver=solver, max_steps=max_steps, tol=1e-8)
+    # Absolute floors at rounding of the start's scale (f(x0) ~ 50, |grad| ~ 400): near the
+    # minimum both are sums that cancel, and another evaluation order moves their last bits.
+    assert float(found.value) == pytest.approx(float(_rosenbrock(found.x)), rel=1e-12, abs=1e-15)
+    grad_norm = float(optx.two_norm(jax.grad(_rosenbrock)(found.x)))
+    assert float(found.grad_norm) == pytest.approx(grad_norm, rel=1e-9, abs=1e-12)
+    if max_steps == 3:
+        assert found.result == RESULTS.nonlinear_max_steps_reached and found.num_steps == 3
+    else:
+        assert found.result == RESULTS.successful and grad_norm <= 1e-8
+        np.testing.assert_allclose(found.x, 1.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("solver", ["bfgs", "lbfgs"])
+def test_a_start_that_meets_tol_stops_at_the_first_step(solver):
+    x0 = jnp.ones(4)  # Rosenbrock's minimum: gradient exactly zero
+    found = minimize(_rosenbrock, x0, solver=solver, max_steps=50, tol=1e-8)
+    assert found.result == RESULTS.successful and int(found.num_steps) <= 1
+    assert float(found.grad_norm) == 0.0 and float(found.value) == 0.0
+    np.testing.assert_array_equal(found.x, x0)
 
 
 def _symmetric(n, seed):
