@@ -170,7 +170,9 @@ f1, f2 = cats(m, n)
 cfg = ej.ShapeOptions(degree={degree}, vf_degree={vf_degree}, n_times={n_times})
 cfg = cfg.replace(tol=_shape.default_tol(np.float64))
 bases = _shape._bases(m, n, cfg, np.float64)
-args = (_shape.constant(metric), f1, f2, bases)
+# The arguments shape_geodesic gives its solve (the surfaces in units of their size).
+units = _shape.units_of(f1, f2)
+args = (_shape.constant(metric), units.remove(f1), units.remove(f2), bases)
 t0 = time.perf_counter()
 traced = _shape._shape_geodesic.trace(*args, cfg=cfg, rigid=False)
 t1 = time.perf_counter()
@@ -216,6 +218,9 @@ def main() -> None:
     parser.add_argument("--parts", default="matrix,compile,first_call,memory")
     args = parser.parse_args()
     parts = args.parts.split(",")
+    unknown = sorted(set(parts) - {"matrix", "compile", "first_call", "memory"})
+    if unknown:
+        parser.error(f"--parts: unknown part(s) {', '.join(unknown)}")
     env = environment()
     import numpy as np
 

@@ -85,10 +85,6 @@ def minimize(
     returned gradient norm is the solver's own, at the returned point.
     """
     check_solver(solver)
-    return _run(fun, x0, solver=solver, max_steps=max_steps, tol=tol)
-
-
-def _run(fun, x0, *, solver, max_steps, tol) -> Minimum:
     if solver == "bfgs":
         rounding = 100 * float(jnp.finfo(jax.tree_util.tree_leaves(x0)[0].dtype).eps)
         sol = optx.minimise(
