@@ -38,7 +38,7 @@ from ._interp import resample
 from ._metric import SplitMetric, _split_bilinear
 from ._options import SCHEMES, SOLVERS
 from ._solvers import RESULTS, Minimum, lanczos_smallest, minimize, result_message
-from ._units import units_of
+from ._units import in_units
 from ._validation import as_surface
 
 
@@ -548,10 +548,9 @@ def geodesic(
     levels = _check_schedule(schedule, degree, m, n)
     size = 3 * ((degree + 1) ** 2 - 1)
     # Solve in units of the surfaces' size (see _units): float32 then works at any scale.
-    units = units_of(f1, f2)
-    g1, g2 = units.remove(f1), units.remove(f2)
+    units, (g1, g2) = in_units(f1, f2)
     if init is None:
-        init = jnp.zeros((n_times - 2, size), f1.dtype)
+        init = np.zeros((n_times - 2, size), f1.dtype)
         for level_degree, level_times, *grid in levels:
             h1, h2 = (g1, g2) if not grid else (resample(g, *grid) for g in (g1, g2))
             coarse = geodesic(
@@ -598,14 +597,9 @@ def geodesic(
         scheme=scheme,
         saddle_checks=saddle_checks,
     )
-    coefficients = jax.lax.stop_gradient(solved.coefficients)
-    path, energy, straight = _evaluate(
-        metric, g1, g2, coefficients, values, dframe, n_times=n_times, scheme=scheme
+    result = _finish(
+        metric, g1, g2, f1, f2, solved, units, values, dframe, n_times=n_times, scheme=scheme
     )
-    unit_result = solved._replace(
-        path=path, energy=energy, distance=safe_sqrt(energy), straight_energy=straight
-    )
-    result = _restore_units(unit_result, units, f1, f2)
     if is_concrete(result.converged, result.num_steps) and not bool(result.converged):
         if result.result == RESULTS.successful:
             reason = f"and {saddle_checks} saddle escapes: {result.message}"
@@ -617,6 +611,22 @@ def geodesic(
             stacklevel=2,
         )
     return result
+
+
+@functools.partial(jax.jit, static_argnames=("n_times", "scheme"))
+def _finish(metric, g1, g2, f1, f2, solved, units, values, dframe, *, n_times, scheme):
+    """The result in the user's units from the solve's: the path and its energies evaluated
+    again at the optimal coefficients (differentiably, see geodesic), then the units
+    restored. One compiled program: op by op, a first call would compile each operation
+    alone."""
+    coefficients = jax.lax.stop_gradient(solved.coefficients)
+    path, energy, straight = _evaluate(
+        metric, g1, g2, coefficients, values, dframe, n_times=n_times, scheme=scheme
+    )
+    unit_result = solved._replace(
+        path=path, energy=energy, distance=safe_sqrt(energy), straight_energy=straight
+    )
+    return _restore_units(unit_result, units, f1, f2)
 
 
 def _restore_units(result: GeodesicResult, units, f1, f2) -> GeodesicResult:

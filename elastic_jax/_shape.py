@@ -52,7 +52,7 @@ from ._reparam import _jacobian_determinant, _reparametrize, moebius
 from ._so3 import _icosahedral_np, _so3_exp
 from ._solvers import RESULTS, minimize, result_message
 from ._srnf import _center
-from ._units import units_of
+from ._units import in_units
 
 MODULI = ("diff", "rigid")
 # Shrink factors tried for a reparametrization step, largest first; 0 keeps gamma.
@@ -884,9 +884,8 @@ def shape_geodesic(
         cfg = cfg.replace(tol=default_tol(dtype))
     rigid = modulo == "rigid"
     # Solve in units of the surfaces' size (see _units): float32 then works at any scale.
-    units = units_of(f1, f2)
+    units, (g1, g2) = in_units(f1, f2)
     bases = _bases(m, n, cfg, dtype)
-    g1, g2 = units.remove(f1), units.remove(f2)
     # As in geodesic: the solve runs on constants and the energy is evaluated again,
     # differentiably, at the solution (envelope theorem: the derivative of the minimal
     # energy in f1, f2 and the metric, with gamma, R and C held).
@@ -898,16 +897,7 @@ def shape_geodesic(
         {"cfg": cfg, "rigid": rigid},
         _RESULT_SKELETON,
     )
-    gamma, rotation, coefficients = (
-        jax.lax.stop_gradient(x) for x in (solved.gamma, solved.rotation, solved.coefficients)
-    )
-    path, energy = _shape_evaluate(
-        metric, g1, g2, bases, gamma, rotation, coefficients, cfg=cfg, rigid=rigid
-    )
-    unit_result = solved._replace(
-        path=path, f1_registered=path[0], energy=energy, distance=safe_sqrt(energy)
-    )
-    result = _restore_shape_units(unit_result, units, rigid)
+    result = _shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
     if is_concrete(result.converged, result.energy_history, result.rounds) and not bool(
         result.converged
     ):
@@ -920,6 +910,23 @@ def shape_geodesic(
             stacklevel=2,
         )
     return result
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "rigid"))
+def _shape_finish(metric, g1, g2, bases, solved, units, *, cfg, rigid) -> ShapeGeodesicResult:
+    """The result in the user's units from the solve's: the path and its energy evaluated
+    again at the solution (differentiably, see shape_geodesic), then the units restored.
+    One compiled program: op by op, a first call would compile each operation alone."""
+    gamma, rotation, coefficients = (
+        jax.lax.stop_gradient(x) for x in (solved.gamma, solved.rotation, solved.coefficients)
+    )
+    path, energy = _shape_evaluate(
+        metric, g1, g2, bases, gamma, rotation, coefficients, cfg=cfg, rigid=rigid
+    )
+    unit_result = solved._replace(
+        path=path, f1_registered=path[0], energy=energy, distance=safe_sqrt(energy)
+    )
+    return _restore_shape_units(unit_result, units, rigid)
 
 
 def _restore_shape_units(result: ShapeGeodesicResult, units, rigid: bool) -> ShapeGeodesicResult:

@@ -3,15 +3,12 @@
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ._checks import InputError, _where, check_grid_shape, extents, grid_array
-from ._differential import area_element, interior_frame
+from ._differential import interior_frame
 
 __all__ = ["as_surface", "check_grid_shape", "validate_surface"]
-
-_area_element = jax.jit(lambda f: area_element(*interior_frame(f)))
 
 
 def as_surface(f, name: str, *, check_immersion: bool = True) -> jax.Array:
@@ -36,9 +33,10 @@ def as_surface(f, name: str, *, check_immersion: bool = True) -> jax.Array:
     upper = flat.reshape(flat.shape[0], 3, -1).max(axis=-1)
     centre = (0.5 * lower + 0.5 * upper)[..., None, None]
     unit = ((flat - centre) / extents(flat)[:, None, None, None]).astype(x.dtype)
-    # Evaluate now even when a concrete array is closed over inside a caller's jit.
-    with jax.ensure_compile_time_eval():
-        area = np.asarray(_area_element(jnp.asarray(unit)))
+    # In numpy: no program to compile on a process's first call, and none traced when a
+    # concrete array is closed over inside a caller's jit.
+    a1, a2 = interior_frame(unit)
+    area = np.sqrt(np.sum(np.cross(a1, a2, axis=-3) ** 2, axis=-3))
     # Zero to working precision: the cross product of columns of size ~1 has rounding
     # error ~eps; thin real features stay far above this.
     eps = np.finfo(x.dtype).eps

@@ -135,3 +135,35 @@ def test_the_shape_solve_result_is_rebuilt_with_its_own_structure():
         assert jax.tree_util.tree_structure(shapes) == jax.tree_util.tree_structure(
             _shape._RESULT_SKELETON
         )
+
+
+def test_around_the_solve_a_first_call_compiles_one_program_on_each_side(monkeypatch):
+    """Into the solve's units and back out (with the path's energy evaluated again) are
+    one compiled program each. Done op by op, a process's first shape_geodesic compiled
+    some thirty small programs around the solve (about 1 s of a first call on 2 cores).
+    The solve itself is replaced by a stand-in here; its own program is the exported one."""
+    import numpy as np
+
+    import elastic_jax as ej
+    from elastic_jax import _shape, shapes
+
+    m, n = 9, 15  # a grid no other test uses: nothing is compiled for it yet
+    f1 = np.asarray(shapes.sample(shapes.bumpy, m, n))
+    f2 = np.asarray(shapes.sample(shapes.ellipsoid, m, n))
+    cfg = ej.ShapeOptions(degree=2, vf_degree=2, n_times=3, tol=1e-6, outer_steps=1)
+    bases = _shape._bases(m, n, cfg, f1.dtype)
+    metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+    layout = jax.eval_shape(
+        lambda a, b: _shape._shape_solve(metric, a, b, bases, cfg, False), f1, f2
+    )
+    solved = jax.tree_util.tree_map(lambda s: np.zeros(s.shape, s.dtype), layout)._replace(
+        gamma=np.asarray(ej.sphere_points(m, n)), rotation=np.eye(3), converged=np.True_
+    )
+    monkeypatch.setattr(_shape, "exported_call", lambda *args: solved)
+    result, names = traced_functions(
+        lambda: ej.shape_geodesic(f1, f2, metric, options=cfg).distance.block_until_ready()
+    )
+    assert names == ["in_units", "_shape_finish"]
+    # The stand-in's identity registration and zero perturbation: the straight line.
+    straight = ej.path_energy(metric, ej.straight_path(f1, f2, 3))
+    np.testing.assert_allclose(float(result) ** 2, float(straight), rtol=1e-12)
