@@ -57,6 +57,27 @@ and gradient, no start check, the Diff step's shrinks in a loop; exported / plai
     memory: geodesic 50 x 99: 900 MB; shape_geodesic 25 x 49 at the defaults 1677 MB with
         no cache, 1879 MB filling it, 931 MB loading it. Still missed: cold <= 6.9 s and
         warm <= 2 s at the low row, and half of 1.38 GB.
+Again after the solve's call sites were merged (same day; the start search's short solves
+and its refinements over rotations are one scan over one solve, and so are the
+straight-line rounds of every start and of the best one: their step limits are traced,
+minimize's step_cap, with the same iterates; the conversions into and out of the solve's
+units are one program each; exported / plain jit):
+    compile, low row: trace 2.1 s, lower 0.5, XLA 15.7 s (17.3); 1886 fusions (2312),
+        45.4k HLO instructions (56.9k), 1.71 M StableHLO characters (1.98 M); the same
+        distance to 1e-15 (0.28085879534 in the solve's units). Middle row: XLA 14.6 s
+        (15.6), 1972 fusions (2415), the same distance.
+    first_call, low row: cold 19.7 / 19.4 s (RSS 1.65 / 1.62 GB), warm 3.3 / 5.4 s
+        (0.70 / 0.73 GB), distance 0.56172; middle row: cold 26.5 / 26.4 s, warm 11.1 /
+        13.1 s, distance 0.8572 as before.
+    memory: geodesic 50 x 99: 794 MB; shape_geodesic 25 x 49 at the defaults 1569 MB with
+        no cache, 1799 MB filling it, 809 MB loading it. Still missed: cold <= 6.9 s, warm
+        <= 2 s, and 690 MB.
+    Also tried: the Moebius refinement (six parameters) in the same scan, its rotations
+        as six parameters with three held (1700 fusions). The starts it produced differ
+        from these by 1e-14 (rounding), and that moved cat1 -> horse0 at 25 x 49 (degree
+        5 / 8, N 7) from a coarse registration at energy 0.771 to one at 2.399; the rounds
+        then needed more than 10 rounds. Not landed: the start selection amplifies
+        rounding (see README, "What the distance means").
 
 Run: python benchmarks/bench_scale.py [--shapes 32] [--parts matrix,compile,first_call,memory]
      [--workers 1,2]

@@ -5,8 +5,8 @@ exported (ahead-of-time traced) shape solve kept beside it.
 A warm process (compiled programs on disk) still traces and lowers the whole shape solve
 before JAX can look its executable up. ``jax.export`` serializes the lowered program
 once; a later process deserializes it and goes straight to the executable. Measured at
-the paper's low row (12 x 25, degree 5 / 5, N 5, 2 cores, cats): 4.1 s from process
-start to the result with the exported solve, 7.0 s without; the rest is imports, loading
+the paper's low row (12 x 25, degree 5 / 5, N 5, 2 cores, cats): 3.3 s from process
+start to the result with the exported solve, 5.4 s without; the rest is imports, loading
 the executable (it links the program's kernels again, so it grows with the program) and
 running it. The exported program is the one the jitted path compiles, so the results
 are identical (measured: largest difference 0.0 over every field of the result).

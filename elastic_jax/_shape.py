@@ -397,27 +397,51 @@ def _initialize(prob, cfg, rigid):
         start, r = aligned(q, vb[:3], vb[3:])
         return _straight_energy(prob, cfg, start, _rotate(r, prob.f2)) / reference
 
-    def refine(q, vb0, max_steps, free):
+    def refine(q, vb0, max_steps, free, cap=None):
         # free = 3: rotations only (the boost stays 0); 6: the Moebius group.
         def restricted(u):
             return objective(q, vb0.at[:free].set(u) if free == 3 else u)
 
         found = minimize(
-            restricted, vb0[:free], solver=cfg.solver, max_steps=max_steps, tol=cfg.tol
+            restricted,
+            vb0[:free],
+            solver=cfg.solver,
+            max_steps=max_steps,
+            tol=cfg.tol,
+            step_cap=cap,
         )
         vb = vb0.at[:free].set(found.x) if free == 3 else found.x
         value = found.value  # objective(q, vb), as the solver evaluated it
         # A straight line through a fold has an infinite (midpoint) or NaN energy: last.
         return jnp.where(jnp.isfinite(value), value, jnp.inf), vb, found.num_steps
 
-    zero = jnp.zeros(6, dtype)
-    ico = prob.bases.ico
-    energies, params, search_steps = jax.lax.map(lambda q: refine(q, zero, _SEARCH_STEPS, 3), ico)
-    _, top = jax.lax.top_k(-energies, cfg.init_candidates)
-    _, vbs, more = jax.lax.map(lambda i: refine(ico[i], params[i], cfg.max_steps, 3), top)
+    # The short search from every icosahedral rotation and then the refinement of the
+    # best init_candidates over rotations are jobs of one scan, and so one compiled solve
+    # (its objective and gradient are the bulk of the program); the step limit is traced.
+    ico, k = prob.bases.ico, cfg.init_candidates
+    n_ico = ico.shape[0]
+
+    def job(searched, j):
+        energies, params = searched
+        searching = j < n_ico
+        top = jax.lax.top_k(-energies, k)[1].astype(jnp.int32)  # once the search is done
+        i = jnp.where(searching, j, top[(j - n_ico) % k])
+        start = jnp.where(searching, jnp.zeros(6, dtype), params[i])
+        cap = jnp.where(searching, _SEARCH_STEPS, cfg.max_steps)
+        energy, vb, steps = refine(ico[i], start, max(cfg.max_steps, _SEARCH_STEPS), 3, cap)
+        slot = jnp.minimum(j, n_ico - 1)
+        energies = jnp.where(searching, energies.at[slot].set(energy), energies)
+        params = jnp.where(searching, params.at[slot].set(vb), params)
+        return (energies, params), (i, vb, steps)
+
+    searched = (jnp.full((n_ico,), jnp.inf, dtype), jnp.zeros((n_ico, 6), dtype))
+    jobs = jnp.arange(n_ico + k, dtype=jnp.int32)
+    (_, params), (index, vbs, job_steps) = jax.lax.scan(job, searched, jobs)
+    top, vbs = index[n_ico:], vbs[n_ico:]
     qs = ico[top]
-    steps = jnp.sum(search_steps) + jnp.sum(more)
+    steps = jnp.sum(job_steps)
     if cfg.init == "moebius":
+        # Six parameters where the rotations have three: a solve of its own.
         _, boosted, more = jax.lax.map(lambda i: refine(ico[i], params[i], cfg.max_steps, 6), top)
         qs, vbs = jnp.concatenate([qs, qs]), jnp.concatenate([vbs, boosted])
         steps = steps + jnp.sum(more)
@@ -506,14 +530,15 @@ def _matching_criterion(prob, cfg, weight):
     return criterion
 
 
-def _straight_round(prob, cfg, rigid, weight, state: _State) -> _State:
+def _straight_round(prob, cfg, rigid, weight, cap, state: _State) -> _State:
     """One registration round on the matching criterion from f1 o gamma to R f2.
 
     Coarse in time before the rounds with the whole path: the straight line cannot bend
     around a wrong correspondence, so its energy keeps a clear pull towards the right
     one. Measured on a bumpy surface against itself under two large degree-3 Diff steps
     (J from 0.13 to 3.0): joint rounds straight from the Moebius start stalled at a
-    distance of 0.17; these rounds first brought it to 0.05.
+    distance of 0.17; these rounds first brought it to 0.05. ``weight`` and the BFGS's
+    step limit ``cap`` are traced (see _coarse_registration).
     """
     dtype = state.energy.dtype
     criterion = _matching_criterion(prob, cfg, weight)
@@ -526,7 +551,14 @@ def _straight_round(prob, cfg, rigid, weight, state: _State) -> _State:
         return criterion(start, _rotate(r_step, f_end)) / reference
 
     y0 = _zero_registration(prob, rigid, dtype)
-    found = minimize(objective, y0, solver=cfg.solver, max_steps=cfg.max_steps, tol=cfg.tol)
+    found = minimize(
+        objective,
+        y0,
+        solver=cfg.solver,
+        max_steps=max(cfg.max_steps, _MATCH_STEPS),
+        tol=cfg.tol,
+        step_cap=cap,
+    )
     x, r_step = _registration_variables(prob, found.x, rigid)
     gamma = _safe_update(prob, cfg, state.gamma, x)
     rotation = r_step @ state.rotation
@@ -624,8 +656,9 @@ def _refinement(prob, cfg, gamma, rotation, coefficients, energy) -> Refinement:
     return Refinement(d_time, d_grid, change / jnp.maximum(d, jnp.finfo(d.dtype).tiny))
 
 
-def _straight_rounds(prob, cfg, rigid, state: _State, weight, max_steps) -> _State:
-    """Rounds on the matching criterion (weight 1: L2, 0: the straight line's energy)."""
+def _straight_rounds(prob, cfg, rigid, state: _State, weight, cap) -> _State:
+    """Rounds on the matching criterion (weight 1: L2, 0: the straight line's energy),
+    each round's BFGS cut at ``cap`` steps."""
     criterion = _matching_criterion(prob, cfg, weight)
     current = criterion(_registered(prob, cfg, state.gamma), _rotate(state.rotation, prob.f2))
     floor = criterion(prob.f1, prob.f2)
@@ -633,9 +666,8 @@ def _straight_rounds(prob, cfg, rigid, state: _State, weight, max_steps) -> _Sta
     def small(before, after):
         return jnp.abs(before - after) <= cfg.outer_tol * (after + cfg.outer_tol * floor)
 
-    round_cfg = cfg.replace(max_steps=max_steps)
     state, _, _, _ = _iterate(
-        lambda s: _straight_round(prob, round_cfg, rigid, weight, s),
+        lambda s: _straight_round(prob, cfg, rigid, weight, cap, s),
         state._replace(energy=current),
         cfg.outer_steps,
         small,
@@ -661,18 +693,35 @@ def _coarse_registration(prob, cfg, rigid) -> _State:
         jnp.zeros((), jnp.int32),
     )
 
-    def matched(start):
-        gamma, rotation = start
-        state = zero._replace(gamma=gamma, rotation=rotation)
-        state = _straight_rounds(prob, cfg, rigid, state, 1.0, _MATCH_STEPS)
+    # Every start's L2 rounds and then the best start's energy rounds are jobs of one
+    # scan, and so one compiled copy of the rounds (weight and step limit traced).
+    n_starts = gammas.shape[0]
+    starts = jax.tree_util.tree_map(
+        lambda x: jnp.broadcast_to(x, (n_starts, *x.shape)), zero
+    )._replace(gamma=gammas, rotation=rotations)
+
+    def job(ends, j):
+        matching = j < n_starts
+        best = jnp.argmin(jnp.where(jnp.isfinite(ends.energy), ends.energy, jnp.inf))
+        i = jnp.where(matching, j, best.astype(jnp.int32))
+        state = jax.tree_util.tree_map(lambda x: x[i], ends)
+        weight = jnp.where(matching, 1.0, 0.0).astype(dtype)
+        cap = jnp.where(matching, _MATCH_STEPS, cfg.max_steps)
+        state = _straight_rounds(prob, cfg, rigid, state, weight, cap)
+        # A matched start is ranked by its straight line's energy.
         end = _rotate(state.rotation, prob.f2)
         straight = _straight_energy(prob, cfg, _registered(prob, cfg, state.gamma), end)
-        return state._replace(energy=straight)
+        slot = jnp.minimum(j, n_starts - 1)
+        ends = jax.tree_util.tree_map(
+            lambda e, x: jnp.where(matching, e.at[slot].set(x), e),
+            ends,
+            state._replace(energy=straight),
+        )
+        return ends, state
 
-    ends = jax.lax.map(matched, (gammas, rotations))
+    ends, states = jax.lax.scan(job, starts, jnp.arange(n_starts + 1, dtype=jnp.int32))
+    state = jax.tree_util.tree_map(lambda x: x[-1], states)
     best = jnp.argmin(jnp.where(jnp.isfinite(ends.energy), ends.energy, jnp.inf))
-    state = jax.tree_util.tree_map(lambda x: x[best], ends)
-    state = _straight_rounds(prob, cfg, rigid, state, 0.0, cfg.max_steps)
     others = jnp.sum(ends.steps).astype(jnp.int32) - ends.steps[best]
     return state._replace(steps=state.steps + steps + others)
 

@@ -67,8 +67,59 @@ class _GradientBFGS(optx.BFGS):
         return (~state.first_step) & (small | state.terminate), state.result
 
 
+class _Capped(optx.AbstractMinimiser):
+    """A minimiser stopped after ``args`` steps, a traced cap at most the static
+    ``max_steps``: one compiled solve then serves solves of different lengths. It stops
+    exactly where a solve with ``max_steps = cap`` stops (the same iterates, result code
+    and step count)."""
+
+    inner: optx.AbstractMinimiser
+    rtol: float
+    atol: float
+    norm: Callable
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.rtol, self.atol, self.norm = inner.rtol, inner.atol, inner.norm
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        state = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
+        return state, jnp.zeros((), jnp.int32)
+
+    def step(self, fn, y, args, options, state, tags):
+        y, inner, aux = self.inner.step(fn, y, args, options, state[0], tags)
+        return y, (inner, state[1] + 1), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        done, result = self.inner.terminate(fn, y, args, options, state[0], tags)
+        capped = (state[1] >= args) & ~done
+        result = optx.RESULTS.where(capped, optx.RESULTS.nonlinear_max_steps_reached, result)
+        return done | capped, result
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return self.inner.postprocess(fn, y, aux, args, options, state[0], tags, result)
+
+
+def _capped_lbfgs(fun, max_steps, tol):
+    """jaxopt's LBFGS whose loop also stops at the ``step_cap`` given to ``run``."""
+
+    class CappedLBFGS(_jaxopt().LBFGS):
+        def _cond_fun(self, inputs):
+            (_, state), (_, kwargs) = inputs
+            cap = kwargs["step_cap"].astype(state.iter_num.dtype)
+            return (state.error > self.tol) & (state.iter_num < cap)
+
+    return CappedLBFGS(fun=lambda x, step_cap: fun(x), maxiter=max_steps, tol=tol)
+
+
 def minimize(
-    fun: Callable[[Array], Array], x0, *, solver: str, max_steps: int, tol: float
+    fun: Callable[[Array], Array],
+    x0,
+    *,
+    solver: str,
+    max_steps: int,
+    tol: float,
+    step_cap: Array | None = None,
 ) -> Minimum:
     """Minimize a smooth scalar function of one array (traceable, vmappable).
 
@@ -83,14 +134,23 @@ def minimize(
     (rounding) ``RESULTS.stalled``. A start that already meets tol stops after the
     solver's first step, which evaluates it (``num_steps`` 1, x unchanged for bfgs). The
     returned gradient norm is the solver's own, at the returned point.
+
+    ``step_cap`` (an int array, at most ``max_steps``; None: ``max_steps``) stops the
+    solve after that many steps as if it were ``max_steps``, but traced: call sites that
+    differ only in their step limit can share one solve, and with it one compiled copy of
+    the objective and its gradient.
     """
     check_solver(solver)
+    if step_cap is not None:
+        step_cap = jnp.asarray(step_cap, jnp.int32)
     if solver == "bfgs":
         rounding = 100 * float(jnp.finfo(jax.tree_util.tree_leaves(x0)[0].dtype).eps)
+        bfgs = _GradientBFGS(gtol=tol, rounding=rounding)
         sol = optx.minimise(
             lambda x, _: fun(x),
-            _GradientBFGS(gtol=tol, rounding=rounding),
+            bfgs if step_cap is None else _Capped(bfgs),
             x0,
+            args=step_cap,
             max_steps=max_steps,
             throw=False,
         )
@@ -98,13 +158,17 @@ def minimize(
         # The value and gradient at the returned (last accepted) point, as the solver
         # evaluated them: evaluating them again would put another copy of the objective
         # and its gradient into the compiled program at every call site.
-        value, gradient = sol.state.f_info.f, sol.state.f_info.grad
+        info = (sol.state if step_cap is None else sol.state[0]).f_info
+        value, gradient = info.f, info.grad
     else:
-        x, state = _jaxopt().LBFGS(fun=fun, maxiter=max_steps, tol=tol).run(x0)
+        if step_cap is None:
+            x, state = _jaxopt().LBFGS(fun=fun, maxiter=max_steps, tol=tol).run(x0)
+            cut = state.iter_num >= max_steps
+        else:
+            x, state = _capped_lbfgs(fun, max_steps, tol).run(x0, step_cap=step_cap)
+            cut = state.iter_num >= step_cap.astype(state.iter_num.dtype)
         # jaxopt stops silently at maxiter; its other stops are judged below.
-        result = RESULTS.where(
-            state.iter_num >= max_steps, RESULTS.nonlinear_max_steps_reached, RESULTS.successful
-        )
+        result = RESULTS.where(cut, RESULTS.nonlinear_max_steps_reached, RESULTS.successful)
         steps = state.iter_num
         value, gradient = state.value, state.grad
     grad_norm = optx.two_norm(gradient)

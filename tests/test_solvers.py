@@ -42,6 +42,35 @@ def test_a_start_that_meets_tol_stops_at_the_first_step(solver):
     np.testing.assert_array_equal(found.x, x0)
 
 
+@pytest.mark.parametrize("solver", ["bfgs", "lbfgs"])
+def test_a_traced_step_cap_stops_where_that_max_steps_stops(solver):
+    """One compiled solve with the cap traced (vmapped over three caps) returns, for each
+    cap, what a solve compiled with max_steps = cap returns: the same point and value to
+    the bit (the same iterates), the same step count and result code."""
+    x0 = jnp.asarray([-1.2, 1.0, -0.5, 0.8])
+    caps = jnp.asarray([2, 9, 400])
+    capped = jax.jit(
+        jax.vmap(
+            lambda cap: minimize(
+                _rosenbrock, x0, solver=solver, max_steps=400, tol=1e-8, step_cap=cap
+            )
+        )
+    )(caps)
+    for k, cap in enumerate((2, 9, 400)):
+        alone = minimize(_rosenbrock, x0, solver=solver, max_steps=cap, tol=1e-8)
+        one = jax.tree_util.tree_map(lambda leaf, k=k: leaf[k], capped)
+        np.testing.assert_array_equal(one.x, alone.x)
+        assert float(one.value) == float(alone.value)
+        # The norm is a reduction: the batched program may sum in another order.
+        assert float(one.grad_norm) == pytest.approx(float(alone.grad_norm), rel=1e-12)
+        assert int(one.num_steps) == int(alone.num_steps)
+        assert one.result == alone.result
+        # The two short caps stop at their limit; the long one converges before it.
+        expected = RESULTS.successful if cap == 400 else RESULTS.nonlinear_max_steps_reached
+        assert one.result == expected
+    assert capped.num_steps.tolist()[:2] == [2, 9] and int(capped.num_steps[2]) < 400
+
+
 def _symmetric(n, seed):
     a = np.random.default_rng(seed).standard_normal((n, n))
     return jnp.asarray((a + a.T) / np.sqrt(n) + 2.0 * np.eye(n))
