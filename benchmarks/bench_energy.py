@@ -23,6 +23,15 @@ so the flop bound is 1.02-1.06 ms and the byte bound 50 ms. The call took 5.6-6.
 issue 14): 4.3-6x the flop bound, 0.14-0.19 of the byte bound. Against the authors' 93 ms
 (issue 14's one run) that is 15-21x; the 50x target is not met.
 
+Where the time goes (XLA's trace events, float64, same day): 16 "pad" fusions, the
+transposes of the coordinate and time slices, hold about 65 % of the threads' time; each
+recomputes the pointwise graph of the metric. Variants measured in one process (median,
+current 5.9-6.4 ms): a custom_vjp whose forward also returns the pointwise partials 4.8 ms;
+a custom_jvp with the chain rule through the invariants written out 5.6 ms (40 fusions
+against 44); the coordinates as separate arrays 33 ms; time mixing by small matrices
+12.5 ms; a lax.map over time steps 13.6 ms; optimization barriers change nothing (XLA:CPU
+expands them before fusing). None reaches 1.9 ms (50x), so none landed.
+
 Run: python benchmarks/bench_energy.py [--repeats 50] [--m 50 --n 99 --n-times 13]
 """
 
