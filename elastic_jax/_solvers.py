@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Callable
 from typing import NamedTuple
@@ -68,10 +69,10 @@ class _GradientBFGS(optx.BFGS):
 
 
 class _Capped(optx.AbstractMinimiser):
-    """A minimiser stopped after ``args`` steps, a traced cap at most the static
-    ``max_steps``: one compiled solve then serves solves of different lengths. It stops
-    exactly where a solve with ``max_steps = cap`` stops (the same iterates, result code
-    and step count)."""
+    """A minimiser stopped after ``args`` steps (the solve's args carry the cap): a traced
+    cap, at most the static ``max_steps``, so that one compiled solve serves solves of
+    different lengths. It stops exactly where a solve with ``max_steps = cap`` stops (the
+    same iterates, result code and step count)."""
 
     inner: optx.AbstractMinimiser
     rtol: float
@@ -100,8 +101,10 @@ class _Capped(optx.AbstractMinimiser):
         return self.inner.postprocess(fn, y, aux, args, options, state[0], tags, result)
 
 
-def _capped_lbfgs(fun, max_steps, tol):
-    """jaxopt's LBFGS whose loop also stops at the ``step_cap`` given to ``run``."""
+@functools.cache
+def _capped_lbfgs():
+    """jaxopt's LBFGS whose loop also stops at the ``step_cap`` given to ``run`` (made on
+    first use: jaxopt is imported lazily, see _jaxopt)."""
 
     class CappedLBFGS(_jaxopt().LBFGS):
         def _cond_fun(self, inputs):
@@ -109,7 +112,7 @@ def _capped_lbfgs(fun, max_steps, tol):
             cap = kwargs["step_cap"].astype(state.iter_num.dtype)
             return (state.error > self.tol) & (state.iter_num < cap)
 
-    return CappedLBFGS(fun=lambda x, step_cap: fun(x), maxiter=max_steps, tol=tol)
+    return CappedLBFGS
 
 
 def minimize(
@@ -165,7 +168,8 @@ def minimize(
             x, state = _jaxopt().LBFGS(fun=fun, maxiter=max_steps, tol=tol).run(x0)
             cut = state.iter_num >= max_steps
         else:
-            x, state = _capped_lbfgs(fun, max_steps, tol).run(x0, step_cap=step_cap)
+            capped = _capped_lbfgs()(fun=lambda x, step_cap: fun(x), maxiter=max_steps, tol=tol)
+            x, state = capped.run(x0, step_cap=step_cap)
             cut = state.iter_num >= step_cap.astype(state.iter_num.dtype)
         # jaxopt stops silently at maxiter; its other stops are judged below.
         result = RESULTS.where(cut, RESULTS.nonlinear_max_steps_reached, RESULTS.successful)
