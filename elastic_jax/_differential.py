@@ -90,14 +90,20 @@ def differential(f: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array, "*batch 3 
     return _differential(f)
 
 
+def _xp(*arrays):
+    """numpy for numpy inputs (checks and precomputation outside jit), else jax.numpy."""
+    return np if all(isinstance(a, np.ndarray) for a in arrays) else jnp
+
+
 def area_element(a1: Array, a2: Array) -> Array:
-    """sqrt(det g) = |a1 x a2| for columns ``(..., 3, ...)`` (vector axis -3)."""
-    return jnp.sqrt(_norm2(cross(a1, a2)))
+    """sqrt(det g) = |a1 x a2| for columns ``(..., 3, ...)`` (vector axis -3); numpy in,
+    numpy out."""
+    return _xp(a1, a2).sqrt(_norm2(cross(a1, a2)))
 
 
 def dot(x: Array, y: Array) -> Array:
-    """Euclidean inner product over the vector axis -3."""
-    return jnp.sum(x * y, axis=-3)
+    """Euclidean inner product over the vector axis -3 (numpy in, numpy out)."""
+    return _xp(x, y).sum(x * y, axis=-3)
 
 
 def _norm2(x: Array) -> Array:
@@ -105,10 +111,11 @@ def _norm2(x: Array) -> Array:
 
 
 def cross(x: Array, y: Array) -> Array:
-    """Cross product over the vector axis -3, written out so that it fuses on any backend."""
+    """Cross product over the vector axis -3, written out so that it fuses on any backend
+    (numpy in, numpy out)."""
     x0, x1, x2 = x[..., 0, :, :], x[..., 1, :, :], x[..., 2, :, :]
     y0, y1, y2 = y[..., 0, :, :], y[..., 1, :, :], y[..., 2, :, :]
-    return jnp.stack([x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0], axis=-3)
+    return _xp(x, y).stack([x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0], axis=-3)
 
 
 def pole_fourier1(row: Array) -> tuple[Array, Array]:

@@ -50,7 +50,7 @@ from ._geodesic import (
 from ._harmonics import check_degree
 from ._metric import SplitMetric
 from ._options import SHOOTING_SCHEMES, ShapeOptions
-from ._units import units_of
+from ._units import in_units
 from ._validation import as_surface
 
 
@@ -301,11 +301,11 @@ def shoot(
     tol = default_newton_tol(f.dtype) if tol is None else check_positive("tol", tol)
     values, dframe = (jnp.asarray(a, f.dtype) for a in _basis_np(m, n, degree))
     # In units of f's size (see _units): the energy is homogeneous, the path scales.
-    units = units_of(f)
+    units, (g,) = in_units(f)
     s = units.scale
     path, speeds, residuals, coefficients, newton_steps, n_valid = _shoot_jit(
         metric,
-        units.remove(f),
+        g,
         v / s,
         values,
         dframe,

@@ -6,7 +6,7 @@ import jax
 import numpy as np
 
 from ._checks import InputError, _where, check_grid_shape, extents, grid_array
-from ._differential import interior_frame
+from ._differential import area_element, interior_frame
 
 __all__ = ["as_surface", "check_grid_shape", "validate_surface"]
 
@@ -35,8 +35,7 @@ def as_surface(f, name: str, *, check_immersion: bool = True) -> jax.Array:
     unit = ((flat - centre) / extents(flat)[:, None, None, None]).astype(x.dtype)
     # In numpy: no program to compile on a process's first call, and none traced when a
     # concrete array is closed over inside a caller's jit.
-    a1, a2 = interior_frame(unit)
-    area = np.sqrt(np.sum(np.cross(a1, a2, axis=-3) ** 2, axis=-3))
+    area = area_element(*interior_frame(unit))
     # Zero to working precision: the cross product of columns of size ~1 has rounding
     # error ~eps; thin real features stay far above this.
     eps = np.finfo(x.dtype).eps
