@@ -95,22 +95,22 @@ def _xp(*arrays):
     return np if all(isinstance(a, np.ndarray) for a in arrays) else jnp
 
 
-def area_element(a1: Array, a2: Array) -> Array:
+def area_element(a1: ArrayLike, a2: ArrayLike) -> ArrayLike:
     """sqrt(det g) = |a1 x a2| for columns ``(..., 3, ...)`` (vector axis -3); numpy in,
     numpy out."""
     return _xp(a1, a2).sqrt(_norm2(cross(a1, a2)))
 
 
-def dot(x: Array, y: Array) -> Array:
+def dot(x: ArrayLike, y: ArrayLike) -> ArrayLike:
     """Euclidean inner product over the vector axis -3 (numpy in, numpy out)."""
     return _xp(x, y).sum(x * y, axis=-3)
 
 
-def _norm2(x: Array) -> Array:
+def _norm2(x: ArrayLike) -> ArrayLike:
     return dot(x, x)
 
 
-def cross(x: Array, y: Array) -> Array:
+def cross(x: ArrayLike, y: ArrayLike) -> ArrayLike:
     """Cross product over the vector axis -3, written out so that it fuses on any backend
     (numpy in, numpy out)."""
     x0, x1, x2 = x[..., 0, :, :], x[..., 1, :, :], x[..., 2, :, :]
