@@ -79,7 +79,7 @@ class ShapeOptions:
     scheme: str = "midpoint"
     method: str = "joint"
     vf_degree: int = 8
-    outer_steps: int = 10
+    outer_steps: int = 20
     outer_tol: float = 1e-3
     init: str = "moebius"
     init_candidates: int = 3

@@ -253,12 +253,52 @@ def _sample_bicubic(f, phi, theta):
     return jnp.einsum("...ab,...a,...b->...", patch, weights_r, weights_c)
 
 
-@functools.partial(jax.jit, static_argnames=("method",))
-def _reparametrize(f, gamma, *, method):
-    phi, theta = _angles_of(gamma)
+def _sample_in_angles(f, points, method):
+    phi, theta = _angles_of(points)
     if method == "bilinear":
         return sample_at(f, phi, theta)
     return _sample_bicubic(f, phi, theta)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _sample_points(f, points, method):
+    """f read at ``points (3, ...)`` of S^2: ``(..., 3, ...)``."""
+    return _sample_in_angles(f, points, method)
+
+
+@_sample_points.defjvp
+def _sample_points_jvp(method, primals, tangents):
+    # The angles are a singular chart on the z axis: _angles_of keeps their derivative
+    # finite there by holding it at zero, so a point exactly on a pole (every pole-row
+    # point under a Diff step at x = 0, the start of each registration round) would get
+    # no derivative at all. The derivative there is f's differential at the pole
+    # instead: moving the north pole by d changes f by X d_x + Y d_y, with (X, Y) the
+    # first Fourier mode of f_phi on the pole row (the tangent plane of
+    # jacobian_determinant); moving the south pole, phi decreases: -(X' d_x + Y' d_y).
+    f, points = primals
+    df, dpoints = tangents
+    value, moved = jax.jvp(lambda p: _sample_in_angles(f, p, method), (points,), (dpoints,))
+    north, south = _pole_phi_derivative(f)
+    spread = (1,) * (points.ndim - 1)
+    (xn, yn), (xs, ys) = (
+        tuple(c.reshape(c.shape + spread) for c in pole_fourier1(row)) for row in (north, south)
+    )
+    lead = (1,) * (xn.ndim - points.ndim + 1)  # f's batch axes and its coordinate axis
+
+    def spread_out(x):
+        return x.reshape(lead + x.shape)
+
+    dx, dy = spread_out(dpoints[0]), spread_out(dpoints[1])
+    north_side = spread_out(points[2] > 0)
+    at_pole = jnp.where(north_side, xn * dx + yn * dy, -(xs * dx + ys * dy))
+    on_axis = spread_out(points[0] * points[0] + points[1] * points[1] == 0)
+    tangent = jnp.where(on_axis, at_pole, moved) + _sample_in_angles(df, points, method)
+    return value, tangent
+
+
+@functools.partial(jax.jit, static_argnames=("method",))
+def _reparametrize(f, gamma, *, method):
+    return _sample_points(f, gamma, method)
 
 
 def reparametrize(
