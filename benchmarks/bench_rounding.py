@@ -21,14 +21,25 @@ synthetic pair (a bumpy surface against a stretched copy under a rotation of the
 parameter sphere), metric (1, 1, 0.1, 0), modulo "diff". Rows: the paper's low
 (12 x 25, degree 5 / 5, N 5) and middle (25 x 49, 7 / 8, N 10).
 
-Measured (2026-11-23, 2 CPU cores, float64, jax 0.10.2), before this script existed,
-from the same four compilations of the whole solve (cat1 -> cat2, middle row; distances
-in the solve's units, half the user's): 0.42861 (default: 4 rounds, grad norm 0.120),
-0.42938 (emitters off, LLVM level 1: 2 rounds, the second refused, grad norm 0.271),
-0.41977 (emitters off: 6 rounds, grad norm 0.104), and 0.42505 from the default
-compilation of a source changed only in what it records (5 rounds). All four reported
-converged: a spread of 2.3 % in distance. At the low row the same variants agree to
-1e-9 (0.28085879534 against 0.28085879575).
+Measured (2026-11-23, 2 CPU cores, float64, jax 0.10.2; distances in the user's units):
+    low row: every pair agrees within itself (relative spread 1e-10 for the cats at
+        0.56171, 5e-14 for cat1 -> horse0 at 1.11153, 2e-16 for the synthetic pair at
+        0.53818); all converged.
+    middle row: the synthetic pair agrees to 2e-16 (0.55514). The cats split between two
+        converged minima: 0.79298 (default, and batched under vmap: 7 rounds, grad norm
+        0.028) and 0.77178 (the three other compilations: 10 rounds, 0.023); spread 2.7 %.
+        cat1 -> horse0: 0.8489, 0.8544, 0.8682, 0.8702, and 1.4937 from the compilation
+        without fusion emitters at LLVM level 1. That run was reported converged after 2
+        rounds, the second one refused, with a joint grad norm of 0.945; the others have
+        0.014-0.034. Spread 76 %.
+    The same run before the pole derivative of f o gamma was fixed (outer_steps 10):
+        low row, synthetic: spread 2.5e-6. middle row, cats: 0.8395-0.8588 (spread 2.3 %,
+        grad norms 0.04-0.27). cat1 -> horse0: 0.8526-0.8642 and 1.0400 (2 rounds,
+        grad norm 0.399). synthetic: 1.6e-6.
+    So at the middle row the search is reproducible for the smooth synthetic pair, and
+    for the real pairs up to the choice between nearby minima, except for rare runs that
+    end on a refused round with a large gradient. The README's "What the distance means"
+    says how to read such a run.
 
 Run: python benchmarks/bench_rounding.py [--rows low,middle] [--pairs cats,horse,synthetic]
 """
