@@ -53,6 +53,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)  # a script, not the library
 
+import bench_shape  # noqa: E402  (its synthetic pair)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -82,10 +83,8 @@ COMPILATIONS = {
 def surfaces(name: str, m: int, n: int):
     """(f1, f2, a third surface to batch f2 with), or None when the data is absent."""
     if name == "synthetic":
-        moved = shapes.sample(shapes.bumpy, m, n, rotation=shapes.random_rotation(11))
-        f2 = np.einsum("i,imn->imn", np.asarray([1.3, 1.0, 0.8]), np.asarray(moved))
         other = shapes.sample(shapes.ellipsoid, m, n, axes=(1.0, 0.8, 0.6))
-        return np.asarray(shapes.sample(shapes.bumpy, m, n)), f2, np.asarray(other)
+        return (*(np.asarray(f) for f in bench_shape.pair("synthetic", m, n)), np.asarray(other))
     files = {"cats": ("cat1", "cat2", "horse0"), "horse": ("cat1", "horse0", "cat2")}[name]
     paths = [DATA / f"{f}_50x99.npz" for f in files]
     if not all(p.exists() for p in paths):
@@ -106,7 +105,7 @@ def summary(result, scale: float) -> dict:
 
 
 def variants(f1, f2, other, cfg) -> dict:
-    """Each variant's summary (None for a compilation option this jaxlib lacks)."""
+    """Each variant's summary ({"error": ...} for a compilation option this jaxlib lacks)."""
     units, (g1, g2) = _shape.in_units(f1, f2)
     scale = float(units.scale)
     m, n = f1.shape[-2:]

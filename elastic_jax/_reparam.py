@@ -175,7 +175,8 @@ def _angles_of(points: Array) -> tuple[Array, Array]:
     r2 = x * x + y * y
     off_axis = r2 > 0
     # At the poles theta is arbitrary (the pole row is constant): a safe where keeps the
-    # derivative of atan2 and of the square root finite there.
+    # derivative of atan2 and of the square root finite there (zero; the derivative of f
+    # read at a pole comes from _sample_points' rule instead).
     r = jnp.sqrt(jnp.where(off_axis, r2, 1.0))
     phi = jnp.arctan2(jnp.where(off_axis, r, 0.0), z)
     theta = jnp.arctan2(jnp.where(off_axis, y, 0.0), jnp.where(off_axis, x, 1.0))
@@ -278,20 +279,20 @@ def _sample_points_jvp(method, primals, tangents):
     f, points = primals
     df, dpoints = tangents
     value, moved = jax.jvp(lambda p: _sample_in_angles(f, p, method), (points,), (dpoints,))
-    north, south = _pole_phi_derivative(f)
-    spread = (1,) * (points.ndim - 1)
-    (xn, yn), (xs, ys) = (
-        tuple(c.reshape(c.shape + spread) for c in pole_fourier1(row)) for row in (north, south)
-    )
-    lead = (1,) * (xn.ndim - points.ndim + 1)  # f's batch axes and its coordinate axis
+    (xn, yn), (xs, ys) = (pole_fourier1(row) for row in _pole_phi_derivative(f))
+    # Results are laid out as f's leading axes (batch and coordinate) then the points'.
+    k = points.ndim - 1
 
-    def spread_out(x):
-        return x.reshape(lead + x.shape)
+    def per_coordinate(c):  # (..., 3) -> (..., 3, 1, ..., 1)
+        return c.reshape(c.shape + (1,) * k)
 
-    dx, dy = spread_out(dpoints[0]), spread_out(dpoints[1])
-    north_side = spread_out(points[2] > 0)
-    at_pole = jnp.where(north_side, xn * dx + yn * dy, -(xs * dx + ys * dy))
-    on_axis = spread_out(points[0] * points[0] + points[1] * points[1] == 0)
+    def per_point(x):  # (*points) -> (1, ..., 1, *points)
+        return x.reshape((1,) * (f.ndim - 2) + x.shape)
+
+    xn, yn, xs, ys = map(per_coordinate, (xn, yn, xs, ys))
+    dx, dy = per_point(dpoints[0]), per_point(dpoints[1])
+    at_pole = jnp.where(per_point(points[2] > 0), xn * dx + yn * dy, -(xs * dx + ys * dy))
+    on_axis = per_point(points[0] * points[0] + points[1] * points[1] == 0)
     tangent = jnp.where(on_axis, at_pole, moved) + _sample_in_angles(df, points, method)
     return value, tangent
 
