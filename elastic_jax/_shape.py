@@ -102,9 +102,12 @@ class ShapeGeodesicResult(NamedTuple):
         converged: ``()`` the final geodesic solve converged (a minimum, not a saddle, when
             saddle_checks >= 1) and the last round changed the
             energy by at most outer_tol (E + outer_tol E_0) (always true when outer_steps=0
-            asks for no rounds).
+            asks for no rounds) or was refused, and that round's step did not have to shrink
+            to stay resolved.
         result: an ``elastic_jax.RESULTS`` code: the final solve's failure if it failed, else
-            ``nonlinear_max_steps_reached`` when the rounds ran out, else successful.
+            ``resolution_limited`` when the last round's step had to shrink until the grid
+            resolved it (J > 0, area floor) and then lowered the energy little or not at
+            all, else ``nonlinear_max_steps_reached`` when the rounds ran out, else successful.
         grad_norm: ``()`` 2-norm of the gradient of the joint objective (path in whitened
             coefficients and the next Diff step, energy / its scale) at the result.
         min_curvature: ``()`` the final geodesic solve's estimate of the smallest Hessian
@@ -134,9 +137,9 @@ class ShapeGeodesicResult(NamedTuple):
     def message(self) -> str:
         """How the solve ended, in words; '' when the last round met outer_tol.
 
-        A converged result whose last round was refused (the step the grid resolves would
-        have raised the energy) says so: its registration is the best this grid resolves
-        along the rounds' steps, and ``refinement`` shows what a finer grid makes of it.
+        A converged result whose last round was refused (its full step, resolved by the
+        grid, raised the energy: the composed reparametrization's interpolation cost more
+        than the step gained) says so.
         """
         message = result_message(self.result)
         if not message and not bool(self.converged):
@@ -150,9 +153,9 @@ class ShapeGeodesicResult(NamedTuple):
         if not message and k >= 2 and history[k + 1] == history[k] > 0:
             change = 100.0 * (history[k - 1] - history[k]) / history[k]
             message = (
-                "the rounds ended where the next Diff step the grid resolves would raise the "
-                f"energy (the last accepted round lowered it by {change:.2g} %); refinement "
-                "shows how a finer grid sees the result"
+                "the rounds ended where the next round's Diff step raised the energy (the "
+                f"last accepted round lowered it by {change:.2g} %); refinement shows how a "
+                "finer grid sees the result"
             )
         return message
 
@@ -276,7 +279,8 @@ def _resolved(gammas, floor):
 
 
 def _safe_update(prob, cfg, gamma, y):
-    """The largest shrink of the step whose composition with gamma stays resolved.
+    """The largest shrink of the step whose composition with gamma stays resolved, and
+    whether the step had to shrink.
 
     The shrinks are tried one after the other (a loop, not one candidate per shrink in
     the program): the first usually passes, and each candidate is a bicubic composition
@@ -301,8 +305,8 @@ def _safe_update(prob, cfg, gamma, y):
 
     first = candidate(0)
     start = (jnp.zeros((), jnp.int32), first, usable(0, first))
-    _, chosen, _ = jax.lax.while_loop(lambda c: ~c[2], next_shrink, start)
-    return chosen
+    index, chosen, _ = jax.lax.while_loop(lambda c: ~c[2], next_shrink, start)
+    return chosen, index > 0
 
 
 class _Problem(NamedTuple):
@@ -321,6 +325,7 @@ class _State(NamedTuple):
     coefficients: Array
     energy: Array
     steps: Array
+    shrunk: Array  # () bool: the (last) round's step had to shrink to stay resolved
 
 
 def _registered(prob, cfg, gamma):
@@ -560,16 +565,18 @@ def _straight_round(prob, cfg, rigid, weight, cap, state: _State) -> _State:
         step_cap=cap,
     )
     x, r_step = _registration_variables(prob, found.x, rigid)
-    gamma = _safe_update(prob, cfg, state.gamma, x)
+    gamma, shrunk = _safe_update(prob, cfg, state.gamma, x)
     rotation = r_step @ state.rotation
     energy = criterion(_registered(prob, cfg, gamma), _rotate(rotation, prob.f2))
-    return _State(gamma, rotation, state.coefficients, energy, state.steps + found.num_steps)
+    steps = state.steps + found.num_steps
+    return _State(gamma, rotation, state.coefficients, energy, steps, shrunk)
 
 
 def _iterate(round_fn, state: _State, max_rounds: int, small_change, history=None):
     """Rounds until one changes the energy little, or max_rounds; never a rising energy.
 
-    Returns (state, history, rounds taken, whether the last round met small_change).
+    Returns (state, history, rounds taken, whether the last round met small_change or
+    was refused); ``state.shrunk`` says whether the last round's step had to shrink.
     ``history`` (optional) gets each round's energy at index 2 + round.
     """
     if history is None:
@@ -586,7 +593,9 @@ def _iterate(round_fn, state: _State, max_rounds: int, small_change, history=Non
         # (no round may raise the energy), and stop there.
         better = new.energy <= state.energy
         kept = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), new, state)
-        kept = kept._replace(steps=new.steps)
+        # The last round's shrink is kept whether or not the round was: rounds that end
+        # shrunk ended at the edge of what the grid resolves, not at a minimum.
+        kept = kept._replace(steps=new.steps, shrunk=new.shrunk)
         done = ~better | small_change(state.energy, kept.energy)
         return kept, history.at[k + 2].set(kept.energy), k + 1, done
 
@@ -618,7 +627,7 @@ def _round(prob, cfg, rigid, state: _State) -> _State:
         found = minimize(lambda y: objective((z0, y)), y0, **options)
         z, y = z0, found.x
     x, r_step = _registration_variables(prob, y, rigid)
-    gamma = _safe_update(prob, cfg, state.gamma, x)
+    gamma, shrunk = _safe_update(prob, cfg, state.gamma, x)
     rotation = r_step @ state.rotation
     coefficients = scaling.coefficients(z)
     steps = state.steps + found.num_steps
@@ -627,7 +636,7 @@ def _round(prob, cfg, rigid, state: _State) -> _State:
     else:
         res = _geodesic_at(prob, cfg, gamma, rotation, coefficients)
         coefficients, energy, steps = res.coefficients, res.energy, steps + res.num_steps
-    return _State(gamma, rotation, coefficients, energy, steps)
+    return _State(gamma, rotation, coefficients, energy, steps, shrunk)
 
 
 def _refinement(prob, cfg, gamma, rotation, coefficients, energy) -> Refinement:
@@ -691,6 +700,7 @@ def _coarse_registration(prob, cfg, rigid) -> _State:
         _zero_coefficients(prob, cfg),
         jnp.zeros((), dtype),
         jnp.zeros((), jnp.int32),
+        jnp.zeros((), bool),
     )
 
     # Every start's L2 rounds and then the best start's energy rounds are jobs of one
@@ -767,7 +777,7 @@ def _shape_solve(metric, f1, f2, bases, cfg, rigid):
 
     state = _coarse_registration(prob, cfg, rigid)
     energy = _path_energy_at(prob, cfg, state.gamma, state.rotation, state.coefficients)
-    state = state._replace(energy=energy)
+    state = state._replace(energy=energy, shrunk=jnp.zeros((), bool))
     history = jnp.full((cfg.outer_steps + 2,), jnp.nan, dtype).at[1].set(energy)
     straight0 = _straight_energy(prob, cfg, f1, f2)
 
@@ -787,11 +797,12 @@ def _shape_solve(metric, f1, f2, bases, cfg, rigid):
     joint = _joint_objective(prob, cfg, rigid, state.gamma, state.rotation, scaling)
     zero_step = _zero_registration(prob, rigid, dtype)
     grad_norm = optx.two_norm(jax.grad(joint)((scaling.whitened(final.coefficients), zero_step)))
-    result = RESULTS.where(
-        final.converged,
+    rounds_result = RESULTS.where(
+        state.shrunk,
+        RESULTS.resolution_limited,
         RESULTS.where(outer_done, RESULTS.successful, RESULTS.nonlinear_max_steps_reached),
-        final.result,
     )
+    result = RESULTS.where(final.converged, rounds_result, final.result)
     if cfg.refinement:
         refinement = _refinement(
             prob, cfg, state.gamma, state.rotation, final.coefficients, final.energy
@@ -811,7 +822,7 @@ def _shape_solve(metric, f1, f2, bases, cfg, rigid):
         energy_history=history,
         rounds=rounds,
         num_steps=steps,
-        converged=final.converged & outer_done,
+        converged=final.converged & outer_done & ~state.shrunk,
         result=result,
         grad_norm=grad_norm,
         min_curvature=final.min_curvature,
@@ -951,10 +962,16 @@ def shape_geodesic(
         result.converged
     ):
         history = np.asarray(result.energy_history)
+        # The resolution's own words already say what to change.
+        advice = (
+            ""
+            if bool(result.result == RESULTS.resolution_limited)
+            else "; raise outer_steps or max_steps"
+        )
         warnings.warn(
             f"shape_geodesic: not converged after {int(result.rounds)} registration rounds "
-            f"({result.message}; energies {history[np.isfinite(history)].round(6).tolist()}); "
-            "raise outer_steps or max_steps",
+            f"({result.message}; energies {history[np.isfinite(history)].round(6).tolist()})"
+            f"{advice}",
             ConvergenceWarning,
             stacklevel=2,
         )

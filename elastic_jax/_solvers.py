@@ -17,12 +17,21 @@ from ._options import SOLVERS
 
 
 class RESULTS(optx.RESULTS):  # pyright: ignore
-    """optimistix's result codes and one more: a solve that stopped making progress."""
+    """optimistix's result codes and two more: a solve that stopped making progress, and
+    registration rounds that the grid's resolution stopped."""
 
     stalled = (
         "The solver stopped making progress (steps and value changes at rounding level) "
         "before the gradient norm reached tol: the precision cannot resolve tol; raise tol "
         "or use float64."
+    )
+    resolution_limited = (
+        "The registration rounds stopped at the edge of what the grid resolves: the last "
+        "round's Diff step towards a lower energy folded the reparametrization or stretched "
+        "it past the grid's area floor, and shrunk until the grid resolved it, it lowered "
+        "the energy little or not at all. The distance is the lowest this grid resolves "
+        "along the rounds, not a converged minimum. Use a finer grid (a different start may "
+        "also find a lower basin)."
     )
 
 

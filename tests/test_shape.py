@@ -5,7 +5,8 @@ import pytest
 
 import elastic_jax as ej
 from elastic_jax import shapes
-from elastic_jax._shape import _compose
+from elastic_jax._grid import interior_weights
+from elastic_jax._shape import _compose, _resolution_np
 
 from .conftest import assert_area_bound, load_shape
 
@@ -145,6 +146,32 @@ def test_self_recovery_on_cat1(phi):
     reference = _solve(f, g)
     res = _solve(f, moved, areas=(1.0, 1.0))  # f o phi has f's area: the bound is 0
     assert float(res.distance) <= 0.15 * float(reference.distance)
+
+
+def test_a_reparametrization_the_grid_cannot_resolve_is_not_called_converged():
+    # MATH.md 9: d(f, f o phi) = 0. At 13 x 25 the grid resolves Moebius maps up to |a| =
+    # 0.65 (_resolution_np); past that the registration stops at the area floor with the
+    # distance far from 0, and must say so instead of reporting a converged minimum. The
+    # configuration of tests/test_cli.py, whose solves this shares.
+    m, n, options = 13, 25, ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+    floor, max_boost = _resolution_np(m, n)
+    f = shapes.sample(shapes.bumpy, m, n)
+    within = shapes.sample(shapes.bumpy, m, n, moebius=0.5 * DIRECTION)
+    res = ej.shape_geodesic(f, within, METRIC, options=options)
+    assert bool(res.converged) and res.result == ej.RESULTS.successful
+    assert float(res.distance) < 0.01 * float(res.parametrized_distance)
+
+    assert 0.8 > max_boost
+    beyond = shapes.sample(shapes.bumpy, m, n, moebius=0.8 * DIRECTION)
+    with pytest.warns(ej.ConvergenceWarning, match="edge of what the grid resolves"):
+        res = ej.shape_geodesic(f, beyond, METRIC, options=options)
+    assert not bool(res.converged) and res.result == ej.RESULTS.resolution_limited
+    assert float(res.distance) > 0.1 * float(res.parametrized_distance)
+    # It stopped at the edge: the registered unit sphere keeps the floor's area, to 1 %.
+    jac = ej.jacobian_determinant(res.gamma)
+    area = float(jnp.sum(jac[1:-1, :-1] * interior_weights(m, n, jac.dtype)))
+    assert floor <= area < 1.01 * floor
+    assert float(jac.min()) > 0
 
 
 @pytest.mark.data
