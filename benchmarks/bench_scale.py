@@ -78,6 +78,22 @@ units are one program each; exported / plain jit):
         5 / 8, N 7) from a coarse registration at energy 0.771 to one at 2.399; the rounds
         then needed more than 10 rounds. Not landed: the start selection amplifies
         rounding (see README, "What the distance means").
+Again after the shape solves compile with XLA:CPU's classic fusion emitters (2026-11-24,
+quiet; the solve's code is also newer: the pole derivative fix and the resolution rule,
+so cats at the middle row take 10 rounds, 0.7718, where they took 2-3; exported / plain
+jit):
+    compile, low row: trace 1.9 s, lower 0.5, XLA 12.6 s (15.7); 1692 fusions (1936 with
+        the fusion emitters, same code); run 0.93 s; RSS 647 MB. Middle row: XLA 12.2 s,
+        1728 fusions, RSS 724 MB.
+    first_call, low row: cold 17.6 / 17.9 s (RSS 822 / 802 MB), warm 2.9 / 5.4 s (699 /
+        736 MB), distance 0.56171 both; middle row: cold 29.6 / 29.2 s, warm 14.7 / 17.6 s
+        (the solve itself 13.5 s), 0.77178.
+    memory: geodesic 50 x 99: 843 MB (not compiled with the option); shape_geodesic 25 x
+        49 at the defaults 789 MB with no cache (1569), 954 MB filling it (1799), 814 MB
+        loading it (809). Half of 1.38 GB (690 MB) is still missed by 100 MB: the
+        interpreter and JAX hold 176 MB after the imports, tracing and lowering the solve
+        200 MB, and its BFGS's dense inverse Hessians (2272 variables at the defaults) most
+        of its 143 MB of temporaries. Still missed: cold <= 6.9 s, warm <= 2 s.
 
 Run: python benchmarks/bench_scale.py [--shapes 32] [--parts matrix,compile,first_call,memory]
      [--workers 1,2]
@@ -195,7 +211,7 @@ bases = _shape._bases(m, n, cfg, np.float64)
 _, (g1, g2) = _shape.in_units(f1, f2)
 args = (_shape.constant(metric), g1, g2, bases)
 t0 = time.perf_counter()
-traced = _shape._shape_geodesic.trace(*args, cfg=cfg, rigid=False)
+traced = _shape._shape_geodesic.jitted().trace(*args, cfg=cfg, rigid=False)
 t1 = time.perf_counter()
 lowered = traced.lower()
 t2 = time.perf_counter()

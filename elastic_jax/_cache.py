@@ -23,10 +23,66 @@ import jax
 
 from ._checks import check_bool, check_positive, is_concrete
 
+# XLA:CPU compiles fusions with its MLIR fusion emitters by default. On the shape solve
+# (about 2000 fusions) they hold about 780 MB more while compiling (peak RSS 1445 MB
+# against 664 MB, 25 x 49 at the defaults) and compile slower (XLA's part of the low
+# row's first call 15.7 s against 12.6 s), for code no faster (bench_shape's synthetic
+# pair, middle row: 3.0-3.2 s against 2.5 s). Given to the large solver programs only
+# (solver_jit), never to JAX's configuration.
+_CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 # Where exported programs are kept: set by enable_compilation_cache, None when off.
 _EXPORT_DIR: pathlib.Path | None = None
-# Exported programs of this process, by key: a second call deserializes nothing.
+# Exported programs of this process (jitted), by key: a second call deserializes nothing.
 _EXPORTED: dict[str, object] = {}
+
+
+@functools.cache
+def _compiler_options(backend: str) -> tuple:
+    """_CPU_COMPILER_OPTIONS on the CPU backend, less any this jaxlib does not know."""
+    if backend != "cpu":
+        return ()
+    known = []
+    for key, value in _CPU_COMPILER_OPTIONS.items():
+        try:  # a jaxlib that lacks the option rejects it at compile time
+            jax.jit(lambda x: x + 1, compiler_options={key: value}).lower(1.0).compile()
+        except Exception:
+            continue
+        known.append((key, value))
+    return tuple(known)
+
+
+def solver_jit(function, static_argnames=()):
+    """``jax.jit(function, static_argnames=...)`` compiled with _CPU_COMPILER_OPTIONS.
+
+    The options are chosen at the call, for the default backend (one compiled variant
+    per backend). A call inside the caller's own jit, vmap or grad is part of the
+    caller's program, which JAX compiles with the caller's options (it accepts options
+    only on the outermost jit): there this is the plain jitted function.
+    """
+
+    @functools.cache
+    def variant(options: tuple):
+        return jax.jit(
+            function, static_argnames=static_argnames, compiler_options=dict(options) or None
+        )
+
+    @functools.wraps(function)
+    def call(*args, **kwargs):
+        if not is_concrete(args, kwargs):
+            return variant(())(*args, **kwargs)
+        try:
+            return current()(*args, **kwargs)
+        except ValueError as error:
+            # Concrete arguments, but traced all the same (constants under an outer jit).
+            if "compiler_options" not in str(error):
+                raise
+            return variant(())(*args, **kwargs)
+
+    def current():
+        return variant(_compiler_options(jax.default_backend()))
+
+    call.jitted = current  # the jitted function itself (for .lower, .trace)
+    return call
 
 
 def _enable_here(path: str, min_compile_time_s: float, exported: bool = True) -> None:
@@ -144,32 +200,39 @@ def exported_call(name: str, function, jitted, args: tuple, static: dict, skelet
     leaves, treedef = jax.tree_util.tree_flatten(args)
     if _EXPORT_DIR is None or not is_concrete(leaves):
         return jitted(*args, **static)
+    key = _key(name, static, treedef, leaves)
+    call = _EXPORTED.get(key)
+    if call is None:
+        program = _exported(name, key, function, static, treedef, leaves)
+        # The jitted path's compiler options: both compile the same program alike.
+        call = _EXPORTED[key] = solver_jit(program.call)
+    out_tree = jax.tree_util.tree_structure(skeleton)
+    return jax.tree_util.tree_unflatten(out_tree, call(*leaves))
+
+
+def _exported(name: str, key: str, function, static: dict, treedef, leaves):
+    """The program of ``function`` from the cache directory, or exported and written there."""
     from jax import export
 
-    key = _key(name, static, treedef, leaves)
-    program = _EXPORTED.get(key)
     file = _EXPORT_DIR / f"{name}-{key}.jax"
-    if program is None and file.exists():
+    if file.exists():
         try:
-            program = export.deserialize(bytearray(file.read_bytes()))
+            return export.deserialize(bytearray(file.read_bytes()))
         except Exception:  # a file from another version, or damaged: export again
-            program = None
-    if program is None:
-
-        def flat(*xs):
-            # The function itself, not its jitted form: the program is then the one a
-            # jitted call lowers, not a call nested in it.
-            out = function(*jax.tree_util.tree_unflatten(treedef, xs), **static)
-            return tuple(jax.tree_util.tree_leaves(out))
-
-        program = export.export(jax.jit(flat))(*leaves)
-        from ._atomic import atomic_path
-
-        try:
-            with atomic_path(file) as tmp:
-                tmp.write_bytes(program.serialize())
-        except OSError:
             pass
-    _EXPORTED[key] = program
-    out_tree = jax.tree_util.tree_structure(skeleton)
-    return jax.tree_util.tree_unflatten(out_tree, program.call(*leaves))
+
+    def flat(*xs):
+        # The function itself, not its jitted form: the program is then the one a
+        # jitted call lowers, not a call nested in it.
+        out = function(*jax.tree_util.tree_unflatten(treedef, xs), **static)
+        return tuple(jax.tree_util.tree_leaves(out))
+
+    program = export.export(jax.jit(flat))(*leaves)
+    from ._atomic import atomic_path
+
+    try:
+        with atomic_path(file) as tmp:
+            tmp.write_bytes(program.serialize())
+    except OSError:
+        pass
+    return program

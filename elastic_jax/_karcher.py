@@ -28,6 +28,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._atomic import save_npz_atomic
+from ._cache import solver_jit
 from ._checks import InputError
 from ._geodesic import ConvergenceWarning, default_tol, geodesic
 from ._grid import sphere_points
@@ -183,7 +184,7 @@ def _pair_distance(a, b, metric, modulo, options):
 
 # Module-level jitted batch solves: the mean and the metric are arguments and the options
 # (a frozen ShapeOptions) a static key, so consecutive Karcher steps reuse one compilation.
-@functools.partial(jax.jit, static_argnames=("modulo", "options", "mode"))
+@functools.partial(solver_jit, static_argnames=("modulo", "options", "mode"))
 def _velocities_batch(mean, batch, metric, *, modulo, options, mode):
     def one(shape):
         return _one_geodesic(mean, shape, metric, modulo, options)
@@ -191,7 +192,7 @@ def _velocities_batch(mean, batch, metric, *, modulo, options, mode):
     return jax.lax.map(one, batch) if mode == "map" else jax.vmap(one)(batch)
 
 
-@functools.partial(jax.jit, static_argnames=("modulo", "options", "mode"))
+@functools.partial(solver_jit, static_argnames=("modulo", "options", "mode"))
 def _distances_batch(pairs, metric, *, modulo, options, mode):
     def one(pair):
         return _pair_distance(pair[0], pair[1], metric, modulo, options)

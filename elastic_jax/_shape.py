@@ -26,7 +26,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._cache import exported_call
+from ._cache import exported_call, solver_jit
 from ._checks import is_concrete
 from ._differential import area_element, interior_frame
 from ._energy import frame_energy
@@ -380,7 +380,8 @@ def _initialize(prob, cfg, rigid):
     (six parameters), which finds large conformal reparametrizations that no rotation
     approaches. All of them are starts: which start ends best shows only after the
     straight-line rounds (cat1 against cat2 at 25 x 49: 0.84 from the best rotation,
-    1.35 from the best Moebius map; cat1 against horse0 the other way round).
+    1.35 from the best Moebius map; cat1 against horse0 the other way round; measured
+    before the pole derivative fix of 2026-11-23).
     """
     dtype = prob.f1.dtype
     eye = jnp.eye(3, dtype=dtype)
@@ -830,7 +831,7 @@ def _shape_solve(metric, f1, f2, bases, cfg, rigid):
     )
 
 
-_shape_geodesic = jax.jit(_shape_solve, static_argnames=("cfg", "rigid"))
+_shape_geodesic = solver_jit(_shape_solve, static_argnames=("cfg", "rigid"))
 # The structure of _shape_solve's result (leaves are placeholders), to rebuild it from an
 # exported program's flat outputs (see _cache.exported_call).
 _RESULT_SKELETON = ShapeGeodesicResult(*([0] * 12), RESULTS.successful, 0, 0, Refinement(0, 0, 0))

@@ -26,12 +26,13 @@ class RESULTS(optx.RESULTS):  # pyright: ignore
         "or use float64."
     )
     resolution_limited = (
-        "The registration rounds stopped at the edge of what the grid resolves: the last "
-        "round's Diff step towards a lower energy folded the reparametrization or stretched "
-        "it past the grid's area floor, and shrunk until the grid resolved it, it lowered "
-        "the energy little or not at all. The distance is the lowest this grid resolves "
-        "along the rounds, not a converged minimum. Use a finer grid (a different start may "
-        "also find a lower basin)."
+        "The registration rounds stopped at the edge of the reparametrizations the solver "
+        "accepts: the last round's Diff step towards a lower energy folded gamma or "
+        "stretched it past the area floor (5 times the grid's own area error, so about the "
+        "stretch of a Moebius map with |a| = 0.64 on any grid), and shrunk until accepted, "
+        "it lowered the energy little or not at all. The distance is the lowest energy the "
+        "rounds reached within that edge, not a converged minimum; a finer grid does not "
+        "move the edge, a larger init_candidates or another init may end lower."
     )
 
 

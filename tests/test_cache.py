@@ -60,7 +60,7 @@ def test_an_exported_program_is_the_jitted_one_and_is_not_traced_again(tmp_path,
     from elastic_jax import _cache
     from elastic_jax._solvers import RESULTS, Minimum
 
-    jitted = jax.jit(_solve, static_argnames=("max_steps",))
+    jitted = _cache.solver_jit(_solve, static_argnames=("max_steps",))
     skeleton = Minimum(0, RESULTS.successful, 0, 0, 0)
     target = jnp.linspace(-1.0, 2.0, 5)
     args, static = (target, 0.5), {"max_steps": 50}
@@ -167,3 +167,26 @@ def test_around_the_solve_a_first_call_compiles_one_program_on_each_side(monkeyp
     # The stand-in's identity registration and zero perturbation: the straight line.
     straight = ej.path_energy(metric, ej.straight_path(f1, f2, 3))
     np.testing.assert_allclose(float(result) ** 2, float(straight), rtol=1e-12)
+
+
+def test_solver_options_apply_at_the_top_and_give_way_inside_a_callers_trace():
+    # JAX accepts compiler options only on the outermost jit: inside the caller's jit
+    # (traced arguments, or concrete constants traced all the same) and vmap the solve
+    # is part of the caller's program. Every way gives the solve's value.
+    from elastic_jax import _cache
+
+    options = dict(_cache._compiler_options(jax.default_backend()))
+    if jax.default_backend() == "cpu":
+        # The jaxlib this was written against knows the option: the probe keeps it.
+        assert options == {"xla_cpu_use_fusion_emitters": False}
+    solve = _cache.solver_jit(_solve, static_argnames=("max_steps",))
+    target = jnp.linspace(-1.0, 2.0, 5)
+    top = solve(target, 0.5, max_steps=50).x
+    inside = jax.jit(lambda t: solve(t, 0.5, max_steps=50).x)(target)
+    constants = jax.jit(lambda: solve(target, 0.5, max_steps=50).x)()
+    batched = jax.vmap(lambda s: solve(target, s, max_steps=50).x)(jnp.asarray([0.5, 2.0]))
+    plain = jax.jit(_solve, static_argnames=("max_steps",))(target, 0.5, max_steps=50).x
+    for x in (top, inside, constants, batched[0]):
+        assert float(jnp.max(jnp.abs(x - plain))) <= 1e-12 * float(jnp.max(jnp.abs(plain)))
+    # The minimizer: 2 s (y - t) + 4 y^3 = 0 per coordinate, at s = 0.5.
+    assert float(jnp.max(jnp.abs(top - target + 4 * top**3))) < 1e-7

@@ -174,12 +174,12 @@ def test_the_last_chunk_is_padded_to_the_compiled_batch():
     shapes3 = np.stack([F1, F2, 1.5 * F1])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
-        before = _karcher._distances_batch._cache_size()
+        before = _karcher._distances_batch.jitted()._cache_size()
         res = ej.distance_matrix(
             shapes3, METRIC, modulo="none", options=options, strategy="map", batch_size=2
         )
         # Three pairs in chunks of 2 and 1: one compilation, not two.
-        assert _karcher._distances_batch._cache_size() - before == 1
+        assert _karcher._distances_batch.jitted()._cache_size() - before == 1
     single = ej.geodesic(F2, 1.5 * F1, METRIC, degree=3, n_times=5)
     assert float(res.distances[1, 2]) == pytest.approx(float(single.distance), rel=1e-9)
 

@@ -163,7 +163,7 @@ def test_a_reparametrization_the_grid_cannot_resolve_is_not_called_converged():
 
     assert 0.8 > max_boost
     beyond = shapes.sample(shapes.bumpy, m, n, moebius=0.8 * DIRECTION)
-    with pytest.warns(ej.ConvergenceWarning, match="edge of what the grid resolves"):
+    with pytest.warns(ej.ConvergenceWarning, match="edge of the reparametrizations"):
         res = ej.shape_geodesic(f, beyond, METRIC, options=options)
     assert not bool(res.converged) and res.result == ej.RESULTS.resolution_limited
     assert float(res.distance) > 0.1 * float(res.parametrized_distance)
