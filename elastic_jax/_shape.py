@@ -909,6 +909,8 @@ def shape_geodesic(
        halves, down to no step) until the composed gamma has a positive Jacobian at every
        grid point and keeps the area the grid can resolve (MATH.md 9); rounds never raise
        the energy and stop when one changes it by at most outer_tol, or after outer_steps.
+       Rounds whose last step had to shrink stopped at that edge, not at a minimum:
+       ``RESULTS.resolution_limited``, not converged.
     4. The final geodesic, its status, and the refinement check (:class:`Refinement`).
 
     The whole computation is one jitted call, vmappable over f2.
