@@ -31,8 +31,9 @@ class RESULTS(optx.RESULTS):  # pyright: ignore
         "stretched it past the area floor (5 times the grid's own area error, so about the "
         "stretch of a Moebius map with |a| = 0.64 on any grid), and shrunk until accepted, "
         "it lowered the energy little or not at all. The distance is the lowest energy the "
-        "rounds reached within that edge, not a converged minimum; a finer grid does not "
-        "move the edge, a larger init_candidates or another init may end lower."
+        "rounds reached within that edge, not a converged minimum. The edge bounds the "
+        "stretch alike on every grid; another grid, init or init_candidates may still end "
+        "elsewhere."
     )
 
 
