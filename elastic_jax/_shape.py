@@ -965,12 +965,10 @@ def shape_geodesic(
         result.converged
     ):
         history = np.asarray(result.energy_history)
-        # The resolution's own words already say what to change.
-        advice = (
-            ""
-            if bool(result.result == RESULTS.resolution_limited)
-            else "; raise outer_steps or max_steps"
-        )
+        # Every other ending's words (stalled, saddle, resolution-limited) say what to
+        # change; running out of steps is the one that does not.
+        ran_out = bool(result.result == RESULTS.nonlinear_max_steps_reached)
+        advice = "; raise outer_steps or max_steps" if ran_out else ""
         warnings.warn(
             f"shape_geodesic: not converged after {int(result.rounds)} registration rounds "
             f"({result.message}; energies {history[np.isfinite(history)].round(6).tolist()})"
