@@ -76,7 +76,9 @@ ROWS = {
 # XLA:CPU code-generation options: the same program, rounded differently. The first is
 # what the library compiles its solves with on CPU (_cache._CPU_COMPILER_OPTIONS); the
 # second is XLA's own default. Names of the jaxlib this was written against; a jaxlib
-# that lacks one skips that variant.
+# that lacks one skips that variant. Each compiles the whole solve as one program; a
+# single shape_geodesic compiles it as five (one per phase), with the same arithmetic
+# (measured: the same distance to the last bit) but for the last phase's diagnostics.
 COMPILATIONS = {
     "library (no fusion emitters)": {"xla_cpu_use_fusion_emitters": False},
     "fusion emitters (XLA's default)": {"xla_cpu_use_fusion_emitters": True},

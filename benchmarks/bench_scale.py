@@ -94,6 +94,30 @@ jit):
         interpreter and JAX hold 176 MB after the imports, tracing and lowering the solve
         200 MB, and its BFGS's dense inverse Hessians (2272 variables at the defaults) most
         of its 143 MB of temporaries. Still missed: cold <= 6.9 s, warm <= 2 s.
+Again after a single shape_geodesic compiles its solve as five programs, one per phase
+(starts, coarse registration, rounds, the two geodesics, the result's diagnostics; the
+last at LLVM level 0), and enable_compilation_cache stores every program
+(min_compile_time_s=0) (2026-11-24, quiet; exported / plain jit):
+    compile, low row: trace 2.1 s, lower 0.6, XLA 11.5 s (12.6 as one program): starts
+        2.4 s (401 fusions), coarse 2.7 (370), rounds 2.7 (360), geodesics 2.9 (362),
+        diagnostics 0.84 (286; 1.7 s at LLVM level 2); 1779 fusions in all; RSS 466 MB.
+        Middle row: XLA 10.8 s, 1827 fusions, RSS 543 MB.
+    first_call, low row: cold 16.5-16.8 / 15.9 s (RSS 521 / 505 MB), warm 2.10-2.27 s
+        over 14 processes / 4.5-4.9 s (479 / 512 MB), distance 0.56171 both; with JAX's
+        default min_compile_time (1 s) the warm call took 3.2 s (the last phase and the
+        small programs around the solve compiled again). Middle row: cold 27.4-27.9 /
+        26.6-27.0 s, warm 14.0-14.5 / 15.9-16.6 s, 0.77178.
+    memory: geodesic 50 x 99: 858-860 MB; shape_geodesic 25 x 49 at the defaults 600-613
+        MB with no cache (789 as one program), 649-651 MB filling the cache, 603-662 MB
+        loading it: half of 1.38 GB (690 MB) is met. The distance is the one-program
+        solve's to the last bit (0.77169 at the defaults, 10 rounds).
+    Also tried: the phases compiled two at a time in threads (the solve call 12.6 s
+        instead of 14.6 at the low row; peak RSS 772 MB instead of 693 at the defaults,
+        over the memory target); the warm phases' executables loaded two at a time ahead
+        of the first phase (the solve call 1.47-1.76 s against 1.45-1.50: the loads then
+        compete with the runs they overlapped before); LLVM level 0 for the search phases
+        (compile halves, runs 4-7 times slower: the middle row's coarse phase 4.3 -> 22 s).
+        Still missed: cold <= 6.9 s (16.5 s) and warm <= 2 s (2.1-2.3 s).
 
 Run: python benchmarks/bench_scale.py [--shapes 32] [--parts matrix,compile,first_call,memory]
      [--workers 1,2]
@@ -210,21 +234,33 @@ bases = _shape._bases(m, n, cfg, np.float64)
 # The arguments shape_geodesic gives its solve (the surfaces in units of their size).
 _, (g1, g2) = _shape.in_units(f1, f2)
 args = (_shape.constant(metric), g1, g2, bases)
-t0 = time.perf_counter()
-traced = _shape._shape_geodesic.jitted().trace(*args, cfg=cfg, rigid=False)
-t1 = time.perf_counter()
-lowered = traced.lower()
-t2 = time.perf_counter()
-compiled = lowered.compile()
-t3 = time.perf_counter()
-d = float(compiled(*args).distance)
-t4 = time.perf_counter()
-hlo = compiled.as_text()
-print(json.dumps({{"trace_s": t1 - t0, "lower_s": t2 - t1, "compile_s": t3 - t2,
-                  "run_s": t4 - t3, "distance": d,
-                  "stablehlo_chars": len(lowered.as_text()),
-                  "hlo_instructions": len(re.findall(r" = ", hlo)),
-                  "fusions": len(re.findall(r"\bfusion\(", hlo)), "rss_mb": rss_mb()}}))
+# The solve's phases, one program each as shape_geodesic compiles them: traced, lowered,
+# compiled and run one after the other (each takes the one before's result).
+record = {{"trace_s": 0.0, "lower_s": 0.0, "compile_s": 0.0, "run_s": 0.0,
+          "stablehlo_chars": 0, "hlo_instructions": 0, "fusions": 0, "phases": {{}}}}
+carried = ()
+for name, _, _ in _shape._PHASES:
+    jitted = _shape._PHASE_JITS[name].jitted()
+    t0 = time.perf_counter()
+    traced = jitted.trace(*args, *carried, cfg=cfg, rigid=False)
+    t1 = time.perf_counter()
+    lowered = traced.lower()
+    t2 = time.perf_counter()
+    compiled = lowered.compile()
+    t3 = time.perf_counter()
+    carried = (jax.block_until_ready(compiled(*args, *carried)),)
+    t4 = time.perf_counter()
+    hlo = compiled.as_text()
+    phase = {{"trace_s": t1 - t0, "lower_s": t2 - t1, "compile_s": t3 - t2, "run_s": t4 - t3,
+             "stablehlo_chars": len(lowered.as_text()),
+             "hlo_instructions": len(re.findall(r" = ", hlo)),
+             "fusions": len(re.findall(r"\bfusion\(", hlo))}}
+    record["phases"][name] = phase
+    for key, value in phase.items():
+        record[key] += value
+record["distance"] = float(carried[0].distance)
+record["rss_mb"] = rss_mb()
+print(json.dumps(record))
 """
 
 ROWS = {

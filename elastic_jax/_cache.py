@@ -2,15 +2,16 @@
 by itself: importing it, or calling a solver, leaves every setting as it was), and the
 exported (ahead-of-time traced) shape solve kept beside it.
 
-A warm process (compiled programs on disk) still traces and lowers the whole shape solve
-before JAX can look its executable up. ``jax.export`` serializes the lowered program
-once; a later process deserializes it and goes straight to the executable. Measured at
-the paper's low row (12 x 25, degree 5 / 5, N 5, 2 cores, cats): 3.3 s from process
-start to the result with the exported solve, 5.4 s without; the rest is imports, loading
-the executable (it links the program's kernels again, so it grows with the program) and
-running it. The exported program is the one the jitted path compiles, so the results
-are identical (measured: largest difference 0.0 over every field of the result).
-"""
+A warm process (compiled programs on disk) still traces and lowers the shape solve
+before JAX can look its executables up. ``jax.export`` serializes the lowered programs
+(one per phase of the solve) once; a later process deserializes them and goes straight to
+the executables. Measured at the paper's low row (12 x 25, degree 5 / 5, N 5, 2 cores,
+cats): 2.2 s from process start to the result with the exported solve, 4.5-4.9 s
+without; the rest is imports (0.6 s), loading the executables (they link the programs'
+kernels again, so it grows with the programs; JAX's asynchronous dispatch loads a phase
+while the one before runs) and running them. The exported programs are the
+ones the jitted path compiles, so the results are identical (measured: largest
+difference 0.0 over every field of the result)."""
 
 from __future__ import annotations
 
@@ -30,6 +31,11 @@ from ._checks import check_bool, check_positive, is_concrete
 # pair, middle row: 3.0-3.2 s against 2.5 s). Given to the large solver programs only
 # (solver_jit), never to JAX's configuration.
 _CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+# Added for programs that run for milliseconds once per solve (solver_jit(quick=True)):
+# LLVM's optimizations cost more than they save there. The shape solve's last phase (the
+# result's gradient norm and refinement check, 25 x 49, degree 7 / 8, N 10): compile
+# 1.35 -> 0.69 s, run 0.085 -> 0.115 s. The search phases run 4-7 times slower so.
+_QUICK_CPU_OPTIONS = {"xla_backend_optimization_level": 0}
 # Where exported programs are kept: set by enable_compilation_cache, None when off.
 _EXPORT_DIR: pathlib.Path | None = None
 # Exported programs of this process (jitted), by key: a second call deserializes nothing.
@@ -37,12 +43,14 @@ _EXPORTED: dict[str, object] = {}
 
 
 @functools.cache
-def _compiler_options(backend: str) -> tuple:
-    """_CPU_COMPILER_OPTIONS on the CPU backend, less any this jaxlib does not know."""
+def _compiler_options(backend: str, quick: bool = False) -> tuple:
+    """_CPU_COMPILER_OPTIONS (and _QUICK_CPU_OPTIONS when quick) on the CPU backend,
+    less any this jaxlib does not know."""
     if backend != "cpu":
         return ()
     known = []
-    for key, value in _CPU_COMPILER_OPTIONS.items():
+    options = {**_CPU_COMPILER_OPTIONS, **(_QUICK_CPU_OPTIONS if quick else {})}
+    for key, value in options.items():
         try:  # a jaxlib that lacks the option rejects it at compile time
             jax.jit(lambda x: x + 1, compiler_options={key: value}).lower(1.0).compile()
         except Exception:
@@ -51,8 +59,9 @@ def _compiler_options(backend: str) -> tuple:
     return tuple(known)
 
 
-def solver_jit(function, static_argnames=()):
-    """``jax.jit(function, static_argnames=...)`` compiled with _CPU_COMPILER_OPTIONS.
+def solver_jit(function, static_argnames=(), quick: bool = False):
+    """``jax.jit(function, static_argnames=...)`` compiled with _CPU_COMPILER_OPTIONS
+    (and _QUICK_CPU_OPTIONS when ``quick``: a program that runs briefly, once).
 
     The options are chosen at the call, for the default backend (one compiled variant
     per backend). A call inside the caller's own jit, vmap or grad is part of the
@@ -79,9 +88,10 @@ def solver_jit(function, static_argnames=()):
             return variant(())(*args, **kwargs)
 
     def current():
-        return variant(_compiler_options(jax.default_backend()))
+        return variant(_compiler_options(jax.default_backend(), quick))
 
     call.jitted = current  # the jitted function itself (for .lower, .trace)
+    call.quick = quick
     return call
 
 
@@ -102,7 +112,7 @@ def enable_compilation_cache(
     path: str | os.PathLike,
     *,
     client=None,
-    min_compile_time_s: float = 0.5,
+    min_compile_time_s: float = 0.0,
     exported: bool = True,
 ) -> pathlib.Path:
     """Keep compiled solves on disk at ``path`` (JAX's persistent compilation cache), so
@@ -120,12 +130,17 @@ def enable_compilation_cache(
         client: a ``dask.distributed.Client`` (or None): the cache is also turned on in
             each of its workers, present and future (a worker plugin), so that each
             worker machine compiles a job's solves once between them.
-        min_compile_time_s: programs that compile faster are not stored.
+        min_compile_time_s: programs that compile faster are not stored. The default
+            (0) stores every program: reading one back is faster than compiling even
+            the small ones around a solve, which JAX's own default (1 s) would compile
+            again in every process (the paper's low row, a warm first call: 2.2 s with
+            0, 3.2 s with 1 s).
         exported: also keep the traced and lowered shape solve (``jax.export``) under
-            ``path/exported``, so that a new process skips tracing it (about half of a
-            warm first call). Keyed on the solve's options, the arrays' shapes and dtypes,
-            the versions of jax and jaxlib and a digest of this package's source: a
-            changed package never runs an old program.
+            ``path/exported``, so that a new process skips tracing it (a warm first call
+            at the paper's low row: 2.2 s with it, 4.5-4.9 s without). Keyed on the
+            solve's options, the arrays' shapes and dtypes, the versions of jax and
+            jaxlib and a digest of this package's source: a changed package never runs
+            an old program.
 
     Returns:
         The directory, absolute.
@@ -205,7 +220,7 @@ def exported_call(name: str, function, jitted, args: tuple, static: dict, skelet
     if call is None:
         program = _exported(name, key, function, static, treedef, leaves)
         # The jitted path's compiler options: both compile the same program alike.
-        call = _EXPORTED[key] = solver_jit(program.call)
+        call = _EXPORTED[key] = solver_jit(program.call, quick=getattr(jitted, "quick", False))
     out_tree = jax.tree_util.tree_structure(skeleton)
     return jax.tree_util.tree_unflatten(out_tree, call(*leaves))
 

@@ -10,8 +10,9 @@ ranked, the best refined over rotations and over the Moebius group); coarse-to-f
 registration rounds (every start on the L2 mismatch, the best on the straight line's
 energy, then with the whole path) until the energy stops changing; the parametrized and
 the final geodesics; and the refinement check (the result re-evaluated with halved time
-steps and on a finer grid). Every phase is traceable, so the whole solve is one jitted
-call, vmappable over f2.
+steps and on a finer grid). Every phase is traceable: a single solve compiles one
+program per phase (smaller programs, less compiler memory), and under a caller's jit or
+vmap the whole solve is one program, vmappable over f2.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from ._differential import area_element, interior_frame
 from ._energy import frame_energy
 from ._geodesic import (
     ConvergenceWarning,
+    GeodesicResult,
     _basis_np,
     _check_pair,
     _frames_between,
@@ -685,8 +687,9 @@ def _straight_rounds(prob, cfg, rigid, state: _State, weight, cap) -> _State:
     return state
 
 
-def _coarse_registration(prob, cfg, rigid) -> _State:
-    """From the starts to the registration the rounds with the whole path begin from.
+def _coarse_registration(prob, cfg, rigid, starts) -> _State:
+    """From the starts (_initialize's result) to the registration the rounds with the
+    whole path begin from.
 
     Coarse to fine in the criterion and in time. Every start gets rounds on the L2
     mismatch, each round's BFGS cut at _MATCH_STEPS (a round only has to move towards the
@@ -694,7 +697,7 @@ def _coarse_registration(prob, cfg, rigid) -> _State:
     lowest energy gets rounds on that energy.
     """
     dtype = prob.f1.dtype
-    gammas, rotations, steps = _initialize(prob, cfg, rigid)
+    gammas, rotations, steps = starts
     zero = _State(
         prob.e1,
         jnp.eye(3, dtype=dtype),
@@ -765,33 +768,74 @@ def _final_solves(prob, cfg, state: _State):
             saddle_checks=cfg.saddle_checks,
         )
 
-    both = jax.lax.map(solve, (starts, ends, inits))
-    return both, tuple(jax.tree_util.tree_map(lambda x, i=i: x[i], both) for i in (0, 1))
+    return jax.lax.map(solve, (starts, ends, inits))
 
 
-def _shape_solve(metric, f1, f2, bases, cfg, rigid):
+def _problem(metric, f1, f2, bases, rigid) -> _Problem:
     m, n = f1.shape[-2:]
-    dtype = f1.dtype
     if rigid:
         f1, f2 = _center(f1), _center(f2)
-    prob = _Problem(metric, f1, f2, sphere_points(m, n, dtype), bases)
+    return _Problem(metric, f1, f2, sphere_points(m, n, f1.dtype), bases)
 
-    state = _coarse_registration(prob, cfg, rigid)
+
+class _Rounds(NamedTuple):
+    """Where the registration rounds stand between the phases of a solve."""
+
+    state: _State
+    history: Array  # (outer_steps + 2,) as ShapeGeodesicResult.energy_history, [0] unset
+    rounds: Array  # () rounds with the whole path taken
+    done: Array  # () bool: the last round met outer_tol or was refused
+
+
+def _shape_starts(metric, f1, f2, bases, cfg, rigid) -> tuple[Array, Array, Array]:
+    """Phase 1 of a solve: the starts (_initialize)."""
+    return _initialize(_problem(metric, f1, f2, bases, rigid), cfg, rigid)
+
+
+def _shape_coarse(metric, f1, f2, bases, starts, cfg, rigid) -> _Rounds:
+    """Phase 2: the coarse registration from the starts (no rounds with the path yet)."""
+    prob = _problem(metric, f1, f2, bases, rigid)
+    state = _coarse_registration(prob, cfg, rigid, starts)
     energy = _path_energy_at(prob, cfg, state.gamma, state.rotation, state.coefficients)
     state = state._replace(energy=energy, shrunk=jnp.zeros((), bool))
-    history = jnp.full((cfg.outer_steps + 2,), jnp.nan, dtype).at[1].set(energy)
-    straight0 = _straight_energy(prob, cfg, f1, f2)
+    history = jnp.full((cfg.outer_steps + 2,), jnp.nan, energy.dtype).at[1].set(energy)
+    return _Rounds(state, history, jnp.zeros((), jnp.int32), jnp.asarray(cfg.outer_steps == 0))
+
+
+def _shape_rounds(metric, f1, f2, bases, start: _Rounds, cfg, rigid) -> _Rounds:
+    """Phase 3: the registration rounds with the whole path."""
+    prob = _problem(metric, f1, f2, bases, rigid)
+    straight0 = _straight_energy(prob, cfg, prob.f1, prob.f2)
 
     def small_change(before, after):
         # Relative to the current energy, with a floor at outer_tol times the straight
         # line's: near a perfect match the energy is interpolation noise.
         return jnp.abs(before - after) <= cfg.outer_tol * (after + cfg.outer_tol * straight0)
 
-    state, history, rounds, outer_done = _iterate(
-        lambda s: _round(prob, cfg, rigid, s), state, cfg.outer_steps, small_change, history
+    return _Rounds(
+        *_iterate(
+            lambda s: _round(prob, cfg, rigid, s),
+            start.state,
+            cfg.outer_steps,
+            small_change,
+            start.history,
+        )
     )
 
-    both, (parametrized, final) = _final_solves(prob, cfg, state)
+
+def _shape_geodesics(metric, f1, f2, bases, rounds: _Rounds, cfg, rigid):
+    """Phase 4: the parametrized and the final geodesic (``rounds`` passed on)."""
+    prob = _problem(metric, f1, f2, bases, rigid)
+    return rounds, _final_solves(prob, cfg, rounds.state)
+
+
+def _shape_end(metric, f1, f2, bases, solved, cfg, rigid) -> ShapeGeodesicResult:
+    """Phase 5: the result from the rounds and the geodesics (status, refinement)."""
+    prob = _problem(metric, f1, f2, bases, rigid)
+    dtype = prob.f1.dtype
+    rounds, both = solved
+    parametrized, final = (jax.tree_util.tree_map(lambda x, i=i: x[i], both) for i in (0, 1))
+    state, history = rounds.state, rounds.history
     history = history.at[0].set(parametrized.energy)
     steps = state.steps + jnp.sum(both.num_steps).astype(jnp.int32)
     scaling = _scaling_at(prob, cfg, state.gamma, state.rotation)
@@ -801,7 +845,7 @@ def _shape_solve(metric, f1, f2, bases, cfg, rigid):
     rounds_result = RESULTS.where(
         state.shrunk,
         RESULTS.resolution_limited,
-        RESULTS.where(outer_done, RESULTS.successful, RESULTS.nonlinear_max_steps_reached),
+        RESULTS.where(rounds.done, RESULTS.successful, RESULTS.nonlinear_max_steps_reached),
     )
     result = RESULTS.where(final.converged, rounds_result, final.result)
     if cfg.refinement:
@@ -821,9 +865,9 @@ def _shape_solve(metric, f1, f2, bases, cfg, rigid):
         rotation=state.rotation,
         coefficients=final.coefficients,
         energy_history=history,
-        rounds=rounds,
+        rounds=rounds.rounds,
         num_steps=steps,
-        converged=final.converged & outer_done & ~state.shrunk,
+        converged=final.converged & rounds.done & ~state.shrunk,
         result=result,
         grad_norm=grad_norm,
         min_curvature=final.min_curvature,
@@ -831,10 +875,55 @@ def _shape_solve(metric, f1, f2, bases, cfg, rigid):
     )
 
 
-_shape_geodesic = solver_jit(_shape_solve, static_argnames=("cfg", "rigid"))
-# The structure of _shape_solve's result (leaves are placeholders), to rebuild it from an
-# exported program's flat outputs (see _cache.exported_call).
+def _shape_solve(metric, f1, f2, bases, cfg, rigid):
+    """The whole solve, its phases in one traced function."""
+    starts = _shape_starts(metric, f1, f2, bases, cfg, rigid)
+    coarse = _shape_coarse(metric, f1, f2, bases, starts, cfg, rigid)
+    rounds = _shape_rounds(metric, f1, f2, bases, coarse, cfg, rigid)
+    solved = _shape_geodesics(metric, f1, f2, bases, rounds, cfg, rigid)
+    return _shape_end(metric, f1, f2, bases, solved, cfg, rigid)
+
+
+# The structures of the phases' results (leaves are placeholders), to rebuild them from
+# an exported program's flat outputs (see _cache.exported_call).
+_ROUNDS_SKELETON = _Rounds(_State(*([0] * 6)), 0, 0, 0)
 _RESULT_SKELETON = ShapeGeodesicResult(*([0] * 12), RESULTS.successful, 0, 0, Refinement(0, 0, 0))
+_GEODESIC_SKELETON = GeodesicResult(*([0] * 7), RESULTS.successful, 0, 0)
+# (name, function, skeleton) per phase, in order; each takes the previous one's result.
+_PHASES = (
+    ("shape_starts", _shape_starts, (0, 0, 0)),
+    ("shape_coarse", _shape_coarse, _ROUNDS_SKELETON),
+    ("shape_rounds", _shape_rounds, _ROUNDS_SKELETON),
+    ("shape_geodesics", _shape_geodesics, (_ROUNDS_SKELETON, _GEODESIC_SKELETON)),
+    ("shape_end", _shape_end, _RESULT_SKELETON),
+)
+# The last phase runs for milliseconds and decides nothing the result reports as found
+# (its gradient norm and refinement are diagnostics): compiled for compile speed.
+_PHASE_JITS = {
+    name: solver_jit(f, static_argnames=("cfg", "rigid"), quick=name == "shape_end")
+    for name, f, _ in _PHASES
+}
+
+
+def _solve_in_phases(args: tuple, cfg: ShapeOptions, rigid: bool) -> ShapeGeodesicResult:
+    """_shape_solve(*args, cfg, rigid), one compiled program per phase.
+
+    XLA:CPU's compile time and memory grow with a program, and the phases share no
+    compiled code: compiled one after the other, the largest program sets the peak
+    memory, not their sum (measured: 25 x 49 at the defaults, peak RSS 789 MB as one
+    program, 600 MB as five). JAX's asynchronous dispatch loads (or compiles) a phase
+    while the one before runs. The arithmetic is that of one program, except the last
+    phase's diagnostics (solver_jit's quick compilation: grad_norm rounds differently,
+    about 1e-11 relative). Inside a caller's trace (karcher_mean, distance_matrix) the
+    phases are part of the caller's one program.
+    """
+    static = {"cfg": cfg, "rigid": rigid}
+    carried = ()
+    for name, function, skeleton in _PHASES:
+        carried = (
+            exported_call(name, function, _PHASE_JITS[name], (*args, *carried), static, skeleton),
+        )
+    return carried[0]
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "rigid"))
@@ -913,7 +1002,9 @@ def shape_geodesic(
        ``RESULTS.resolution_limited``, not converged.
     4. The final geodesic, its status, and the refinement check (:class:`Refinement`).
 
-    The whole computation is one jitted call, vmappable over f2.
+    Each phase is one compiled program (five in all, see _solve_in_phases); under
+    ``jax.vmap`` or a caller's ``jax.jit`` the whole solve is one program, vmappable
+    over f2.
 
     Args:
         f1, f2: ``(3, m, n)`` immersions on the same grid.
@@ -952,13 +1043,10 @@ def shape_geodesic(
     # As in geodesic: the solve runs on constants and the energy is evaluated again,
     # differentiably, at the solution (envelope theorem: the derivative of the minimal
     # energy in f1, f2 and the metric, with gamma, R and C held).
-    solved = exported_call(
-        "shape_solve",
-        _shape_solve,
-        _shape_geodesic,
+    solved = _solve_in_phases(
         (constant(metric), jax.lax.stop_gradient(g1), jax.lax.stop_gradient(g2), bases),
-        {"cfg": cfg, "rigid": rigid},
-        _RESULT_SKELETON,
+        cfg,
+        rigid,
     )
     result = _shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
     if is_concrete(result.converged, result.energy_history, result.rounds) and not bool(
