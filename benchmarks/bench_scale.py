@@ -118,6 +118,13 @@ last at LLVM level 0), and enable_compilation_cache stores every program
         compete with the runs they overlapped before); LLVM level 0 for the search phases
         (compile halves, runs 4-7 times slower: the middle row's coarse phase 4.3 -> 22 s).
         Still missed: cold <= 6.9 s (16.5 s) and warm <= 2 s (2.1-2.3 s).
+    matrix, 16 shapes (120 pairs, 111 converged; the shared cats, horse and hand and 12
+        synthetic shapes; batched jobs compile the solve as one program, so this part is
+        not changed by the phases): in process 423 s (0.284 pairs/s, RSS 935 MB);
+        LocalCluster 1 worker 455 s (0.264); 2 workers 292 s (0.411, 1.45 times the
+        in-process rate); every matrix equal to the in-process one (largest difference
+        0.0). The 32-shape run the issue asks for (496 pairs, about 30 min per
+        configuration at these rates) was not made.
 
 Run: python benchmarks/bench_scale.py [--shapes 32] [--parts matrix,compile,first_call,memory]
      [--workers 1,2]
