@@ -203,7 +203,8 @@ def _key(name: str, static: dict, treedef, leaves) -> str:
 def exported_call(name: str, function, jitted, args: tuple, static: dict, skeleton):
     """``jitted(*args, **static)``, through an exported program when the cache is on.
 
-    ``jitted`` is ``jax.jit(function)`` with ``static``'s names static. Off (no
+    ``jitted`` is ``solver_jit(function)`` with ``static``'s names static; the exported
+    program is compiled with the same options (``quick`` included). Off (no
     :func:`enable_compilation_cache`), or when any argument is being traced (inside jit,
     vmap or grad), this is the jitted call itself. Otherwise the program is exported once
     (traced and lowered: the work a jit call does before compiling), written to the cache
@@ -220,7 +221,7 @@ def exported_call(name: str, function, jitted, args: tuple, static: dict, skelet
     if call is None:
         program = _exported(name, key, function, static, treedef, leaves)
         # The jitted path's compiler options: both compile the same program alike.
-        call = _EXPORTED[key] = solver_jit(program.call, quick=getattr(jitted, "quick", False))
+        call = _EXPORTED[key] = solver_jit(program.call, quick=jitted.quick)
     out_tree = jax.tree_util.tree_structure(skeleton)
     return jax.tree_util.tree_unflatten(out_tree, call(*leaves))
 

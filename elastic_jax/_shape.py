@@ -792,17 +792,18 @@ def _shape_starts(metric, f1, f2, bases, cfg, rigid) -> tuple[Array, Array, Arra
     return _initialize(_problem(metric, f1, f2, bases, rigid), cfg, rigid)
 
 
-def _shape_coarse(metric, f1, f2, bases, starts, cfg, rigid) -> _Rounds:
-    """Phase 2: the coarse registration from the starts (no rounds with the path yet)."""
+def _shape_coarse(metric, f1, f2, bases, starts, cfg, rigid) -> tuple[_State, Array]:
+    """Phase 2: the coarse registration from the starts, and the energy history with its
+    energy at [1] (no rounds with the path yet)."""
     prob = _problem(metric, f1, f2, bases, rigid)
     state = _coarse_registration(prob, cfg, rigid, starts)
     energy = _path_energy_at(prob, cfg, state.gamma, state.rotation, state.coefficients)
     state = state._replace(energy=energy, shrunk=jnp.zeros((), bool))
     history = jnp.full((cfg.outer_steps + 2,), jnp.nan, energy.dtype).at[1].set(energy)
-    return _Rounds(state, history, jnp.zeros((), jnp.int32), jnp.asarray(cfg.outer_steps == 0))
+    return state, history
 
 
-def _shape_rounds(metric, f1, f2, bases, start: _Rounds, cfg, rigid) -> _Rounds:
+def _shape_rounds(metric, f1, f2, bases, coarse, cfg, rigid) -> _Rounds:
     """Phase 3: the registration rounds with the whole path."""
     prob = _problem(metric, f1, f2, bases, rigid)
     straight0 = _straight_energy(prob, cfg, prob.f1, prob.f2)
@@ -812,13 +813,10 @@ def _shape_rounds(metric, f1, f2, bases, start: _Rounds, cfg, rigid) -> _Rounds:
         # line's: near a perfect match the energy is interpolation noise.
         return jnp.abs(before - after) <= cfg.outer_tol * (after + cfg.outer_tol * straight0)
 
+    state, history = coarse
     return _Rounds(
         *_iterate(
-            lambda s: _round(prob, cfg, rigid, s),
-            start.state,
-            cfg.outer_steps,
-            small_change,
-            start.history,
+            lambda s: _round(prob, cfg, rigid, s), state, cfg.outer_steps, small_change, history
         )
     )
 
@@ -875,24 +873,16 @@ def _shape_end(metric, f1, f2, bases, solved, cfg, rigid) -> ShapeGeodesicResult
     )
 
 
-def _shape_solve(metric, f1, f2, bases, cfg, rigid):
-    """The whole solve, its phases in one traced function."""
-    starts = _shape_starts(metric, f1, f2, bases, cfg, rigid)
-    coarse = _shape_coarse(metric, f1, f2, bases, starts, cfg, rigid)
-    rounds = _shape_rounds(metric, f1, f2, bases, coarse, cfg, rigid)
-    solved = _shape_geodesics(metric, f1, f2, bases, rounds, cfg, rigid)
-    return _shape_end(metric, f1, f2, bases, solved, cfg, rigid)
-
-
 # The structures of the phases' results (leaves are placeholders), to rebuild them from
 # an exported program's flat outputs (see _cache.exported_call).
-_ROUNDS_SKELETON = _Rounds(_State(*([0] * 6)), 0, 0, 0)
+_STATE_SKELETON = _State(*([0] * 6))
+_ROUNDS_SKELETON = _Rounds(_STATE_SKELETON, 0, 0, 0)
 _RESULT_SKELETON = ShapeGeodesicResult(*([0] * 12), RESULTS.successful, 0, 0, Refinement(0, 0, 0))
 _GEODESIC_SKELETON = GeodesicResult(*([0] * 7), RESULTS.successful, 0, 0)
 # (name, function, skeleton) per phase, in order; each takes the previous one's result.
 _PHASES = (
     ("shape_starts", _shape_starts, (0, 0, 0)),
-    ("shape_coarse", _shape_coarse, _ROUNDS_SKELETON),
+    ("shape_coarse", _shape_coarse, (_STATE_SKELETON, 0)),
     ("shape_rounds", _shape_rounds, _ROUNDS_SKELETON),
     ("shape_geodesics", _shape_geodesics, (_ROUNDS_SKELETON, _GEODESIC_SKELETON)),
     ("shape_end", _shape_end, _RESULT_SKELETON),
@@ -924,6 +914,11 @@ def _solve_in_phases(args: tuple, cfg: ShapeOptions, rigid: bool) -> ShapeGeodes
             exported_call(name, function, _PHASE_JITS[name], (*args, *carried), static, skeleton),
         )
     return carried[0]
+
+
+def _shape_solve(metric, f1, f2, bases, cfg, rigid) -> ShapeGeodesicResult:
+    """The whole solve (_solve_in_phases); traced inside a jit, one program."""
+    return _solve_in_phases((metric, f1, f2, bases), cfg, rigid)
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "rigid"))
