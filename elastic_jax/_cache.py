@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import numbers
 import os
 import pathlib
 
@@ -146,9 +147,13 @@ def enable_compilation_cache(
         The directory, absolute.
     """
     path = pathlib.Path(path).expanduser().resolve()
-    min_compile_time_s = float(min_compile_time_s)
-    if min_compile_time_s != 0.0:
-        check_positive("min_compile_time_s", min_compile_time_s)
+    zero = (
+        isinstance(min_compile_time_s, numbers.Real)
+        and not isinstance(min_compile_time_s, bool)
+        and min_compile_time_s == 0
+    )
+    # 0 stores every program; anything else must be a positive number of seconds.
+    min_compile_time_s = 0.0 if zero else check_positive("min_compile_time_s", min_compile_time_s)
     exported = check_bool("exported", exported)
     path.mkdir(parents=True, exist_ok=True)
     _enable_here(str(path), min_compile_time_s, exported)

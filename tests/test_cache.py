@@ -113,6 +113,9 @@ def test_exported_must_be_a_bool(tmp_path):
     # Refused before anything is set or created.
     with pytest.raises(ej.InputError, match="exported must be True or False; got 1"):
         ej.enable_compilation_cache(tmp_path / "cache", exported=1)
+    for bad in (-1.0, float("nan"), "abc", True):
+        with pytest.raises(ej.InputError, match="min_compile_time_s must be a positive"):
+            ej.enable_compilation_cache(tmp_path / "cache", min_compile_time_s=bad)
     assert not (tmp_path / "cache").exists()
 
 
