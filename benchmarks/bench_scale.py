@@ -190,7 +190,7 @@ client = None
 if workers:
     from dask.distributed import Client, LocalCluster
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None)
+                           dashboard_address="127.0.0.1:0")
     client = Client(cluster)
     ej.enable_compilation_cache({cache!r}, client=client)
 t0 = time.perf_counter()

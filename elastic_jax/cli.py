@@ -1218,7 +1218,12 @@ def _dask_client(args, stack: contextlib.ExitStack, progress: Progress):
         progress(f"starting a local Dask cluster of {workers} worker processes")
         cluster = stack.enter_context(
             distributed.LocalCluster(
-                n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                # The scheduler's web server on a free local port: with dashboard_address
+                # None it still tries 8787, and warns when another cluster holds it.
+                dashboard_address="127.0.0.1:0",
             )
         )
         client = stack.enter_context(distributed.Client(cluster))
