@@ -126,6 +126,17 @@ last at LLVM level 0), and enable_compilation_cache stores every program
         0.0). The 32-shape run the issue asks for (496 pairs, about 30 min per
         configuration at these rates) was not made.
 
+With the solve's compiled executables stored beside the exported programs (CPU; a warm
+process loads them without lowering the programs) (2026-11-24, quiet):
+    first_call, low row: warm 1.87-1.95 s over 14 processes, median 1.91 (the solve call
+        1.25 s; 2.10-2.27 s with the exported programs alone); one bench record 2.04 s
+        (RSS 512 MB); cold 16.3-16.4 s (RSS 514 MB); plain jit 15.5 s cold, 4.7 s warm.
+        Middle row: warm 13.7 s, cold 27.0 s (plain jit 26.2 / 15.8 s). Distances
+        unchanged to the last bit (0.5617068208516363, 0.7717844018749495).
+    memory: shape_geodesic 25 x 49 at the defaults 614 MB with no cache, 657 MB filling
+        the cache (executables serialized too), 588 MB loading it; geodesic 50 x 99
+        873 MB (code unchanged; 858-860 before).
+
 Run: python benchmarks/bench_scale.py [--shapes 32] [--parts matrix,compile,first_call,memory]
      [--workers 1,2]
 """

@@ -4,14 +4,16 @@ exported (ahead-of-time traced) shape solve kept beside it.
 
 A warm process (compiled programs on disk) still traces and lowers the shape solve
 before JAX can look its executables up. ``jax.export`` serializes the lowered programs
-(one per phase of the solve) once; a later process deserializes them and goes straight to
-the executables. Measured at the paper's low row (12 x 25, degree 5 / 5, N 5, 2 cores,
-cats): 2.2 s from process start to the result with the exported solve, 4.5-4.9 s
-without; the rest is imports (0.6 s), loading the executables (they link the programs'
-kernels again, so it grows with the programs; JAX's asynchronous dispatch loads a phase
-while the one before runs) and running them. The exported programs are the
-ones the jitted path compiles, so the results are identical (measured: largest
-difference 0.0 over every field of the result)."""
+(one per phase of the solve) once; a later process deserializes them. On CPU the
+compiled executables are kept beside them as well, so that a later process on the same
+kind of machine loads them directly, without lowering and hashing the programs first.
+Measured at the paper's low row (12 x 25, degree 5 / 5, N 5, 2 cores, cats), from
+process start to the result: 1.9-2.0 s with the stored executables, 2.1-2.3 s with the
+exported programs alone, 4.5-4.9 s with neither. The rest is imports (0.6 s), loading
+the executables (XLA rebuilds each program's HLO, so it grows with the programs; JAX's
+asynchronous dispatch loads a phase while the one before runs) and running them. The
+stored programs are the ones the jitted path compiles, so the results are identical
+(measured: largest difference 0.0 over every field of the result)."""
 
 from __future__ import annotations
 
@@ -134,14 +136,18 @@ def enable_compilation_cache(
         min_compile_time_s: programs that compile faster are not stored. The default
             (0) stores every program: reading one back is faster than compiling even
             the small ones around a solve, which JAX's own default (1 s) would compile
-            again in every process (the paper's low row, a warm first call: 2.2 s with
-            0, 3.2 s with 1 s).
+            again in every process (the paper's low row, a warm first call before the
+            solve's executables were stored: 2.2 s with 0, 3.2 s with 1 s).
         exported: also keep the traced and lowered shape solve (``jax.export``) under
-            ``path/exported``, so that a new process skips tracing it (a warm first call
-            at the paper's low row: 2.2 s with it, 4.5-4.9 s without). Keyed on the
-            solve's options, the arrays' shapes and dtypes, the versions of jax and
-            jaxlib and a digest of this package's source: a changed package never runs
-            an old program.
+            ``path/exported``, so that a new process skips tracing it, and on CPU its
+            compiled executables, so that a new process skips lowering it too (a warm
+            first call at the paper's low row: 1.9-2.0 s with them, 4.5-4.9 s without).
+            Keyed on the solve's options, the arrays' shapes and dtypes, the versions of
+            jax and jaxlib and a digest of this package's source (a changed package
+            never runs an old program); the executables also on the compiler's options,
+            ``XLA_FLAGS`` and the processor's model and instruction set. Like JAX's own
+            cache, ``path`` then holds machine code that later processes run: give a
+            directory that only you (or your job) can write.
 
     Returns:
         The directory, absolute.
@@ -213,22 +219,128 @@ def exported_call(name: str, function, jitted, args: tuple, static: dict, skelet
     :func:`enable_compilation_cache`), or when any argument is being traced (inside jit,
     vmap or grad), this is the jitted call itself. Otherwise the program is exported once
     (traced and lowered: the work a jit call does before compiling), written to the cache
-    directory atomically, and later processes deserialize it. A directory that cannot be
-    written only loses the file: the program still runs. ``skeleton`` is a pytree with
-    the structure of the result (any leaves): it rebuilds the result from the program's
-    flat outputs without tracing anything.
+    directory atomically, and later processes deserialize it. On CPU its compiled
+    executable is written beside it (:func:`_compiled`): a later process on the same
+    kind of machine loads that and skips lowering the program as well. A directory that
+    cannot be written only loses the file: the program still runs. ``skeleton`` is a
+    pytree with the structure of the result (any leaves): it rebuilds the result from the
+    program's flat outputs without tracing anything.
     """
     leaves, treedef = jax.tree_util.tree_flatten(args)
     if _EXPORT_DIR is None or not is_concrete(leaves):
         return jitted(*args, **static)
     key = _key(name, static, treedef, leaves)
+    out_tree = jax.tree_util.tree_structure(skeleton)
     call = _EXPORTED.get(key)
     if call is None:
-        program = _exported(name, key, function, static, treedef, leaves)
-        # The jitted path's compiler options: both compile the same program alike.
-        call = _EXPORTED[key] = solver_jit(program.call, quick=jitted.quick)
-    out_tree = jax.tree_util.tree_structure(skeleton)
+        call = _EXPORTED[key] = _compiled(
+            name, key, function, jitted.quick, static, treedef, leaves, out_tree.num_leaves
+        )
     return jax.tree_util.tree_unflatten(out_tree, call(*leaves))
+
+
+def _compiled(name, key, function, quick, static, treedef, leaves, n_outputs):
+    """The exported program of ``function``, callable on the flat ``leaves``.
+
+    On CPU, its compiled executable from the cache directory when one was written for
+    this machine (:func:`_host_key`), else compiled now and written there. Loading it
+    skips what a jitted call of the exported program still does before JAX finds its
+    executable in the persistent cache: lowering the program and hashing it (the paper's
+    low row, a warm first call: 2.15 -> 1.9 s). The executable is the one that call
+    compiles (same program, same options), so the results are identical. Elsewhere, or
+    for a program with a custom call other than LAPACK's (set up by :func:`_lapack_ready`;
+    a host callback cannot be stored), the jitted exported program.
+    """
+    from jax.experimental import serialize_executable
+
+    backend = jax.default_backend()
+    file = _EXPORT_DIR / f"{name}-{key}-{_host_key(backend, quick)}.xla"
+    # How the stored executable's arguments and results were flattened: the leaves.
+    trees = (
+        jax.tree_util.tree_structure((tuple(range(len(leaves))), {})),
+        jax.tree_util.tree_structure(tuple(range(n_outputs))),
+    )
+    if backend == "cpu" and file.exists():
+        try:
+            _lapack_ready()
+            return serialize_executable.deserialize_and_load(file.read_bytes(), *trees)
+        except Exception:  # damaged, or from another jaxlib: compile it again
+            pass
+    program = _exported(name, key, function, static, treedef, leaves)
+    # The jitted path's compiler options: both compile the same program alike.
+    jitted = solver_jit(program.call, quick=quick)
+    if backend != "cpu" or not _storable(program):
+        return jitted
+    compiled = jitted.jitted().lower(*leaves).compile()
+    try:
+        blob, *stored_trees = serialize_executable.serialize(compiled)
+    except (ValueError, NotImplementedError):  # constants or mutable state in the program
+        return compiled
+    if tuple(stored_trees) == trees:
+        from ._atomic import atomic_path
+
+        try:
+            with atomic_path(file) as tmp:
+                tmp.write_bytes(blob)
+        except OSError:
+            pass
+    return compiled
+
+
+def _storable(program) -> bool:
+    """Whether ``program`` (an export.Exported) may run from a stored executable: no
+    effects, and no custom calls but LAPACK's kernels."""
+    import re
+
+    if program.ordered_effects or program.unordered_effects:
+        return False
+    targets = re.findall(r"custom_call @([\w.$]+)", program.mlir_module())
+    return all(t.startswith("lapack_") for t in targets)
+
+
+@functools.cache
+def _lapack_ready() -> None:
+    """Set up JAX's LAPACK kernels in this process.
+
+    JAX loads them when it lowers a program that calls one (an SVD, an eigensolver);
+    an executable loaded from disk calls them without any lowering here, and would find
+    them missing (a segmentation fault, measured with the shape solve's eigensolver).
+    Lowering one small SVD sets up all of them.
+    """
+    import numpy as np
+
+    jax.jit(jax.numpy.linalg.svd).lower(np.eye(2, dtype=np.float32))
+
+
+@functools.cache
+def _host_key(backend: str, quick: bool) -> str:
+    """What a compiled executable depends on beyond its program: the backend and its
+    version, the compiler options and XLA_FLAGS, the default device, and the processor
+    (XLA:CPU generates code for this machine's instruction set: a cache directory shared
+    by machines of several kinds keeps one executable per kind)."""
+    import platform
+
+    processor = [platform.machine(), platform.processor()]
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as info:
+            lines = info.read().splitlines()
+        # The first core's model and instruction set extensions (x86 "flags", Arm
+        # "Features").
+        for label in ("model name", "flags", "Features"):
+            processor += [line for line in lines if line.startswith(label)][:1]
+    except OSError:
+        pass
+    device = jax.devices(backend)[0]
+    parts = [
+        backend,
+        device.device_kind,
+        device.client.platform_version,
+        repr(_compiler_options(backend, quick)),
+        os.environ.get("XLA_FLAGS", ""),
+        str(jax.config.jax_default_device),
+        *processor,
+    ]
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:16]
 
 
 def _exported(name: str, key: str, function, static: dict, treedef, leaves):

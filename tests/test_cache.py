@@ -74,8 +74,11 @@ def test_an_exported_program_is_the_jitted_one_and_is_not_traced_again(tmp_path,
     assert not (tmp_path / "exported").exists()
     monkeypatch.setattr(_cache, "_EXPORT_DIR", tmp_path / "exported")
     first = call()
-    files = list((tmp_path / "exported").iterdir())
-    assert len(files) == 1 and files[0].name.startswith("solve-")
+    # The exported program, and (CPU) its executable for this machine.
+    files = {f.suffix: f.name for f in (tmp_path / "exported").iterdir()}
+    key = files[".jax"].removesuffix(".jax")
+    assert len(files) == 2 and key.startswith("solve-")
+    assert files[".xla"] == f"{key}-{_cache._host_key('cpu', False)}.xla"
     # A new process: nothing in memory, the program on disk.
     monkeypatch.setattr(_cache, "_EXPORTED", {})
     again, traced = traced_functions(call)
@@ -92,7 +95,7 @@ def test_an_exported_program_is_the_jitted_one_and_is_not_traced_again(tmp_path,
     traced_x = jax.jit(
         lambda t: _cache.exported_call("solve", _solve, jitted, (t, 0.5), static, skeleton).x
     )(target)
-    assert bool(jnp.all(traced_x == plain.x)) and len(list((tmp_path / "exported").iterdir())) == 1
+    assert bool(jnp.all(traced_x == plain.x)) and len(list((tmp_path / "exported").iterdir())) == 2
 
     # What changes the program changes the key: options, dtypes, a Python number for an
     # array (weakly typed), the package's source.
@@ -103,6 +106,83 @@ def test_an_exported_program_is_the_jitted_one_and_is_not_traced_again(tmp_path,
     assert key != _cache._key("solve", static, treedef, [target, jnp.asarray(0.5, target.dtype)])
     monkeypatch.setattr(_cache, "_source_digest", lambda: "another version")
     assert key != _cache._key("solve", static, treedef, leaves)
+
+
+WARM = """
+import json, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
+import elastic_jax as ej
+from elastic_jax import _cache
+
+
+def program(a, shift):
+    # A symmetric eigensolver (a LAPACK kernel), as in the shape solve's saddle checks.
+    w, v = jnp.linalg.eigh(a @ a.T + shift * jnp.eye(a.shape[0], dtype=a.dtype))
+    return {"w": w, "v0": jnp.abs(v[:, 0])}
+
+
+ej.enable_compilation_cache(sys.argv[1])
+read = []  # exported programs deserialized or exported in this process
+_cache._exported = (lambda f: lambda *x: read.append(x[0]) or f(*x))(_cache._exported)
+a = jnp.arange(12.0).reshape(4, 3) / 7.0
+jitted = _cache.solver_jit(program)
+out = _cache.exported_call("eig", program, jitted, (a, 0.5), {}, {"w": 0, "v0": 0})
+values = {k: [float(x) for x in v] for k, v in out.items()}  # runs it: LAPACK must be ready
+plain = jax.jit(program)(a, 0.5)  # only now is an eigensolver lowered in this process
+print(json.dumps({"read": read, "values": values,
+                  "equal": all(bool(jnp.all(out[k] == plain[k])) for k in plain)}))
+"""
+
+
+def test_a_new_process_runs_the_stored_executable_with_identical_results(tmp_path):
+    """The second process loads the executable the first compiled: it reads no exported
+    program (so lowers nothing), sets up LAPACK itself (a kernel left unset would crash
+    it) and gets the jitted program's results to the last bit."""
+    runs = []
+    for _ in range(2):
+        run = subprocess.run(
+            [sys.executable, "-c", WARM, str(tmp_path / "cache")],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert run.returncode == 0, (run.returncode, run.stderr[-2000:])
+        runs.append(json.loads(run.stdout.strip().splitlines()[-1]))
+    first, second = runs
+    assert first["read"] == ["eig"] and second["read"] == []
+    assert first["equal"] and second["equal"] and second["values"] == first["values"]
+    assert len(list((tmp_path / "cache" / "exported").glob("eig-*.xla"))) == 1
+
+
+def test_executables_are_kept_only_for_plain_programs_and_per_machine(monkeypatch):
+    """Stored executables: only programs without effects whose custom calls are all
+    LAPACK kernels (the ones _lapack_ready sets up); keyed on the compiler options and
+    XLA_FLAGS as well as the program."""
+    from types import SimpleNamespace
+
+    from elastic_jax import _cache
+
+    def program(text, effects=()):
+        return SimpleNamespace(
+            mlir_module=lambda: text, ordered_effects=effects, unordered_effects=()
+        )
+
+    lapack = "%0 = stablehlo.custom_call @lapack_dsyevd_ffi(%arg0) : ..."
+    other = lapack + "\n%1 = stablehlo.custom_call @my_kernel(%0) : ..."
+    assert _cache._storable(program("%0 = stablehlo.add %arg0, %arg0"))
+    assert _cache._storable(program(lapack))
+    assert not _cache._storable(program(other))
+    assert not _cache._storable(program(lapack, effects=("an effect",)))
+
+    keys = {_cache._host_key("cpu", False), _cache._host_key("cpu", True)}
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_fast_math=false")
+    _cache._host_key.cache_clear()
+    keys.add(_cache._host_key("cpu", False))
+    monkeypatch.delenv("XLA_FLAGS")
+    _cache._host_key.cache_clear()
+    assert len(keys) == 3
 
 
 def test_exported_must_be_a_bool(tmp_path):
