@@ -253,14 +253,14 @@ def _compiled(name, key, function, quick, static, treedef, leaves, n_outputs):
     """
     from jax.experimental import serialize_executable
 
-    backend = jax.default_backend()
-    file = _EXPORT_DIR / f"{name}-{key}-{_host_key(backend, quick)}.xla"
+    cpu = jax.default_backend() == "cpu"
+    file = _EXPORT_DIR / f"{name}-{key}-{_host_key('cpu', quick)}.xla" if cpu else None
     # How the stored executable's arguments and results were flattened: the leaves.
     trees = (
         jax.tree_util.tree_structure((tuple(range(len(leaves))), {})),
         jax.tree_util.tree_structure(tuple(range(n_outputs))),
     )
-    if backend == "cpu" and file.exists():
+    if cpu and file.exists():
         try:
             _lapack_ready()
             return serialize_executable.deserialize_and_load(file.read_bytes(), *trees)
@@ -269,7 +269,7 @@ def _compiled(name, key, function, quick, static, treedef, leaves, n_outputs):
     program = _exported(name, key, function, static, treedef, leaves)
     # The jitted path's compiler options: both compile the same program alike.
     jitted = solver_jit(program.call, quick=quick)
-    if backend != "cpu" or not _storable(program):
+    if not cpu or not _storable(program):
         return jitted
     compiled = jitted.jitted().lower(*leaves).compile()
     try:
@@ -277,14 +277,20 @@ def _compiled(name, key, function, quick, static, treedef, leaves, n_outputs):
     except (ValueError, NotImplementedError):  # constants or mutable state in the program
         return compiled
     if tuple(stored_trees) == trees:
-        from ._atomic import atomic_path
-
-        try:
-            with atomic_path(file) as tmp:
-                tmp.write_bytes(blob)
-        except OSError:
-            pass
+        _store(file, blob)
     return compiled
+
+
+def _store(file: pathlib.Path, data: bytes) -> None:
+    """Write ``data`` to ``file`` atomically; a directory that cannot be written only
+    loses the file (the program still runs)."""
+    from ._atomic import atomic_path
+
+    try:
+        with atomic_path(file) as tmp:
+            tmp.write_bytes(data)
+    except OSError:
+        pass
 
 
 def _storable(program) -> bool:
@@ -361,11 +367,5 @@ def _exported(name: str, key: str, function, static: dict, treedef, leaves):
         return tuple(jax.tree_util.tree_leaves(out))
 
     program = export.export(jax.jit(flat))(*leaves)
-    from ._atomic import atomic_path
-
-    try:
-        with atomic_path(file) as tmp:
-            tmp.write_bytes(program.serialize())
-    except OSError:
-        pass
+    _store(file, program.serialize())
     return program
