@@ -16,7 +16,35 @@ from ._checks import check_choice
 from ._options import SOLVERS
 
 
-class RESULTS(optx.RESULTS):  # pyright: ignore
+class _NamedEnumeration(type(optx.RESULTS)):
+    """The metaclass of optimistix's RESULTS, whose items then print their name.
+
+    equinox prints an item as ``RESULTS<message>``, and the message of ``successful`` is
+    empty (``RESULTS<>``); with the name in front a result reads ``RESULTS<successful>``
+    or ``RESULTS<stalled: The solver stopped ...>``. Only the text changes: items, codes
+    and ``where`` / ``promote`` are equinox's own.
+    """
+
+    def __getitem__(cls, item) -> str:
+        message = cls.message(item)
+        name = cls.name(item)
+        return f"{name}: {message}" if message else name
+
+    def message(cls, item) -> str:
+        """The item's message alone ('' for ``successful``)."""
+        return super().__getitem__(item)
+
+    def name(cls, item) -> str:
+        """The item's name, e.g. ``"successful"`` (its code must be concrete)."""
+        code = int(item._value)
+        # equinox keeps the items by name in _name_to_item (its own table of the class).
+        for name, candidate in getattr(cls, "_name_to_item", {}).items():
+            if int(candidate._value) == code:
+                return name
+        return f"code {code}"
+
+
+class RESULTS(optx.RESULTS, metaclass=_NamedEnumeration):  # pyright: ignore
     """optimistix's result codes and two more: a solve that stopped making progress, and
     registration rounds that the grid's resolution stopped."""
 
@@ -263,4 +291,4 @@ def lanczos_smallest(
 
 def result_message(result: RESULTS) -> str:
     """The solver's words for a (concrete, unbatched) result code; '' on success."""
-    return RESULTS[result] if result != RESULTS.successful else ""
+    return RESULTS.message(result)

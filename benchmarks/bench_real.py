@@ -1,0 +1,199 @@
+"""Real shapes: is the distance a property of the two shapes? (issue 29)
+
+For each pair, modulo rigid motion, metric (1, 1, 0.1, 0), the package's defaults
+(ShapeOptions()), float64, one record per solve:
+
+- ``grid25``: both surfaces resampled (bilinear) to 25 x 49;
+- ``up49``: those same 25 x 49 surfaces upsampled (bilinear, grid points kept) to 49 x 97,
+  so the continuous surfaces are the same as ``grid25``'s;
+- ``data``: the surfaces at their own grid (50 x 99 for the shared data);
+- ``moebius``: f1 read from its data through a Moebius map (|a| = 0.3, a seeded direction)
+  and rotated, on the data's grid: should equal ``data``;
+- ``reversed``: the pair in the other order, on the data's grid: should equal ``data``;
+- ``self``: f1 against itself read through a Moebius map (|a| = 0.5) and rotated, on the
+  data's grid: should be 0.
+
+Each record has the distance, the parametrized distance, converged, the result's name,
+the refinement (distance_time, distance_grid, relative_change), the solve time (the
+first call of each configuration includes its compilation: ``compiled`` says which), and
+then one summary record per pair with the spreads the issue's targets ask about.
+
+Pairs: cat1 -> cat2, cat1 -> horse0, horse0 -> hand4 (../shared/data, skipped when
+absent), a synthetic pair (a bumpy surface against a stretched copy, sampled at 50 x 99),
+and, when nilearn is installed, FreeSurfer's fsaverage5 left inflated hemisphere against
+the mirrored right one (nilearn ships the meshes; they are put on the grid by
+elastic_jax.io.mesh_to_grid at 50 x 99).
+
+Run: python benchmarks/bench_real.py [--pairs cats,cat-horse,horse-hand,synthetic,fsaverage]
+     [--cases grid25,up49,data,moebius,reversed,self] [--init moebius|icosahedral|none|l2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+
+import jax
+
+jax.config.update("jax_enable_x64", True)  # a script, not the library
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import elastic_jax as ej  # noqa: E402
+from elastic_jax import shapes  # noqa: E402
+
+from _common import DATA, emit, environment  # noqa: E402
+
+METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+PAIRS = {
+    "cats": ("cat1", "cat2"),
+    "cat-horse": ("cat1", "horse0"),
+    "horse-hand": ("horse0", "hand4"),
+    "synthetic": None,
+    "fsaverage": None,
+}
+CASES = ("grid25", "up49", "data", "moebius", "reversed", "self")
+
+
+def _grid_surface(f):
+    """Pole rows constant and the seam exact after sampling at arbitrary points."""
+    f = f.at[:, 0, :].set(f[:, 0, :1]).at[:, -1, :].set(f[:, -1, :1])
+    return f.at[:, :, -1].set(f[:, :, 0])
+
+
+def _moved(f, magnitude: float, seed: int):
+    """R (f o phi_a): f read through a Moebius map with |a| = magnitude, then rotated."""
+    rng = np.random.default_rng(seed)
+    a = rng.standard_normal(3)
+    a *= magnitude / np.linalg.norm(a)
+    r = ej.so3_exp(jnp.asarray(rng.standard_normal(3)))
+    where = ej.moebius(ej.sphere_points(*f.shape[-2:]), jnp.asarray(a))
+    return jnp.einsum("ij,jmn->imn", r, _grid_surface(ej.reparametrize(f, where, "bicubic")))
+
+
+def _fsaverage():
+    """fsaverage5's left inflated hemisphere and the mirrored right one on 50 x 99."""
+    try:
+        from nilearn import datasets, surface
+    except ImportError:
+        return None
+    import trimesh
+
+    from elastic_jax import io
+
+    paths = datasets.fetch_surf_fsaverage("fsaverage5")  # files inside nilearn's wheel
+    grids = []
+    for side, flip in (("left", 1.0), ("right", -1.0)):
+        mesh = surface.load_surf_mesh(paths[f"infl_{side}"])
+        coords = getattr(mesh, "coordinates", None)
+        coords, faces = (mesh[0], mesh[1]) if coords is None else (coords, mesh.faces)
+        coords = np.asarray(coords, float) * np.array([flip, 1.0, 1.0])
+        faces = np.asarray(faces)
+        if flip < 0:  # a mirror turns the faces' winding inside out
+            faces = faces[:, ::-1]
+        mesh = trimesh.Trimesh(coords, faces, process=False)
+        grids.append(jnp.asarray(io.mesh_to_grid(mesh, 50, 99)))
+    return tuple(grids)
+
+
+def _pair(name: str):
+    if name == "synthetic":
+        stretch = jnp.asarray([1.3, 1.0, 0.8])
+        moved = shapes.sample(shapes.bumpy, 50, 99, rotation=shapes.random_rotation(11))
+        return shapes.sample(shapes.bumpy, 50, 99), jnp.einsum("i,imn->imn", stretch, moved)
+    if name == "fsaverage":
+        return _fsaverage()
+    paths = [DATA / f"{s}_50x99.npz" for s in PAIRS[name]]
+    if not all(p.exists() for p in paths):
+        return None
+    return tuple(jnp.asarray(np.load(p)["f"]) for p in paths)
+
+
+def _inputs(case: str, f1, f2):
+    if case == "grid25":
+        return ej.resample(f1, 25, 49), ej.resample(f2, 25, 49)
+    if case == "up49":
+        return (ej.resample(ej.resample(f, 25, 49), 49, 97) for f in (f1, f2))
+    if case == "data":
+        return f1, f2
+    if case == "moebius":
+        return _moved(f1, 0.3, 1), f2
+    if case == "reversed":
+        return f2, f1
+    return f1, _moved(f1, 0.5, 2)  # self
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pairs", default=",".join(PAIRS))
+    parser.add_argument("--cases", default=",".join(CASES))
+    parser.add_argument(
+        "--init", default="moebius", choices=("moebius", "icosahedral", "none", "l2")
+    )
+    args = parser.parse_args()
+    pairs, cases = args.pairs.split(","), args.cases.split(",")
+    for name in pairs:
+        if name not in PAIRS:
+            parser.error(f"unknown pair {name!r}; choose from {', '.join(PAIRS)}")
+    for case in cases:
+        if case not in CASES:
+            parser.error(f"unknown case {case!r}; choose from {', '.join(CASES)}")
+    emit(
+        {
+            "kind": "environment",
+            **environment(),
+            "metric": [METRIC.a, METRIC.b, METRIC.c, METRIC.d],
+            "modulo": "rigid",
+        }
+    )
+    seen = set()
+    for name in pairs:
+        surfaces = _pair(name)
+        if surfaces is None:
+            emit({"kind": "skipped", "pair": name, "why": "data or nilearn absent"})
+            continue
+        distances = {}
+        for case in cases:
+            f1, f2 = _inputs(case, *surfaces)
+            grid = tuple(f1.shape[-2:])
+            start = time.perf_counter()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", ej.ConvergenceWarning)
+                res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", init=args.init)
+                jax.block_until_ready(res.distance)
+            seconds = time.perf_counter() - start
+            distances[case] = float(res.distance)
+            emit(
+                {
+                    "kind": "solve",
+                    "pair": name,
+                    "case": case,
+                    "grid": list(grid),
+                    "distance": float(res.distance),
+                    "parametrized_distance": float(res.parametrized_distance),
+                    "converged": bool(res.converged),
+                    "result": ej.RESULTS.name(res.result),
+                    "rounds": int(res.rounds),
+                    "distance_time": float(res.refinement.distance_time),
+                    "distance_grid": float(res.refinement.distance_grid),
+                    "relative_change": float(res.refinement.relative_change),
+                    "seconds": seconds,
+                    "compiled": grid not in seen,
+                }
+            )
+            seen.add(grid)
+        summary = {"kind": "summary", "pair": name}
+        d = distances.get("data")
+        if d:
+            for case in ("moebius", "reversed", "self"):
+                if case in distances:
+                    summary[f"{case}_over_data"] = distances[case] / d
+        if distances.get("grid25") and "up49" in distances:
+            summary["up49_over_grid25"] = distances["up49"] / distances["grid25"]
+        emit(summary)
+
+
+if __name__ == "__main__":
+    main()
