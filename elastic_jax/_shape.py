@@ -403,6 +403,32 @@ def _distinct_best(values, points, k, separation):
 _DISTINCT_STARTS = 0.1
 
 
+def _start_map(points, max_boost, q, vb):
+    """The start (q, vb) of the search applied to ``points (3, ...)`` of the sphere:
+    q exp(hat v) phi_b, vb = (v, b), the boost b bounded to ``max_boost`` (_ball)."""
+    return _rotate(q @ _so3_exp(vb[:3]), moebius(points, _ball(vb[3:], max_boost)))
+
+
+def _aligned(prob, cfg, rigid, gamma):
+    """f1 o gamma and R^3's Procrustes rotation of f2 onto it (the identity unless rigid)."""
+    start = _registered(prob, cfg, gamma)
+    r = _kabsch(prob.f2, start) if rigid else jnp.eye(3, dtype=start.dtype)
+    return start, r
+
+
+def _start(prob, cfg, rigid, q, vb):
+    """A searched start as (gamma, R): its boost shrunk until the grid resolves gamma.
+
+    The boost is bounded to what the grid resolves for a generic direction; shrink it
+    where this direction needs less (a pure rotation, the last scale, always does).
+    """
+    boosts = jnp.asarray(_BOOST_SCALES, vb.dtype)[:, None] * vb[None, 3:]
+    maps = jax.vmap(lambda b: _start_map(prob.e1, prob.bases.max_boost, q, vb.at[3:].set(b)))
+    ok = _resolved(maps(boosts), prob.bases.area_floor).at[-1].set(True)
+    gamma = _start_map(prob.e1, prob.bases.max_boost, q, vb.at[3:].set(boosts[jnp.argmax(ok)]))
+    return gamma, _aligned(prob, cfg, rigid, gamma)[1]
+
+
 def _initialize_l2(prob, cfg, rigid):
     """The starts of the registration for init="l2" (docs/registration.md).
 
@@ -427,22 +453,12 @@ def _initialize_l2(prob, cfg, rigid):
     eye = jnp.eye(3, dtype=dtype)
     if cfg.init == "none":
         return prob.e1[None], eye[None], jnp.zeros((), jnp.int32)
-    free = 6
-
-    def reparametrization(q, v, b):
-        return _rotate(q @ _so3_exp(v), moebius(prob.e1, _ball(b, prob.bases.max_boost)))
-
-    def aligned(q, v, b):
-        start = _registered(prob, cfg, reparametrization(q, v, b))
-        r = _kabsch(prob.f2, start) if rigid else eye
-        return start, r
 
     reference = _l2_mismatch(prob.f1, prob.f2)
     reference = jnp.where(reference > 0, reference, 1.0)
 
-    def objective(q, u):
-        vb = u if free == 6 else jnp.concatenate([u, jnp.zeros(3, dtype)])
-        start, r = aligned(q, vb[:3], vb[3:])
+    def objective(q, vb):
+        start, r = _aligned(prob, cfg, rigid, _start_map(prob.e1, prob.bases.max_boost, q, vb))
         return _l2_mismatch(start, _rotate(r, prob.f2)) / reference
 
     # The short search from every icosahedral rotation and then the refinement of the
@@ -459,12 +475,10 @@ def _initialize_l2(prob, cfg, rigid):
         values, params = searched
         searching = j < n_ico
         # The distinct best, once the search is done (the rows are then final).
-        points = jax.vmap(lambda q, u: _probe_points(q, u, free, probe, prob.bases.max_boost))(
-            ico, params
-        )
+        points = jax.vmap(lambda q, vb: _start_map(probe, prob.bases.max_boost, q, vb))(ico, params)
         chosen = _distinct_best(values, points, k, _DISTINCT_STARTS)
         i = jnp.where(searching, j, chosen[(j - n_ico) % k])
-        u0 = jnp.where(searching, jnp.zeros(free, dtype), params[i])
+        u0 = jnp.where(searching, jnp.zeros(6, dtype), params[i])
         cap = jnp.where(searching, _SEARCH_STEPS, cfg.max_steps)
         found = minimize(
             lambda u: objective(ico[i], u),
@@ -480,30 +494,13 @@ def _initialize_l2(prob, cfg, rigid):
         params = jnp.where(searching, params.at[slot].set(found.x), params)
         return (values, params), (i, found.x, found.num_steps)
 
-    searched = (jnp.full((n_ico,), jnp.inf, dtype), jnp.zeros((n_ico, free), dtype))
+    searched = (jnp.full((n_ico,), jnp.inf, dtype), jnp.zeros((n_ico, 6), dtype))
     jobs = jnp.arange(n_ico + k, dtype=jnp.int32)
     _, (index, us, job_steps) = jax.lax.scan(job, searched, jobs)
-    qs, us = ico[index[n_ico:]], us[n_ico:]
-    vbs = us if free == 6 else jnp.concatenate([us, jnp.zeros((k, 3), dtype)], axis=1)
+    qs, vbs = ico[index[n_ico:]], us[n_ico:]
 
-    def start(q, vb):
-        # The boost is bounded to what the grid resolves for a generic direction; shrink
-        # it where this direction needs less (a pure rotation, the last, always does).
-        boosts = jnp.asarray(_BOOST_SCALES, dtype)[:, None] * vb[None, 3:]
-        candidates = jax.vmap(lambda b: reparametrization(q, vb[:3], b))(boosts)
-        ok = _resolved(candidates, prob.bases.area_floor).at[-1].set(True)
-        b = boosts[jnp.argmax(ok)]
-        return reparametrization(q, vb[:3], b), aligned(q, vb[:3], b)[1]
-
-    gammas, rotations = jax.vmap(start)(qs, vbs)
+    gammas, rotations = jax.vmap(lambda q, vb: _start(prob, cfg, rigid, q, vb))(qs, vbs)
     return gammas, rotations, jnp.sum(job_steps).astype(jnp.int32)
-
-
-def _probe_points(q, u, free, probe, max_boost):
-    """The start (q, u) of _initialize applied to ``probe (3, P)`` points of the sphere."""
-    v = u[:3]
-    b = u[3:] if free == 6 else jnp.zeros(3, u.dtype)
-    return _rotate(q @ _so3_exp(v), moebius(probe, _ball(b, max_boost)))
 
 
 def _initialize(prob, cfg, rigid):
@@ -528,19 +525,11 @@ def _initialize(prob, cfg, rigid):
     if cfg.init == "none":
         return prob.e1[None], eye[None], jnp.zeros((), jnp.int32)
 
-    def reparametrization(q, v, b):
-        return _rotate(q @ _so3_exp(v), moebius(prob.e1, _ball(b, prob.bases.max_boost)))
-
-    def aligned(q, v, b):
-        start = _registered(prob, cfg, reparametrization(q, v, b))
-        r = _kabsch(prob.f2, start) if rigid else eye
-        return start, r
-
     reference = _straight_energy(prob, cfg, prob.f1, prob.f2)
     reference = jnp.where(reference > 0, reference, 1.0)
 
     def objective(q, vb):
-        start, r = aligned(q, vb[:3], vb[3:])
+        start, r = _aligned(prob, cfg, rigid, _start_map(prob.e1, prob.bases.max_boost, q, vb))
         return _straight_energy(prob, cfg, start, _rotate(r, prob.f2)) / reference
 
     def refine(q, vb0, max_steps, free, cap=None):
@@ -592,16 +581,7 @@ def _initialize(prob, cfg, rigid):
         qs, vbs = jnp.concatenate([qs, qs]), jnp.concatenate([vbs, boosted])
         steps = steps + jnp.sum(more)
 
-    def start(q, vb):
-        # The boost is bounded to what the grid resolves for a generic direction; shrink
-        # it where this direction needs less (a pure rotation, the last, always does).
-        boosts = jnp.asarray(_BOOST_SCALES, dtype)[:, None] * vb[None, 3:]
-        candidates = jax.vmap(lambda b: reparametrization(q, vb[:3], b))(boosts)
-        ok = _resolved(candidates, prob.bases.area_floor).at[-1].set(True)
-        b = boosts[jnp.argmax(ok)]
-        return reparametrization(q, vb[:3], b), aligned(q, vb[:3], b)[1]
-
-    gammas, rotations = jax.vmap(start)(qs, vbs)
+    gammas, rotations = jax.vmap(lambda q, vb: _start(prob, cfg, rigid, q, vb))(qs, vbs)
     return gammas, rotations, steps.astype(jnp.int32)
 
 
