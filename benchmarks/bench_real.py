@@ -25,7 +25,7 @@ the mirrored right one (nilearn ships the meshes; they are put on the grid by
 elastic_jax.io.mesh_to_grid at 50 x 99).
 
 Run: python benchmarks/bench_real.py [--pairs cats,cat-horse,horse-hand,synthetic,fsaverage]
-     [--cases grid25,up49,data,moebius,reversed,self] [--init moebius|icosahedral|none|l2]
+     [--cases grid25,up49,data,moebius,reversed,self] [--init moebius|energy|icosahedral|none]
 """
 
 from __future__ import annotations
@@ -130,7 +130,7 @@ def main() -> None:
     parser.add_argument("--pairs", default=",".join(PAIRS))
     parser.add_argument("--cases", default=",".join(CASES))
     parser.add_argument(
-        "--init", default="moebius", choices=("moebius", "icosahedral", "none", "l2")
+        "--init", default="moebius", choices=("moebius", "energy", "icosahedral", "none")
     )
     args = parser.parse_args()
     pairs, cases = args.pairs.split(","), args.cases.split(",")

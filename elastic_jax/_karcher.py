@@ -48,7 +48,7 @@ _HALVINGS = 4
 # Why a Karcher iteration stopped: result code -> words (KarcherResult.message).
 _MESSAGES = {
     "mean_velocity_small": "converged: the mean velocity's norm is at most tol x RMS distance",
-    "sum_sq_stalled": "converged: a full step lowered the sum of squared distances by less "
+    "sum_sq_stalled": "converged: a full step changed the sum of squared distances by less "
     "than tol (relative)",
     "line_search_failed": "stopped: line search failed: no step along the mean velocity "
     f"(halved up to {_HALVINGS} times) gave a finite sum of squared distances that was not larger",
@@ -452,7 +452,8 @@ def karcher_mean(
     costs K solves.
 
     Stops converged when sqrt(G_mu(v, v)) <= tol x RMS distance ("mean_velocity_small")
-    or when a full step lowers the SSD by less than tol relative ("sum_sq_stalled"); stops
+    or when a full step changes the SSD by less than tol relative ("sum_sq_stalled": a
+    step that lowers it is taken, one that raises it is not); stops
     not converged when no halving lowers the SSD ("line_search_failed"), after max_steps
     steps ("max_steps_reached"), or when the distances at the mean are not finite
     ("not_finite"). ``result`` and ``message`` say which.
@@ -572,6 +573,7 @@ def karcher_mean(
                 result = "max_steps_reached"
                 break
             s = step_size
+            risen_little = False
             for _ in range(_HALVINGS + 1):
                 trial_mean = mean + s * direction.velocity
                 trial = solve_at(trial_mean)
@@ -580,9 +582,19 @@ def karcher_mean(
                 # NaN compares False: a non-finite trial is never accepted.
                 if trial_sum_sq <= sum_sq:
                     break
+                # A full step that raises the SSD by less than tol changed it as little as
+                # one that lowers it by less than tol: the mean is stationary to within the
+                # registrations' own scatter (each is a nonconvex search), and halving a
+                # step the SSD cannot resolve only looks for a lower draw of that scatter.
+                if s == step_size and trial_sum_sq - sum_sq <= tol * sum_sq:
+                    risen_little = True
+                    break
                 s *= 0.5
             else:
                 result = "line_search_failed"
+                break
+            if risen_little:  # the mean stays where it is
+                result = "sum_sq_stalled"
                 break
             mean, solved, step = trial_mean, trial, step + 1
             direction = _direction(metric, mean, solved, modulo, options)

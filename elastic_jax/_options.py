@@ -19,7 +19,7 @@ SCHEMES = ("forward", "central", "midpoint")
 # (the central scheme couples five nodes; see _shooting).
 SHOOTING_SCHEMES = ("midpoint", "forward")
 METHODS = ("joint", "coordinate")
-INITS = ("moebius", "icosahedral", "none", "l2")
+INITS = ("moebius", "energy", "icosahedral", "none")
 INTERPOLATIONS = ("bilinear", "bicubic")
 
 
@@ -55,18 +55,19 @@ class ShapeOptions:
         outer_steps: most registration rounds; the loop stops earlier once a round
             changes the energy by at most outer_tol (E + outer_tol E_0).
         outer_tol: that relative change (E_0: the parametrized energy).
-        init: ``"moebius"`` (default: the 60 icosahedral rotations ranked by straight-line
-            energy, the best ``init_candidates`` refined over rotations and, as further
-            starts, over the whole Moebius group of S^2), ``"icosahedral"`` (the paper's
-            Remark 4: rotations only), ``"none"``, or ``"l2"``: a short search over the
-            Moebius group from each of the 60 rotations, ranked by the L2 mismatch
-            int |f1 o gamma - R f2|^2, the best ``init_candidates`` that lie apart refined
-            (docs/registration.md: it finds the map of a real shape against itself under
-            a rotation and a Moebius map, where "moebius" starts half a turn wrong; not
-            yet the default, see there). Every start goes through registration rounds on
-            the straight line (coarse in time: an L2 match, then the energy); the lowest
-            goes on to the rounds with the whole path.
-        init_candidates: how many of the ranked rotations (or searches) become starts.
+        init: ``"moebius"`` (default): a short search over the Moebius group of S^2
+            (rotations and conformal boosts) from each of the 60 icosahedral rotations,
+            ranked by the L2 mismatch int |f1 o gamma - R f2|^2, the best
+            ``init_candidates`` that lie apart refined (docs/registration.md);
+            ``"energy"`` (the default until 2026-11-24): the 60 rotations refined over
+            rotations and ranked by straight-line energy, the best ``init_candidates``
+            refined over rotations and, as further starts, over the Moebius group;
+            ``"icosahedral"``: the same over rotations only (the paper's Remark 4);
+            ``"none"``. Every start goes through registration rounds on the straight
+            line (coarse in time: an L2 match, then the energy); the lowest goes on to
+            the rounds with the whole path.
+        init_candidates: how many of the ranked searches become starts (with
+            "moebius", the best that lie apart: mean distance of their maps above 0.1).
         interpolation: ``"bicubic"`` (default) or ``"bilinear"`` (the paper's) for f o gamma.
 
     The checks:

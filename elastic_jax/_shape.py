@@ -429,8 +429,8 @@ def _start(prob, cfg, rigid, q, vb):
     return gamma, _aligned(prob, cfg, rigid, gamma)[1]
 
 
-def _initialize_l2(prob, cfg, rigid):
-    """The starts of the registration for init="l2" (docs/registration.md).
+def _initialize_moebius(prob, cfg, rigid):
+    """The starts of the registration for init="moebius" (docs/registration.md).
 
     Returns (gammas ``(S, 3, m, n)``, rotations ``(S, 3, 3)``, solver steps). Each of the
     60 icosahedral rotations starts a short BFGS over the Moebius group of the parameter
@@ -450,9 +450,6 @@ def _initialize_l2(prob, cfg, rigid):
     flipped start (L2 0.61 before refinement; 0.38 for the flipped basin).
     """
     dtype = prob.f1.dtype
-    eye = jnp.eye(3, dtype=dtype)
-    if cfg.init == "none":
-        return prob.e1[None], eye[None], jnp.zeros((), jnp.int32)
 
     reference = _l2_mismatch(prob.f1, prob.f2)
     reference = jnp.where(reference > 0, reference, 1.0)
@@ -503,27 +500,22 @@ def _initialize_l2(prob, cfg, rigid):
     return gammas, rotations, jnp.sum(job_steps).astype(jnp.int32)
 
 
-def _initialize(prob, cfg, rigid):
-    """Remark 4, widened to the Moebius group: the starts of the registration.
+def _initialize_energy(prob, cfg, rigid):
+    """The starts for init="energy" and "icosahedral": Remark 4, widened to the Moebius group.
 
     Returns (gammas ``(S, 3, m, n)``, rotations ``(S, 3, 3)``, solver steps). The 60
     icosahedral rotations as reparametrizations, each refined by a short BFGS over
     rotations of the parameter sphere, are ranked by straight-line energy; when rigid,
     R^3's rotation is the Procrustes optimum for each correspondence (variable
     projection). The best ``init_candidates`` are refined over rotations to the
-    tolerance and, with init="moebius", also over rotations and Moebius maps together
+    tolerance and, with init="energy", also over rotations and Moebius maps together
     (six parameters), which finds large conformal reparametrizations that no rotation
     approaches. All of them are starts: which start ends best shows only after the
     straight-line rounds (cat1 against cat2 at 25 x 49: 0.84 from the best rotation,
     1.35 from the best Moebius map; cat1 against horse0 the other way round; measured
     before the pole derivative fix of 2026-11-23).
     """
-    if cfg.init == "l2":
-        return _initialize_l2(prob, cfg, rigid)
     dtype = prob.f1.dtype
-    eye = jnp.eye(3, dtype=dtype)
-    if cfg.init == "none":
-        return prob.e1[None], eye[None], jnp.zeros((), jnp.int32)
 
     reference = _straight_energy(prob, cfg, prob.f1, prob.f2)
     reference = jnp.where(reference > 0, reference, 1.0)
@@ -575,7 +567,7 @@ def _initialize(prob, cfg, rigid):
     top, vbs = index[n_ico:], vbs[n_ico:]
     qs = ico[top]
     steps = jnp.sum(job_steps)
-    if cfg.init == "moebius":
+    if cfg.init == "energy":
         # Six parameters where the rotations have three: a solve of its own.
         _, boosted, more = jax.lax.map(lambda i: refine(ico[i], params[i], cfg.max_steps, 6), top)
         qs, vbs = jnp.concatenate([qs, qs]), jnp.concatenate([vbs, boosted])
@@ -583,6 +575,17 @@ def _initialize(prob, cfg, rigid):
 
     gammas, rotations = jax.vmap(lambda q, vb: _start(prob, cfg, rigid, q, vb))(qs, vbs)
     return gammas, rotations, steps.astype(jnp.int32)
+
+
+def _initialize(prob, cfg, rigid):
+    """The starts of the registration: (gammas ``(S, 3, m, n)``, rotations ``(S, 3, 3)``,
+    solver steps), by ``cfg.init`` (:class:`ShapeOptions`)."""
+    if cfg.init == "none":
+        eye = jnp.eye(3, dtype=prob.f1.dtype)
+        return prob.e1[None], eye[None], jnp.zeros((), jnp.int32)
+    if cfg.init == "moebius":
+        return _initialize_moebius(prob, cfg, rigid)
+    return _initialize_energy(prob, cfg, rigid)
 
 
 def _registration_variables(prob, y, rigid):
