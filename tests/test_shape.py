@@ -341,7 +341,9 @@ _COMPANION = {"cat1": "cat2", "cat2": "cat1", "horse0": "cat1", "hand4": "horse0
 
 @pytest.mark.data
 @pytest.mark.slow
-@pytest.mark.parametrize("name", sorted(_COMPANION))
+# Two of the four in the suite (each case is two solves at 50 x 99, 50-85 s on 2 cores); all
+# four measured: cat1 0.0008, cat2 0.0045, horse0 0.0017, hand4 0.0000 (benchmarks/bench_real.py).
+@pytest.mark.parametrize("name", ["cat2", "horse0"])
 def test_self_recovery_on_the_shared_shapes_at_their_grid(name):
     # MATH.md 9 on shapes the start search was not designed on: d(f, R f o phi) for a
     # random rotation R and a Moebius map phi with |a| = 0.5, f read through phi from its
