@@ -116,6 +116,8 @@ def _inputs(case: str, f1, f2):
         return ej.resample(f1, 25, 49), ej.resample(f2, 25, 49)
     if case == "up49":
         return (ej.resample(ej.resample(f, 25, 49), 49, 97) for f in (f1, f2))
+    if case == "up97":
+        return (ej.resample(ej.resample(f, 25, 49), 97, 193) for f in (f1, f2))
     if case == "data":
         return f1, f2
     if case == "moebius":
@@ -132,20 +134,23 @@ def main() -> None:
     parser.add_argument(
         "--init", default="moebius", choices=("moebius", "energy", "icosahedral", "none")
     )
+    parser.add_argument("--differential", default="grid", choices=("grid", "chain"))
     args = parser.parse_args()
     pairs, cases = args.pairs.split(","), args.cases.split(",")
     for name in pairs:
         if name not in PAIRS:
             parser.error(f"unknown pair {name!r}; choose from {', '.join(PAIRS)}")
     for case in cases:
-        if case not in CASES:
-            parser.error(f"unknown case {case!r}; choose from {', '.join(CASES)}")
+        if case not in (*CASES, "up97"):
+            parser.error(f"unknown case {case!r}; choose from {', '.join(CASES)}, up97")
     emit(
         {
             "kind": "environment",
             **environment(),
             "metric": [METRIC.a, METRIC.b, METRIC.c, METRIC.d],
             "modulo": "rigid",
+            "init": args.init,
+            "differential": args.differential,
         }
     )
     seen = set()
@@ -161,7 +166,9 @@ def main() -> None:
             start = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", ej.ConvergenceWarning)
-                res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", init=args.init)
+                res = ej.shape_geodesic(
+                    f1, f2, METRIC, modulo="rigid", init=args.init, differential=args.differential
+                )
                 jax.block_until_ready(res.distance)
             seconds = time.perf_counter() - start
             distances[case] = float(res.distance)

@@ -106,8 +106,11 @@ def _basis_np(m: int, n: int, degree: int) -> tuple[np.ndarray, np.ndarray]:
     return y.reshape(k, m * n), np.concatenate([a1.reshape(k, -1), a2.reshape(k, -1)], axis=1)
 
 
-def _straight_frames(f1, f2, n_times):
-    return _frames_between(interior_frame(f1), interior_frame(f2), n_times)
+def _straight_frames(f1, f2, n_times, frames=None):
+    """The straight line's interior frames; ``frames`` (start, end), each (a1, a2), when
+    the ends' differentials are given rather than taken by central differences."""
+    start, end = (interior_frame(f1), interior_frame(f2)) if frames is None else frames
+    return _frames_between(start, end, n_times)
 
 
 def _frames_between(start, end, n_times):
@@ -194,8 +197,8 @@ class _Scaling(NamedTuple):
         return (self.a_inv @ coefficients @ self.b_inv) / jnp.sqrt(self.energy_scale)
 
 
-def _scaling(metric, f1, f2, dframe, n_times, scheme) -> _Scaling:
-    straight_frames = _straight_frames(f1, f2, n_times)
+def _scaling(metric, f1, f2, dframe, n_times, scheme, frames=None) -> _Scaling:
+    straight_frames = _straight_frames(f1, f2, n_times, frames)
     straight = frame_energy(metric, *straight_frames, scheme)
     # The solver works on z with C = sqrt(E_s) A z B (see _whitening) and the energy
     # divided by E_s: one tolerance then means the same for every shape, size and metric.
@@ -204,8 +207,8 @@ def _scaling(metric, f1, f2, dframe, n_times, scheme) -> _Scaling:
     a, b, a_inv, b_inv, gram_mean = _whitening(metric, *mid_frames, dframe, n_times)
     # When f1 = f2 the straight energy is rounding noise; floor the scale at sqrt(eps)
     # times the energy of a deformation of the shapes' own size (not an absolute constant).
-    area = integrate_interior(area_element(*interior_frame(f1)))
-    area = area + integrate_interior(area_element(*interior_frame(f2)))
+    area = integrate_interior(area_element(straight_frames[0][0], straight_frames[1][0]))
+    area = area + integrate_interior(area_element(straight_frames[0][-1], straight_frames[1][-1]))
     own_scale = gram_mean * area / (8.0 * np.pi)
     energy_scale = jnp.maximum(straight, np.sqrt(np.finfo(f1.dtype).eps) * own_scale)
     return _Scaling(energy_scale, straight, a, b, a_inv, b_inv)
@@ -250,8 +253,12 @@ def _solve(
     tol,
     scheme,
     saddle_checks=None,
+    frames=None,
 ):
     """One parametrized geodesic (traceable; the jitted entry point is ``_geodesic``).
+
+    frames: the ends' differentials (start, end), each (a1, a2) on the interior points,
+    when they are not the central differences of f1 and f2 (shape_geodesic's chain rule).
 
     saddle_checks (static): None minimizes only (min_curvature is NaN; the inner solves
     of shape_geodesic). 0 also estimates the smallest Hessian eigenvalue of the scaled
@@ -260,8 +267,8 @@ def _solve(
     (the lowest of f(x), f(x +- s v) over a few lengths s) and minimizes again: a start in
     a symmetric subspace keeps BFGS there, where it can stop at a saddle (MATH.md 9).
     """
-    scaling = _scaling(metric, f1, f2, dframe, n_times, scheme)
-    straight = _straight_frames(f1, f2, n_times)
+    scaling = _scaling(metric, f1, f2, dframe, n_times, scheme, frames)
+    straight = _straight_frames(f1, f2, n_times, frames)
     dtype = f1.dtype
     threshold = saddle_threshold(dtype)
 

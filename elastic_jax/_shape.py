@@ -50,7 +50,7 @@ from ._grid import _interior_weights_np, interior_weights, sphere_points, sphere
 from ._harmonics import _harmonics_np, _vector_fields_np, check_degree
 from ._metric import SplitMetric
 from ._options import ShapeOptions, check_choice
-from ._reparam import _jacobian_determinant, _reparametrize, moebius
+from ._reparam import _jacobian_determinant, _reparametrize, _sample_points, moebius
 from ._so3 import _icosahedral_np, _so3_exp
 from ._solvers import RESULTS, minimize, result_message
 from ._srnf import _center
@@ -334,10 +334,71 @@ def _registered(prob, cfg, gamma):
     return _reparametrize(prob.f1, gamma, method=cfg.interpolation)
 
 
-def _stepped(prob, cfg, gamma, x, fields, scale):
-    """f1 o gamma o Proj(Id + sum x_k v_k): f1 registered after one more Diff step."""
-    step = _step_field(x, fields, scale, prob.e1)
-    return _registered(prob, cfg, _compose(gamma, step, cfg.interpolation))
+def _stepped_gamma(prob, cfg, gamma, x):
+    """gamma o Proj(Id + sum x_k v_k): the reparametrization after one more Diff step."""
+    step = _step_field(x, prob.bases.fields, prob.bases.field_scale, prob.e1)
+    return _compose(gamma, step, cfg.interpolation)
+
+
+@functools.cache
+def _chord_correction_np(m: int, n: int) -> tuple[float, float]:
+    """h / sin(h) per grid direction: central differences of the identity (and of any
+    rotation) are chords of great circles, shorter than its tangents by sin(h) / h."""
+    dtheta, dphi = 2.0 * np.pi / (n - 1), np.pi / (m - 1)
+    return dtheta / np.sin(dtheta), dphi / np.sin(dphi)
+
+
+def _chain_frame(f, gamma, interpolation):
+    """The differential of f o gamma on the interior points by the chain rule (MATH.md 2's
+    frame): (df at gamma) applied to gamma's frame.
+
+    df is the exact derivative of f's interpolant (at grid points, for bicubic, the
+    central difference); gamma's frame is its central differences with the chords of a
+    rotation made exact. Central differences of f o gamma itself are chords across
+    gamma(p +- h), which on a real shape cut corners wherever gamma stretches: they lower
+    the energy, and a registration minimizing it learns to under-sample f.
+    """
+    m, n = gamma.shape[-2:]
+    g1, g2 = interior_frame(gamma)
+    c1, c2 = _chord_correction_np(m, n)
+    points = gamma[:, 1:-1, :-1]
+
+    def along(direction):
+        return jax.jvp(lambda p: _sample_points(f, p, interpolation), (points,), (direction,))[1]
+
+    return along(g1 * c1), along(g2 * c2)
+
+
+def _frame_of(f, gamma, cfg):
+    """The differential of f o gamma on gamma's interior points (cfg.differential)."""
+    if cfg.differential == "grid":
+        return interior_frame(_reparametrize(f, gamma, method=cfg.interpolation))
+    return _chain_frame(f, gamma, cfg.interpolation)
+
+
+def _registered_frame(prob, cfg, gamma):
+    """The differential of f1 o gamma (interior points)."""
+    if cfg.differential == "grid":
+        return interior_frame(_registered(prob, cfg, gamma))
+    return _chain_frame(prob.f1, gamma, cfg.interpolation)
+
+
+def _end_frame(prob, cfg, rotation):
+    """The differential of R f2 (interior points), taken as f1 o gamma's at the identity:
+    identical inputs then have identical frames."""
+    if cfg.differential == "grid":
+        frame = interior_frame(prob.f2)
+    else:
+        frame = _chain_frame(prob.f2, prob.e1, cfg.interpolation)
+    return tuple(_rotate(rotation, a) for a in frame)
+
+
+def _identity_frames(prob, cfg):
+    """(f1's frame, f2's frame): the straight line without registration."""
+    if cfg.differential == "grid":  # the surfaces themselves, not read back at their points
+        return interior_frame(prob.f1), interior_frame(prob.f2)
+    eye = jnp.eye(3, dtype=prob.f1.dtype)
+    return _registered_frame(prob, cfg, prob.e1), _end_frame(prob, cfg, eye)
 
 
 def _geodesic_options(cfg):
@@ -360,13 +421,15 @@ def _geodesic_at(prob, cfg, gamma, rotation, init):
         prob.bases.values,
         prob.bases.dframe,
         **_geodesic_options(cfg),
+        frames=(_registered_frame(prob, cfg, gamma), _end_frame(prob, cfg, rotation)),
     )
 
 
-def _straight_energy(prob, cfg, start, end):
+def _straight_energy(prob, cfg, start_frame, end_frame):
+    """The straight line's energy between two ends given by their frames."""
     # Ranking and refining straight lines needs no time resolution: 3 time points
     # (4.5x cheaper than N = 10) order the candidates the same way.
-    frames = _frames_between(interior_frame(start), interior_frame(end), 3)
+    frames = _frames_between(start_frame, end_frame, 3)
     return frame_energy(prob.metric, *frames, cfg.scheme)
 
 
@@ -517,12 +580,14 @@ def _initialize_energy(prob, cfg, rigid):
     """
     dtype = prob.f1.dtype
 
-    reference = _straight_energy(prob, cfg, prob.f1, prob.f2)
+    reference = _straight_energy(prob, cfg, *_identity_frames(prob, cfg))
     reference = jnp.where(reference > 0, reference, 1.0)
 
     def objective(q, vb):
-        start, r = _aligned(prob, cfg, rigid, _start_map(prob.e1, prob.bases.max_boost, q, vb))
-        return _straight_energy(prob, cfg, start, _rotate(r, prob.f2)) / reference
+        gamma = _start_map(prob.e1, prob.bases.max_boost, q, vb)
+        _, r = _aligned(prob, cfg, rigid, gamma)
+        start, end = _registered_frame(prob, cfg, gamma), _end_frame(prob, cfg, r)
+        return _straight_energy(prob, cfg, start, end) / reference
 
     def refine(q, vb0, max_steps, free, cap=None):
         # free = 3: rotations only (the boost stays 0); 6: the Moebius group.
@@ -598,15 +663,12 @@ def _registration_variables(prob, y, rigid):
 
 def _joint_objective(prob, cfg, rigid, gamma, rotation, scaling):
     """Energy / scale as a function of (whitened path coefficients z, registration step y)."""
-    f_end = _rotate(rotation, prob.f2)
-    end_frame = interior_frame(f_end)
+    end_frame = _end_frame(prob, cfg, rotation)
 
     def objective(variables):
         z, y = variables
         x, r_step = _registration_variables(prob, y, rigid)
-        start = interior_frame(
-            _stepped(prob, cfg, gamma, x, prob.bases.fields, prob.bases.field_scale)
-        )
+        start = _registered_frame(prob, cfg, _stepped_gamma(prob, cfg, gamma, x))
         end = [_rotate(r_step, a) for a in end_frame]
         straight = _frames_between(start, end, cfg.n_times)
         frames = _perturbed_frames(straight, scaling.coefficients(z), prob.bases.dframe)
@@ -623,6 +685,7 @@ def _scaling_at(prob, cfg, gamma, rotation):
         prob.bases.dframe,
         cfg.n_times,
         cfg.scheme,
+        (_registered_frame(prob, cfg, gamma), _end_frame(prob, cfg, rotation)),
     )
 
 
@@ -632,8 +695,7 @@ def _zero_registration(prob, rigid, dtype):
 
 def _path_energy_at(prob, cfg, gamma, rotation, coefficients):
     """Energy of the straight line from f1 o gamma to R f2 plus the perturbation."""
-    start = interior_frame(_registered(prob, cfg, gamma))
-    end = interior_frame(_rotate(rotation, prob.f2))
+    start, end = _registered_frame(prob, cfg, gamma), _end_frame(prob, cfg, rotation)
     straight = _frames_between(start, end, cfg.n_times)
     frames = _perturbed_frames(straight, coefficients, prob.bases.dframe)
     return frame_energy(prob.metric, *frames, cfg.scheme)
@@ -649,9 +711,10 @@ def _matching_criterion(prob, cfg, weight):
     map to 0.017 rad). It only initializes: the rounds that follow minimize the energy.
     """
 
-    def criterion(start, end):
-        l2 = _l2_mismatch(start, end)
-        return weight * l2 + (1.0 - weight) * _straight_energy(prob, cfg, start, end)
+    def criterion(gamma, rotation):
+        l2 = _l2_mismatch(_registered(prob, cfg, gamma), _rotate(rotation, prob.f2))
+        frames = _registered_frame(prob, cfg, gamma), _end_frame(prob, cfg, rotation)
+        return weight * l2 + (1.0 - weight) * _straight_energy(prob, cfg, *frames)
 
     return criterion
 
@@ -669,12 +732,11 @@ def _straight_round(prob, cfg, rigid, weight, cap, state: _State) -> _State:
     dtype = state.energy.dtype
     criterion = _matching_criterion(prob, cfg, weight)
     reference = jnp.maximum(state.energy, jnp.finfo(dtype).tiny)
-    f_end = _rotate(state.rotation, prob.f2)
 
     def objective(y):
         x, r_step = _registration_variables(prob, y, rigid)
-        start = _stepped(prob, cfg, state.gamma, x, prob.bases.fields, prob.bases.field_scale)
-        return criterion(start, _rotate(r_step, f_end)) / reference
+        gamma = _stepped_gamma(prob, cfg, state.gamma, x)
+        return criterion(gamma, r_step @ state.rotation) / reference
 
     y0 = _zero_registration(prob, rigid, dtype)
     found = minimize(
@@ -688,7 +750,7 @@ def _straight_round(prob, cfg, rigid, weight, cap, state: _State) -> _State:
     x, r_step = _registration_variables(prob, found.x, rigid)
     gamma, shrunk = _safe_update(prob, cfg, state.gamma, x)
     rotation = r_step @ state.rotation
-    energy = criterion(_registered(prob, cfg, gamma), _rotate(rotation, prob.f2))
+    energy = criterion(gamma, rotation)
     steps = state.steps + found.num_steps
     return _State(gamma, rotation, state.coefficients, energy, steps, shrunk)
 
@@ -763,20 +825,17 @@ def _round(prob, cfg, rigid, state: _State) -> _State:
 def _refinement(prob, cfg, gamma, rotation, coefficients, energy) -> Refinement:
     """The result re-evaluated with halved time steps and on the (2m - 1) x (2n - 1) grid."""
     metric, bases, degree = prob.metric, prob.bases, cfg.degree
-    start = _registered(prob, cfg, gamma)
-    end = _rotate(rotation, prob.f2)
+    start, end = _registered_frame(prob, cfg, gamma), _end_frame(prob, cfg, rotation)
     n_fine = 2 * cfg.n_times - 1
     halved = upsample_coefficients(coefficients, degree, degree, n_fine)
-    straight = _frames_between(interior_frame(start), interior_frame(end), n_fine)
+    straight = _frames_between(start, end, n_fine)
     frames = _perturbed_frames(straight, halved, bases.dframe)
     time_energy = frame_energy(metric, *frames, cfg.scheme)
 
     fine_gamma = _compose(gamma, bases.fine_points, cfg.interpolation)
-    fine_start = _registered(prob, cfg, fine_gamma)
-    fine_end = _rotate(
-        rotation, _reparametrize(prob.f2, bases.fine_points, method=cfg.interpolation)
-    )
-    straight = _frames_between(interior_frame(fine_start), interior_frame(fine_end), cfg.n_times)
+    fine_start = _frame_of(prob.f1, fine_gamma, cfg)
+    fine_end = [_rotate(rotation, a) for a in _frame_of(prob.f2, bases.fine_points, cfg)]
+    straight = _frames_between(fine_start, fine_end, cfg.n_times)
     frames = _perturbed_frames(straight, coefficients, bases.fine_dframe)
     grid_energy = frame_energy(metric, *frames, cfg.scheme)
 
@@ -790,8 +849,8 @@ def _straight_rounds(prob, cfg, rigid, state: _State, weight, cap) -> _State:
     """Rounds on the matching criterion (weight 1: L2, 0: the straight line's energy),
     each round's BFGS cut at ``cap`` steps."""
     criterion = _matching_criterion(prob, cfg, weight)
-    current = criterion(_registered(prob, cfg, state.gamma), _rotate(state.rotation, prob.f2))
-    floor = criterion(prob.f1, prob.f2)
+    current = criterion(state.gamma, state.rotation)
+    floor = criterion(prob.e1, jnp.eye(3, dtype=prob.f1.dtype))
 
     def small(before, after):
         return jnp.abs(before - after) <= cfg.outer_tol * (after + cfg.outer_tol * floor)
@@ -841,8 +900,8 @@ def _coarse_registration(prob, cfg, rigid, starts) -> _State:
         cap = jnp.where(matching, _MATCH_STEPS, cfg.max_steps)
         state = _straight_rounds(prob, cfg, rigid, state, weight, cap)
         # A matched start is ranked by its straight line's energy.
-        end = _rotate(state.rotation, prob.f2)
-        straight = _straight_energy(prob, cfg, _registered(prob, cfg, state.gamma), end)
+        frames = _registered_frame(prob, cfg, state.gamma), _end_frame(prob, cfg, state.rotation)
+        straight = _straight_energy(prob, cfg, *frames)
         slot = jnp.minimum(j, n_starts - 1)
         ends = jax.tree_util.tree_map(
             lambda e, x: jnp.where(matching, e.at[slot].set(x), e),
@@ -872,9 +931,12 @@ def _final_solves(prob, cfg, state: _State):
     starts = jnp.stack([f1, _registered(prob, cfg, state.gamma)])
     ends = jnp.stack([f2, _rotate(state.rotation, f2)])
     inits = jnp.stack([_zero_coefficients(prob, cfg), state.coefficients])
+    identity = _identity_frames(prob, cfg)
+    registered = _registered_frame(prob, cfg, state.gamma), _end_frame(prob, cfg, state.rotation)
+    frames = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), identity, registered)
 
     def solve(problem):
-        start, end, init = problem
+        start, end, init, (start_frame, end_frame) = problem
         return _solve(
             prob.metric,
             start,
@@ -884,9 +946,10 @@ def _final_solves(prob, cfg, state: _State):
             bases.dframe,
             **_geodesic_options(cfg),
             saddle_checks=cfg.saddle_checks,
+            frames=(start_frame, end_frame),
         )
 
-    return jax.lax.map(solve, (starts, ends, inits))
+    return jax.lax.map(solve, (starts, ends, inits, frames))
 
 
 def _problem(metric, f1, f2, bases, rigid) -> _Problem:
@@ -924,7 +987,7 @@ def _shape_coarse(metric, f1, f2, bases, starts, cfg, rigid) -> tuple[_State, Ar
 def _shape_rounds(metric, f1, f2, bases, coarse, cfg, rigid) -> _Rounds:
     """Phase 3: the registration rounds with the whole path."""
     prob = _problem(metric, f1, f2, bases, rigid)
-    straight0 = _straight_energy(prob, cfg, prob.f1, prob.f2)
+    straight0 = _straight_energy(prob, cfg, *_identity_frames(prob, cfg))
 
     def small_change(before, after):
         # Relative to the current energy, with a floor at outer_tol times the straight
