@@ -28,7 +28,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._cache import exported_call, solver_jit
-from ._checks import is_concrete
+from ._checks import InputError, check_finite, check_grid_shape, is_concrete, real_array
 from ._differential import area_element, interior_frame
 from ._energy import frame_energy
 from ._geodesic import (
@@ -1076,8 +1076,11 @@ _PHASE_JITS = {
 }
 
 
-def _solve_in_phases(args: tuple, cfg: ShapeOptions, rigid: bool) -> ShapeGeodesicResult:
-    """_shape_solve(*args, cfg, rigid), one compiled program per phase.
+def _solve_in_phases(
+    args: tuple, cfg: ShapeOptions, rigid: bool, starts=None
+) -> ShapeGeodesicResult:
+    """_shape_solve(*args, cfg, rigid), one compiled program per phase; ``starts`` (the
+    first phase's result, given) skips the start search.
 
     XLA:CPU's compile time and memory grow with a program, and the phases share no
     compiled code: compiled one after the other, the largest program sets the peak
@@ -1089,8 +1092,8 @@ def _solve_in_phases(args: tuple, cfg: ShapeOptions, rigid: bool) -> ShapeGeodes
     phases are part of the caller's one program.
     """
     static = {"cfg": cfg, "rigid": rigid}
-    carried = ()
-    for name, function, skeleton in _PHASES:
+    phases, carried = (_PHASES, ()) if starts is None else (_PHASES[1:], (starts,))
+    for name, function, skeleton in phases:
         carried = (
             exported_call(name, function, _PHASE_JITS[name], (*args, *carried), static, skeleton),
         )
@@ -1140,6 +1143,53 @@ def resolve_options(options: ShapeOptions | None, changes: dict) -> ShapeOptions
     return options.replace(**changes) if changes else options
 
 
+def _given_start(start, m: int, n: int, dtype, rigid: bool):
+    """A caller's registration as the starts of the rounds: (gamma[None], R[None], 0).
+
+    gamma on another grid is read at this grid's points (bicubic, back onto the sphere):
+    gamma_fine(p) = gamma(p) for the coarse gamma's interpolant.
+    """
+    if isinstance(start, ShapeGeodesicResult):
+        gamma, rotation = start.gamma, start.rotation
+    else:
+        try:
+            gamma, rotation = start
+        except (TypeError, ValueError):
+            raise InputError(
+                "start must be a ShapeGeodesicResult or a pair (gamma (3, p, q), rotation "
+                f"(3, 3)); got {type(start).__name__}"
+            ) from None
+    gamma = real_array(gamma, "start's gamma").astype(dtype)
+    rotation = real_array(rotation, "start's rotation").astype(dtype)
+    if gamma.ndim != 3:
+        raise InputError(f"start's gamma must have shape (3, p, q); got {gamma.shape}")
+    check_grid_shape(gamma.shape, "start's gamma")
+    if rotation.shape != (3, 3):
+        raise InputError(f"start's rotation must have shape (3, 3); got {rotation.shape}")
+    check_finite(gamma, "start's gamma")
+    check_finite(rotation, "start's rotation")
+    if is_concrete(gamma, rotation):
+        radius = np.linalg.norm(np.asarray(gamma, np.float64), axis=0)
+        if np.abs(radius - 1.0).max() > 1e-4:
+            raise InputError(
+                "start's gamma must hold unit vectors (points of S^2); |gamma| ranges "
+                f"over [{radius.min():.4g}, {radius.max():.4g}]"
+            )
+        r = np.asarray(rotation, np.float64)
+        if np.abs(r @ r.T - np.eye(3)).max() > 1e-4 or np.linalg.det(r) < 0:
+            raise InputError("start's rotation must be a rotation (orthogonal, det +1)")
+    if gamma.shape[-2:] != (m, n):
+        gamma = _compose(gamma, sphere_points(m, n, dtype), "bicubic")
+    if is_concrete(gamma) and not float(jnp.min(_jacobian_determinant(gamma))) > 0:
+        raise InputError(
+            f"start's gamma is not a diffeomorphism on the {m} x {n} grid (its Jacobian "
+            "determinant is not positive at every grid point)"
+        )
+    if not rigid:
+        rotation = jnp.eye(3, dtype=dtype)
+    return gamma[None], rotation[None], jnp.zeros((), jnp.int32)
+
+
 def check_grid_options(options: ShapeOptions, m: int, n: int) -> None:
     """The grid-dependent limits of ``options`` (degrees) on an m x n grid."""
     check_degree(options.degree, m, n)
@@ -1153,6 +1203,7 @@ def shape_geodesic(
     *,
     modulo: str = "diff",
     options: ShapeOptions | None = None,
+    start: ShapeGeodesicResult | tuple[ArrayLike, ArrayLike] | None = None,
     **changes,
 ) -> ShapeGeodesicResult:
     """Geodesic between the shapes of f1 and f2, modulo reparametrization (and rigid motion).
@@ -1187,6 +1238,11 @@ def shape_geodesic(
         metric: split metric coefficients.
         modulo: ``"diff"`` (reparametrizations) or ``"rigid"`` (also rotations; centers both).
         options: a :class:`ShapeOptions` (its defaults when None).
+        start: a registration to start the rounds from instead of the start search (step
+            2; ``init`` is then not used): a :class:`ShapeGeodesicResult`, e.g. of the same
+            pair on a coarser grid (multiresolution in grid, the paper's section 5), or
+            a pair (gamma ``(3, p, q)``, rotation ``(3, 3)``). gamma on another grid is
+            read at this grid's points (bicubic); the rotation is ignored modulo "diff".
         **changes: fields of ShapeOptions to change, e.g. ``degree=5, n_times=9``.
 
     Returns:
@@ -1216,6 +1272,7 @@ def shape_geodesic(
     # Solve in units of the surfaces' size (see _units): float32 then works at any scale.
     units, (g1, g2) = in_units(f1, f2)
     bases = _bases(m, n, cfg, dtype)
+    starts = None if start is None else _given_start(start, m, n, dtype, rigid)
     # As in geodesic: the solve runs on constants and the energy is evaluated again,
     # differentiably, at the solution (envelope theorem: the derivative of the minimal
     # energy in f1, f2 and the metric, with gamma, R and C held).
@@ -1223,6 +1280,7 @@ def shape_geodesic(
         (constant(metric), jax.lax.stop_gradient(g1), jax.lax.stop_gradient(g2), bases),
         cfg,
         rigid,
+        starts,
     )
     result = _shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
     if is_concrete(result.converged, result.energy_history, result.rounds) and not bool(

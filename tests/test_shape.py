@@ -473,3 +473,58 @@ def test_chain_differential_gives_the_cats_one_distance_in_either_order():
         assert bool(res.converged)
     d1, d2 = float(forward.distance), float(backward.distance)
     assert abs(d1 - d2) / min(d1, d2) < 0.02
+
+
+# ---- start=: the rounds from a caller's registration (multiresolution in grid) ----
+
+
+def test_a_given_identity_start_is_init_none():
+    m, n, options = 13, 25, ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+    f = shapes.sample(shapes.bumpy, m, n)
+    moved = shapes.sample(shapes.bumpy, m, n, rotation=shapes.random_rotation(1))
+    searched = ej.shape_geodesic(
+        f, moved, METRIC, modulo="rigid", options=options.replace(init="none")
+    )
+    given = ej.shape_geodesic(
+        f, moved, METRIC, modulo="rigid", options=options, start=(ej.sphere_points(m, n), np.eye(3))
+    )
+    assert float(given.distance) == float(searched.distance)
+    np.testing.assert_array_equal(given.gamma, searched.gamma)
+
+
+def test_a_coarse_solve_starts_the_finer_grid():
+    # Multiresolution in grid (paper section 5): f against f o h o phi_a solved at 13 x 25,
+    # its gamma read at the 25 x 49 grid's points as the start there. The coarse gamma is
+    # kept exactly at the points the grids share, and the fine solve recovers the map.
+    options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+    a, h = jnp.asarray([0.2, -0.1, 0.3]), shapes.random_rotation(1)
+    grids = ((13, 25), (25, 49))
+    f, moved = (
+        [shapes.sample(shapes.bumpy, m, n, **kw) for m, n in grids]
+        for kw in ({}, {"rotation": h, "moebius": a})
+    )
+    coarse = ej.shape_geodesic(f[0], moved[0], METRIC, modulo="rigid", options=options)
+    from elastic_jax._shape import _given_start
+
+    gamma = _given_start(coarse, 25, 49, jnp.float64, True)[0][0]
+    np.testing.assert_allclose(gamma[:, ::2, ::2], coarse.gamma, atol=1e-14)
+    fine = ej.shape_geodesic(f[1], moved[1], METRIC, modulo="rigid", options=options, start=coarse)
+    assert_area_bound(fine.distance, f[1], moved[1], METRIC, areas=(1.0, 1.0))
+    assert float(fine.distance) <= 0.02 * float(fine.parametrized_distance)
+    assert bool(fine.converged)
+
+
+@pytest.mark.parametrize(
+    "start, words",
+    [
+        ((np.ones((3, 13, 25)), np.eye(3)), "unit vectors"),
+        ((np.asarray(ej.sphere_points(13, 25)), np.diag([1.0, 1.0, -1.0])), "a rotation"),
+        ((np.asarray(ej.sphere_points(13, 25))[:, :, :24], np.eye(3)), "even number of columns"),
+        ((np.asarray(ej.sphere_points(13, 25)), np.eye(2)), r"shape \(3, 3\)"),
+        (np.eye(3), "start must be"),
+    ],
+)
+def test_a_bad_start_is_named(start, words):
+    f = shapes.sample(shapes.bumpy, 13, 25)
+    with pytest.raises(ej.InputError, match=words):
+        ej.shape_geodesic(f, f, METRIC, start=start)
