@@ -1143,6 +1143,51 @@ def resolve_options(options: ShapeOptions | None, changes: dict) -> ShapeOptions
     return options.replace(**changes) if changes else options
 
 
+# Newton steps of _inverse_gamma: quadratic from the nearest grid image; 12 reach rounding
+# on the cats' registrations (residual 2e-15 at 25 x 49, smallest Jacobian 0.095).
+_INVERSE_STEPS = 12
+
+
+@jax.jit
+def _inverse_gamma(gamma: Array) -> tuple[Array, Array]:
+    """gamma^-1 on the grid: the points x with gamma(x) = p for the grid points p, and
+    the largest |gamma(x) - p|.
+
+    gamma is read between grid points by its bicubic interpolant (as _compose reads it),
+    and each x solved by Newton's method in the tangent plane, from the grid point whose
+    image lies nearest p.
+    """
+    m, n = gamma.shape[-2:]
+    points = sphere_points(m, n, gamma.dtype).reshape(3, -1)
+    images = gamma.reshape(3, -1)
+    nearest = jax.lax.map(lambda p: jnp.argmax(p @ images), points.T, batch_size=256)
+
+    def read(x):
+        y = _sample_points(gamma, x[:, None], "bicubic")[:, 0]
+        return y / jnp.linalg.norm(y)
+
+    def solve(x, target):
+        def step(x, _):
+            # A tangent basis at x that stays well conditioned at the poles.
+            axis = jnp.where(
+                jnp.abs(x[2]) < 0.9, jnp.eye(3, dtype=x.dtype)[2], jnp.eye(3, dtype=x.dtype)[0]
+            )
+            t1 = jnp.cross(x, axis)
+            t1 = t1 / jnp.linalg.norm(t1)
+            t2 = jnp.cross(x, t1)
+            y, d1 = jax.jvp(read, (x,), (t1,))
+            _, d2 = jax.jvp(read, (x,), (t2,))
+            move = jnp.linalg.lstsq(jnp.stack([d1, d2], axis=1), target - y)[0]
+            x = x + move[0] * t1 + move[1] * t2
+            return x / jnp.linalg.norm(x), None
+
+        x, _ = jax.lax.scan(step, x, None, length=_INVERSE_STEPS)
+        return x, jnp.max(jnp.abs(read(x) - target))
+
+    x, residual = jax.vmap(solve, in_axes=(1, 1), out_axes=(1, 0))(points[:, nearest], points)
+    return x.reshape(3, m, n), jnp.max(residual)
+
+
 def _given_start(start, m: int, n: int, dtype, rigid: bool):
     """A caller's registration as the starts of the rounds: (gamma[None], R[None], 0).
 
@@ -1204,6 +1249,7 @@ def shape_geodesic(
     modulo: str = "diff",
     options: ShapeOptions | None = None,
     start: ShapeGeodesicResult | tuple[ArrayLike, ArrayLike] | None = None,
+    symmetric: bool = False,
     **changes,
 ) -> ShapeGeodesicResult:
     """Geodesic between the shapes of f1 and f2, modulo reparametrization (and rigid motion).
@@ -1243,6 +1289,13 @@ def shape_geodesic(
             pair on a coarser grid (multiresolution in grid, the paper's section 5), or
             a pair (gamma ``(3, p, q)``, rotation ``(3, 3)``). gamma on another grid is
             read at this grid's points (bicubic); the rotation is ignored modulo "diff".
+        symmetric: also solve the other order, f2 to f1; when it ends lower, solve this
+            order again from its registration inverted (gamma^-1 by Newton's method on
+            gamma's interpolant, R^T), and return the lower of this order's results. The
+            two orders' rounds end in different local minima (the cats at 25 x 49: 0.751
+            one way, 0.722 the other, and 0.7225 this way from the other's registration),
+            so this finds the lower basin from either side. Two or three solves; concrete
+            inputs only (not under jit or vmap).
         **changes: fields of ShapeOptions to change, e.g. ``degree=5, n_times=9``.
 
     Returns:
@@ -1263,6 +1316,8 @@ def shape_geodesic(
     check_choice("modulo", modulo, MODULI)
     cfg = resolve_options(options, changes)
     f1, f2 = _check_pair(f1, f2)
+    if symmetric:
+        return _symmetric_solve(f1, f2, metric, modulo, cfg, start)
     m, n = f1.shape[-2:]
     check_grid_options(cfg, m, n)
     dtype = f1.dtype
@@ -1283,6 +1338,36 @@ def shape_geodesic(
         starts,
     )
     result = _shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
+    _warn_unless_converged(result)
+    return result
+
+
+def _symmetric_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
+    """shape_geodesic(symmetric=True): the lower of this order's solve and its solve from
+    the other order's registration inverted (when that one ends lower)."""
+    if not is_concrete(f1, f2, metric):
+        raise InputError(
+            "symmetric=True compares whole solves: it needs concrete inputs, not tracers "
+            "(call it outside jax.jit and jax.vmap)"
+        )
+    solve = functools.partial(shape_geodesic, metric=metric, modulo=modulo, options=cfg)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        best = solve(f1, f2, start=start)
+        other = solve(f2, f1)
+        if float(other.distance) < float(best.distance):
+            inverse, residual = _inverse_gamma(other.gamma)
+            tol = 10.0 * float(np.sqrt(np.finfo(np.dtype(inverse.dtype)).eps))
+            if float(residual) <= tol and float(jnp.min(_jacobian_determinant(inverse))) > 0:
+                again = solve(f1, f2, start=(inverse, other.rotation.T))
+                if float(again.distance) < float(best.distance):
+                    best = again
+    _warn_unless_converged(best)
+    return best
+
+
+def _warn_unless_converged(result: ShapeGeodesicResult) -> None:
+    """ConvergenceWarning for a concrete result that did not converge."""
     if is_concrete(result.converged, result.energy_history, result.rounds) and not bool(
         result.converged
     ):
@@ -1296,9 +1381,8 @@ def shape_geodesic(
             f"({result.message}; energies {history[np.isfinite(history)].round(6).tolist()})"
             f"{advice}",
             ConvergenceWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
-    return result
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "rigid"))
