@@ -47,6 +47,8 @@ _HALVINGS = 4
 
 # Why a Karcher iteration stopped: result code -> words (KarcherResult.message).
 _MESSAGES = {
+    "distances_at_rounding": "converged: every distance is at rounding level (at most "
+    "sqrt(eps) x the mean's size): the shapes are one orbit of the registration's group",
     "mean_velocity_small": "converged: the mean velocity's norm is at most tol x RMS distance",
     "sum_sq_stalled": "converged: a full step changed the sum of squared distances by less "
     "than tol (relative)",
@@ -55,7 +57,7 @@ _MESSAGES = {
     "max_steps_reached": "stopped: max_steps Karcher steps taken",
     "not_finite": "stopped: the distances at the mean are not finite",
 }
-_CONVERGED = ("mean_velocity_small", "sum_sq_stalled")
+_CONVERGED = ("distances_at_rounding", "mean_velocity_small", "sum_sq_stalled")
 
 
 class KarcherResult(NamedTuple):
@@ -71,12 +73,13 @@ class KarcherResult(NamedTuple):
         history: ``(steps + 1, 3)`` per mean visited (the start first): sum of squared
             distances (non-increasing), norm of the mean velocity sqrt(G_mean(v, v)), and
             the step size that led there (0 for the start; step_size / 2^j after j halvings).
-        converged: ``result`` is "mean_velocity_small" or "sum_sq_stalled".
+        converged: ``result`` is "distances_at_rounding", "mean_velocity_small" or
+            "sum_sq_stalled".
         num_steps: Karcher steps taken (accepted updates of the mean).
         num_solves: batches of K geodesics solved, rejected line-search trials included.
-        result: why the iteration stopped: ``"mean_velocity_small"``, ``"sum_sq_stalled"``
-            (both converged), ``"line_search_failed"``, ``"max_steps_reached"`` or
-            ``"not_finite"``.
+        result: why the iteration stopped: ``"distances_at_rounding"``,
+            ``"mean_velocity_small"``, ``"sum_sq_stalled"`` (all three converged),
+            ``"line_search_failed"``, ``"max_steps_reached"`` or ``"not_finite"``.
     """
 
     mean: Array
@@ -400,6 +403,7 @@ class _Direction(NamedTuple):
     velocity: Array  # the mean velocity (its horizontal part, modulo "rigid" / "diff")
     norm: float  # sqrt(G_mean(v, v))
     sum_sq: float  # sum of squared distances
+    size: float  # sqrt(G_mean(c, c)), c the centered mean: d(mean, (1 + t) mean) ~ t size
 
 
 def _direction(metric, mean, solved: _Solved, modulo: str, options: ShapeOptions) -> _Direction:
@@ -416,7 +420,9 @@ def _direction(metric, mean, solved: _Solved, modulo: str, options: ShapeOptions
             rigid=modulo == "rigid",
         )
     norm = float(jnp.sqrt(_metric_inner(metric, mean, average, average)))
-    return _Direction(average, norm, float(jnp.sum(solved.distances**2)))
+    centered = _center(mean)
+    size = float(jnp.sqrt(_metric_inner(metric, mean, centered, centered)))
+    return _Direction(average, norm, float(jnp.sum(solved.distances**2)), size)
 
 
 def karcher_mean(
@@ -451,7 +457,11 @@ def karcher_mean(
     accepted trial's geodesics serve the next step, so a step that does not backtrack
     costs K solves.
 
-    Stops converged when sqrt(G_mu(v, v)) <= tol x RMS distance ("mean_velocity_small")
+    Stops converged when the RMS distance is at most sqrt(eps) x the mean's size
+    sqrt(G_mu(c, c)), c the centered mean (the distance to a dilation (1 + t) mu is about
+    t times it): the shapes are one orbit ("distances_at_rounding", at step 0 for copies
+    of one shape under the group; tol x RMS below would only test rounding); when
+    sqrt(G_mu(v, v)) <= tol x RMS distance ("mean_velocity_small")
     or when a full step changes the SSD by less than tol relative ("sum_sq_stalled": a
     step that lowers it is taken, one that raises it is not); stops
     not converged when no halving lowers the SSD ("line_search_failed"), after max_steps
@@ -565,6 +575,9 @@ def karcher_mean(
             rms = np.sqrt(sum_sq / shapes.shape[0])
             if not np.isfinite(sum_sq):
                 result = "not_finite"
+                break
+            if rms <= np.sqrt(np.finfo(np.dtype(mean.dtype)).eps) * direction.size:
+                result = "distances_at_rounding"
                 break
             if norm <= tol * max(rms, np.finfo(np.float64).tiny):
                 result = "mean_velocity_small"

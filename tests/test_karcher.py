@@ -252,6 +252,23 @@ def test_resume_after_a_kill_equals_an_uninterrupted_run(tmp_path):
 
 
 @pytest.mark.filterwarnings("ignore::elastic_jax.ConvergenceWarning")  # max_steps=1
+def test_one_orbit_converges_at_step_zero():
+    # Copies of one shape under rigid motions (issue 30): every distance is at rounding
+    # level, so the mean velocity is too and tol x RMS would only test rounding (this ended
+    # line_search_failed). The orbit test stops at the start, after one batch of solves.
+    f = shapes.sample(shapes.bumpy, M, N)
+    shift = jnp.asarray([0.3, -0.1, 0.2])[:, None, None]
+    moved = [jnp.einsum("ij,jmn->imn", shapes.random_rotation(k), f) + k * shift for k in (3, 5)]
+    res = ej.karcher_mean(
+        jnp.stack([f, *moved]), METRIC, modulo="rigid", options=SHAPE, strategy="loop"
+    )
+    assert res.converged and res.result == "distances_at_rounding", res.message
+    assert (res.num_steps, res.num_solves) == (0, 1)
+    assert float(jnp.max(res.distances)) < 1e-8
+    same = ej.karcher_mean(jnp.stack([f, f]), METRIC, modulo="none", options=FAST)
+    assert same.result == "distances_at_rounding" and float(jnp.max(same.distances)) == 0.0
+
+
 def test_line_search_rejects_steps_that_raise_the_sum_or_are_not_finite(monkeypatch):
     # A step 12 times too long overshoots: the line search halves it until the sum of
     # squared distances falls. A trial with a NaN distance is never accepted.
