@@ -251,7 +251,6 @@ def test_resume_after_a_kill_equals_an_uninterrupted_run(tmp_path):
         ej.karcher_mean(coll[::-1], METRIC, checkpoint=path, resume=True, **kwargs)
 
 
-@pytest.mark.filterwarnings("ignore::elastic_jax.ConvergenceWarning")  # max_steps=1
 def test_one_orbit_converges_at_step_zero():
     # Copies of one shape under rigid motions (issue 30): every distance is at rounding
     # level, so the mean velocity is too and tol x RMS would only test rounding (this ended
@@ -269,6 +268,7 @@ def test_one_orbit_converges_at_step_zero():
     assert same.result == "distances_at_rounding" and float(jnp.max(same.distances)) == 0.0
 
 
+@pytest.mark.filterwarnings("ignore::elastic_jax.ConvergenceWarning")  # max_steps=1
 def test_line_search_rejects_steps_that_raise_the_sum_or_are_not_finite(monkeypatch):
     # A step 12 times too long overshoots: the line search halves it until the sum of
     # squared distances falls. A trial with a NaN distance is never accepted.
