@@ -41,7 +41,7 @@ from elastic_jax._geodesic import _basis_np, _path  # noqa: E402
 from elastic_jax._harmonics import _harmonics_np  # noqa: E402
 from elastic_jax._so3 import _so3_exp  # noqa: E402
 from elastic_jax._srnf import _center  # noqa: E402
-from elastic_jax.io import _grid_faces  # noqa: E402
+from elastic_jax.io import _grid_faces, _grid_vertices  # noqa: E402
 
 from _common import DATA, emit, environment  # noqa: E402
 
@@ -51,7 +51,7 @@ METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 def _triangles(f):
     """Centres and area-weighted normals ``(T, 3)`` of the grid mesh of f ``(3, m, n)``."""
     faces = _grid_faces(*f.shape[-2:])
-    v = jnp.concatenate([f[:, 0, :1], f[:, 1:-1, :-1].reshape(3, -1), f[:, -1, :1]], axis=1).T
+    v = _grid_vertices(f)
     a, b, c = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
     return (a + b + c) / 3.0, 0.5 * jnp.cross(b - a, c - a)
 
