@@ -71,6 +71,7 @@ __all__ = [
     "save_surface",
     "spherical_parametrization",
     "star_center",
+    "surface_files",
 ]
 
 #: Mesh formats that :func:`save_surface` and :func:`save_path` write and that load back.
@@ -537,6 +538,30 @@ def _from_key(data: Mapping, path: pathlib.Path) -> np.ndarray:
             f"{str(path)!r} holds no array 'f' (the surface); it holds {keys or 'nothing'}"
         )
     return np.asarray(data["f"])
+
+
+def surface_files(directory: str | os.PathLike) -> list[pathlib.Path]:
+    """The files directly in ``directory`` that :func:`load_surface` reads (grid files
+    ``.npz``/``.mat`` and the mesh formats trimesh loads, by suffix), sorted by name;
+    hidden files (a leading dot) are left out.
+
+    Raises:
+        FileNotFoundError: no such directory.
+        ValueError: the directory holds no such file (its suffixes are named).
+    """
+    directory = pathlib.Path(directory)
+    if not directory.is_dir():
+        raise FileNotFoundError(f"{str(directory)!r}: no such directory")
+    readable = set(_GRID_FORMATS) | set(_mesh_loadable_formats())
+    entries = sorted(p for p in directory.iterdir() if not p.name.startswith("."))
+    found = [p for p in entries if p.is_file() and _suffix(p) in readable]
+    if not found:
+        seen = sorted({_suffix(p) or "(none)" for p in entries if p.is_file()})
+        raise ValueError(
+            f"{str(directory)!r} holds no surface file (.npz, .mat or a mesh format); "
+            f"suffixes found: {', '.join(seen) if seen else 'none'}"
+        )
+    return found
 
 
 def load_surface(

@@ -441,3 +441,21 @@ def test_interrupted_save_path_keeps_finished_frames_only(tmp_path, monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         io.save_path(path, tmp_path)
     assert listing(tmp_path) == ["frame_000.ply"]
+
+
+def test_surface_files_lists_what_load_surface_reads(tmp_path):
+    f = np.asarray(shapes.sample(shapes.ellipsoid, 9, 17))
+    io.save_surface(f, tmp_path / "b.npz")
+    io.save_surface(f, tmp_path / "a.ply")
+    (tmp_path / "notes.txt").write_text("not a surface")
+    (tmp_path / ".hidden.npz").write_bytes(b"")
+    (tmp_path / "sub.npz").mkdir()  # a directory with a surface's suffix is not a file
+    found = io.surface_files(tmp_path)
+    assert [p.name for p in found] == ["a.ply", "b.npz"]
+    np.testing.assert_array_equal(io.load_surface(found[1]), f)
+    (tmp_path / "a.ply").unlink()
+    (tmp_path / "b.npz").unlink()
+    with pytest.raises(ValueError, match="holds no surface file.*suffixes found: txt"):
+        io.surface_files(tmp_path)
+    with pytest.raises(FileNotFoundError, match="no such directory"):
+        io.surface_files(tmp_path / "absent")
