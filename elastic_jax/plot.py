@@ -261,6 +261,26 @@ def plot_path(
     return fig
 
 
+def _solved_frames(paths: np.ndarray) -> np.ndarray:
+    """Mode paths ``(R, P, 3, m, n)`` checked frame by frame: a frame is a surface or all
+    NaN (a node after a failed shooting step, which :func:`~elastic_jax.shoot` leaves NaN:
+    drawn empty); a frame with some non-finite values is an error, as are paths with no
+    finite frame."""
+    finite = np.isfinite(paths).all(axis=(-3, -2, -1))
+    nan = np.isnan(paths).all(axis=(-3, -2, -1))
+    broken = ~(finite | nan)
+    if broken.any():
+        r, k = np.argwhere(broken)[0]
+        raise InputError(
+            f"mode paths: frame {k} of path {r} is partly non-finite (a shooting failure "
+            "leaves whole frames NaN)"
+        )
+    if not finite.any():
+        raise InputError("mode paths: no frame is finite (every shooting step failed)")
+    as_surface(paths[finite], "mode paths", check_immersion=False)
+    return paths
+
+
 def _mode_rows(pca_or_paths, metric, modes, sigmas, explained, shooting):
     """The paths to draw ``(R, P, 3, m, n)``, their mode numbers and explained fractions."""
     if isinstance(pca_or_paths, TangentPCA):
@@ -274,7 +294,7 @@ def _mode_rows(pca_or_paths, metric, modes, sigmas, explained, shooting):
         chosen = _choose_modes(modes, pca.modes.shape[0], "the PCA")
         options = {k: v for k, v in shooting.items() if v is not None}
         paths = [mode_path(pca, k, metric, sigmas=sigmas, **options) for k in chosen]
-        paths = np.stack([np.asarray(p, dtype=float) for p in paths])
+        paths = _solved_frames(np.stack([np.asarray(p, dtype=float) for p in paths]))
         fractions = np.asarray(pca.explained, dtype=float)[chosen]
         return paths, chosen, fractions
 
@@ -302,9 +322,7 @@ def _mode_rows(pca_or_paths, metric, modes, sigmas, explained, shooting):
             f"a mode path needs an odd number of frames 2N-1 >= 3, the mean in the middle; "
             f"got {count}"
         )
-    paths = np.asarray(
-        as_surface(np.stack(list(pca_or_paths)), "mode paths", check_immersion=False), float
-    )
+    paths = _solved_frames(np.stack([np.asarray(p, dtype=float) for p in pca_or_paths]))
     chosen = _choose_modes(modes, len(paths), "the given paths")
     fractions = None
     if explained is not None:
@@ -378,7 +396,9 @@ def plot_modes(
     Args:
         pca_or_paths: a :class:`~elastic_jax.TangentPCA` (its modes are shot with
             ``metric``), or a sequence of R mode paths, each ``(2N-1, 3, m, n)`` as
-            :func:`~elastic_jax.mode_path` returns, spanning -sigmas .. +sigmas.
+            :func:`~elastic_jax.mode_path` returns, spanning -sigmas .. +sigmas. Frames
+            that are all NaN (nodes after a failed shooting step) are drawn as empty
+            axes titled as usual and marked "not reached".
         metric: the split metric of the PCA; required with a TangentPCA, refused with paths.
         modes: how many leading modes to draw, or a sequence of mode indices (0 is the
             first mode; with paths, indices into the sequence).
@@ -422,7 +442,9 @@ def plot_modes(
     frames = _choose_frames(columns, count)
     centre = (count - 1) // 2
     base = _cell_colors(colors, m, n).reshape(-1, 4)
-    lo, hi = _data_box(paths[:, frames].reshape(-1, 3, m, n))
+    drawn = paths[:, frames].reshape(-1, 3, m, n)
+    drawn = drawn[np.isfinite(drawn).all(axis=(1, 2, 3))]
+    lo, hi = _data_box(drawn if len(drawn) else paths[np.isfinite(paths).all(axis=(2, 3, 4))])
     light = _light(elev, azim)
 
     if figsize is None:
@@ -434,11 +456,23 @@ def plot_modes(
             head += f" ({100 * fractions[r]:.3g}%)"
         for c, frame in enumerate(frames):
             ax = fig.add_subplot(rows, columns, r * columns + c + 1, projection="3d")
+            sigma = sigmas * (frame - centre) / centre
+            ax.set_title(f"{head}\n{_sigma_label(sigma)}", fontsize="medium")
+            if not np.isfinite(paths[r, frame]).all():
+                # A node the shooting did not reach (its step failed): said, not drawn.
+                ax.set_axis_off()
+                ax.text2D(
+                    0.5,
+                    0.5,
+                    "not reached\n(shooting failed)",
+                    ha="center",
+                    va="center",
+                    transform=ax.transAxes,
+                )
+                continue
             _draw_surface(
                 ax, paths[r, frame], base, light, lo, hi, elev=elev, azim=azim, shade=shade
             )
-            sigma = sigmas * (frame - centre) / centre
-            ax.set_title(f"{head}\n{_sigma_label(sigma)}", fontsize="medium")
     fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.9, wspace=0.0, hspace=0.15)
     return fig
 

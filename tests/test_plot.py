@@ -305,6 +305,24 @@ def test_plot_modes_draws_rows_of_modes_through_the_mean():
         np.testing.assert_allclose(limits, np.column_stack([lo, hi]), rtol=0, atol=1e-12)
 
 
+def test_plot_modes_marks_the_nodes_a_failed_shot_did_not_reach():
+    """A shot that failed leaves its later nodes NaN (shoot): those columns are empty
+    axes that say so, the others are drawn, and the box holds the drawn frames only."""
+    _, paths = _mode_paths(9)
+    failed = paths[0].copy()
+    failed[:2] = np.nan  # the -sigma shot stopped after two nodes from the mean's side
+    fig = plot.plot_modes([failed, paths[1]], columns=5)
+    texts = [[t.get_text() for t in ax.texts] for ax in fig.axes]
+    assert texts[0] == ["not reached\n(shooting failed)"]
+    assert all(t == [] for t in texts[1:])
+    assert _titles(fig)[0] == "mode 1\n-2σ"
+    np.testing.assert_array_equal(_drawn_quads(fig.axes[1]), plot._cells(failed[2]))
+    shown = np.concatenate([failed[[2, 4, 6, 8]], paths[1][::2]])
+    lo, hi = shown.min(axis=(0, 2, 3)), shown.max(axis=(0, 2, 3))
+    limits = np.array([fig.axes[1].get_xlim(), fig.axes[1].get_ylim(), fig.axes[1].get_zlim()])
+    np.testing.assert_allclose(limits, np.column_stack([lo, hi]), rtol=0, atol=1e-12)
+
+
 def test_plot_modes_selects_modes_and_columns():
     _, paths = _mode_paths(9)
     fig = plot.plot_modes(paths, modes=[1], columns=3)
@@ -374,8 +392,9 @@ def test_plot_modes_shoots_the_modes_of_a_tangent_pca():
         (
             lambda p: [np.where(np.arange(NM) == 3, np.nan, p[0])],
             {},
-            r"mode paths contains 243 non-finite",
+            r"frame 0 of path 0 is partly non-finite",
         ),
+        (lambda p: [np.full_like(p[0], np.nan)], {}, r"no frame is finite"),
     ],
 )
 def test_plot_modes_rejects_bad_input(change, kwargs, message):
