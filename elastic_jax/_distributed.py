@@ -74,11 +74,11 @@ def _pairs_task(shapes, rows, cols, settings, size, x64):
         return tuple(np.asarray(x) for x in out)
 
 
-def _shapes_task(shapes, index, mean, settings, size, x64):
+def _shapes_task(shapes, index, mean, starts, settings, size, x64):
     from ._karcher import _velocity_chunk
 
     with jax.enable_x64(x64):
-        out = _velocity_chunk(mean, shapes[index], *settings, size)
+        out = _velocity_chunk(mean, shapes[index], *settings, size, starts)
         return tuple(np.asarray(x) for x in out)
 
 
@@ -132,12 +132,18 @@ class Pool:
         }
         self._as_completed(futures, finished)
 
-    def velocities(self, mean, chunks, size: int) -> tuple:
+    def velocities(self, mean, chunks, size: int, starts=None) -> tuple:
         """The geodesics from every shape to ``mean``, chunk by chunk: the ``_Solved``
-        fields, each with the shapes' leading axis."""
+        fields, each with the shapes' leading axis. ``starts``: None or (gammas,
+        rotations) with that axis, each shape's warm start."""
         mean = np.asarray(mean, self._dtype)
+        starts = None if starts is None else tuple(np.asarray(x, self._dtype) for x in starts)
+
+        def chunk_starts(a, b):
+            return None if starts is None else tuple(x[a:b] for x in starts)
+
         futures = {
-            self._submit(_shapes_task, np.arange(a, b), mean, size=size): i
+            self._submit(_shapes_task, np.arange(a, b), mean, chunk_starts(a, b), size=size): i
             for i, (a, b) in enumerate(chunks)
         }
         parts = [None] * len(chunks)
