@@ -5,7 +5,10 @@ trimesh reads, resampled by :func:`elastic_jax.io.mesh_to_grid`), computes, and 
 ``--out DIR``: the arrays (``.npz``), meshes (``.ply``), figures (``.png``) and
 ``summary.json``. The summary is also printed on stdout. All files are written atomically,
 so Ctrl-C never leaves half a file; ``karcher`` and ``distances`` checkpoint every finished
-step or chunk and continue with ``--resume``.
+step or chunk and continue with ``--resume``. A directory among the inputs stands for the
+surface files in it. The statistics run in two commands: ``karcher`` writes ``mean.npz``
+(the mean, the velocities at it, the settings) and ``pca`` on that file computes the modes
+and their figure without solving again.
 
 Exit codes: 0 done and converged; 2 bad input (unreadable file, invalid surface or mesh,
 bad option, an --out that is not a writable directory or that another run holds, a
@@ -45,6 +48,9 @@ CHECKPOINTS = {
 }
 DEFAULT_METRIC = (1.0, 1.0, 0.1, 0.0)
 SURFACE_FILE = "a surface: .npz (array f), .mat (the authors'), or a mesh trimesh reads"
+SURFACE_FILES = SURFACE_FILE.replace("a surface", "surfaces") + ", or a directory of them"
+# What pca reads from a karcher run's mean.npz instead of solving the mean again.
+KARCHER_OUTPUT_KEYS = ("f", "velocities", "distances", "settings", "inputs", "result", "converged")
 SHAPE_COMMANDS = ("shape-geodesic", "karcher", "pca", "distances")
 _SHAPE_DEFAULTS = ShapeOptions()
 # ShapeOptions field -> (argparse destination, flag): one record is built from these.
@@ -59,6 +65,16 @@ SHAPE_FLAGS = {
     "outer_steps": ("outer_steps", "--outer-steps"),
     "init": ("init", "--init"),
     "refinement": ("refinement", "--no-refinement"),
+}
+# Flags that pca on a karcher output takes from that run: giving them is refused.
+KARCHER_OWN_FLAGS = {
+    **{dest: flag for dest, flag in SHAPE_FLAGS.values()},
+    **{dest: "--" + dest.replace("_", "-") for dest in ("metric", "grid", "dtype", "modulo")},
+    **{dest: "--" + dest.replace("_", "-") for dest in ("strategy", "batch_size", "workers")},
+    **{dest: "--" + dest.replace("_", "-") for dest in ("karcher_steps", "tol", "step_size")},
+    "warm_start": "--warm-start",
+    "scheduler": "--scheduler",
+    "resume": "--resume",
 }
 
 
@@ -271,6 +287,12 @@ def _karcher_options(parser: argparse.ArgumentParser) -> None:
         help="first trial step along the mean velocity (halved while it raises the sum "
         "of squared distances)",
     )
+    parser.add_argument(
+        "--warm-start",
+        action="store_true",
+        help="also solve each shape from its registration at the previous mean and keep "
+        "the lower distance (twice the solves; karcher_mean's warm_start)",
+    )
 
 
 class _DefaultsShown(argparse.ArgumentDefaultsHelpFormatter):
@@ -304,14 +326,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("target", help=SURFACE_FILE)
     _shape_options(p, modulo="diff")
 
-    p = command("karcher", help="Karcher mean of a collection of shapes")
-    p.add_argument("files", nargs="+", help=SURFACE_FILE)
+    p = command(
+        "karcher",
+        help="Karcher mean of a collection of shapes",
+        description="The Karcher mean of the shapes modulo rigid motions (or "
+        "reparametrizations only), checkpointed after every step (--resume continues). "
+        "Writes mean.npz (the mean, its distances, the velocities at the mean and the "
+        "settings: the pca command's input), mean.ply, mean.png and history.png.",
+    )
+    p.add_argument("files", nargs="+", help=SURFACE_FILES)
     _shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
     _batch_options(p)
     _karcher_options(p)
 
     p = command("distances", help="matrix of pairwise shape distances")
-    p.add_argument("files", nargs="+", help=SURFACE_FILE)
+    p.add_argument("files", nargs="+", help=SURFACE_FILES)
     _shape_options(p, modulo="rigid")
     _batch_options(p)
 
@@ -322,9 +351,11 @@ def build_parser() -> argparse.ArgumentParser:
         "PCA of their velocities at the mean (tangent_pca) and the geodesics through the "
         "mean along the first modes (mode_path). Writes the mean and each mode's +-sigma "
         "shapes as meshes, each mode's one-sigma velocity (modeK_velocity.npz, for the "
-        "shoot command), pca.npz, scores.json and a figure.",
+        "shoot command), pca.npz, scores.json and a figure (modes.png). Given a karcher "
+        "run's mean.npz as its only input, it starts from that mean and its velocities, "
+        "with that run's metric and options, and solves no geodesic.",
     )
-    p.add_argument("files", nargs="+", help=SURFACE_FILE)
+    p.add_argument("files", nargs="+", help=SURFACE_FILES + "; or one karcher run's mean.npz")
     _shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
     _batch_options(p)
     _karcher_options(p)
@@ -674,14 +705,25 @@ def _karcher(args, progress: Progress):
     shapes, metric, options = _prepare(args, progress, args.files, _shape_geodesic_options)
     m, n = shapes.shape[2:]
     settings = _collection_settings(args, m, n, options)
-    settings.update(karcher_steps=args.karcher_steps, tol=args.tol, step_size=args.step_size)
+    settings.update(
+        karcher_steps=args.karcher_steps,
+        tol=args.tol,
+        step_size=args.step_size,
+        warm_start=args.warm_start,
+    )
     checkpoint = args.out / CHECKPOINTS["karcher"]
 
     def report(info):
+        # The pace so far (step 0: the first solves, compilation included) times the
+        # steps left: the most the run can still take at that pace; it stops earlier
+        # when it converges.
+        pace = info["seconds"] / max(info["step"], 1)
+        left = args.karcher_steps - info["step"]
+        eta = f"; at most ~{left * pace:.0f} s left ({left} steps at {pace:.0f} s)" if left else ""
         progress(
             f"Karcher step {info['step']}/{args.karcher_steps}: sum of squared distances "
             f"{info['sum_sq_distances']:.6g}, mean velocity {info['mean_velocity_norm']:.3g}, "
-            f"step {info['step_size']:g} (checkpoint {checkpoint.name})"
+            f"step {info['step_size']:g}{eta} (checkpoint {checkpoint.name})"
         )
 
     progress(
@@ -703,6 +745,7 @@ def _karcher(args, progress: Progress):
         resume=args.resume,
         progress=report,
         client=args.client,
+        warm_start=args.warm_start,
     )
     seconds = time.perf_counter() - start
     mean = np.asarray(res.mean)
@@ -713,7 +756,12 @@ def _karcher(args, progress: Progress):
                 f=mean,
                 distances=np.asarray(res.distances),
                 registered=np.asarray(res.registered),
+                velocities=np.asarray(res.velocities),
+                geodesics_converged=np.asarray(res.geodesics_converged),
                 history=np.asarray(res.history),
+                result=res.result,
+                converged=bool(res.converged),
+                inputs=json.dumps(list(args.files)),
                 settings=json.dumps(settings),
             )
         )
@@ -760,21 +808,45 @@ def _run_pca(args, progress: Progress) -> dict:
     from ._geodesic import ConvergenceWarning
     from ._pca import mode_path, tangent_pca
 
-    karcher, metric, options, summary = _karcher(args, progress)
+    if args.karcher_output is None:
+        karcher, metric, options, summary = _karcher(args, progress)
+        mean, velocities = np.asarray(karcher.mean), np.asarray(karcher.velocities)
+        distances, karcher_converged = np.asarray(karcher.distances), bool(karcher.converged)
+        inputs = list(args.files)
+    else:
+        saved = args.karcher_output
+        metric, options = _metric_from(args), args.shape_options
+        mean, velocities = saved["f"].astype(args.dtype), saved["velocities"].astype(args.dtype)
+        distances, inputs = saved["distances"], saved["inputs"]
+        karcher_converged = bool(saved["converged"])
+        progress(
+            f"the Karcher mean of {len(inputs)} shapes from {args.files[0]} "
+            f"({saved['result']}); its metric and options"
+        )
+        summary = {
+            "command": args.command,
+            "inputs": list(args.files),
+            "karcher_inputs": inputs,
+            "settings": dict(saved["settings"]),
+            "karcher_result": str(saved["result"]),
+            "converged": karcher_converged,
+            "files": [],
+            "environment": _environment(),
+        }
     files = summary["files"]
-    if not np.isfinite(np.asarray(karcher.velocities)).all():
+    if not np.isfinite(velocities).all():
         # Nothing to analyse; the Karcher part of the summary says what failed.
         progress("the velocities at the mean are not finite: no PCA")
         summary.update(converged=False, pca=None)
         return summary
-    k = len(args.files)
+    k = len(inputs)
     n_modes = min(args.modes, k - 1)
     if n_modes < args.modes:
         progress(f"{k} shapes span at most {k - 1} modes: keeping {n_modes}")
     # Modes whose variance is at round-off (tangent_pca's rtol) are not modes: fewer kept.
     # The kept ones are the leading ones of the full decomposition (explained is already
     # relative to the total variance).
-    full = tangent_pca(karcher, metric)
+    full = tangent_pca((mean, velocities), metric)
     n_modes = min(n_modes, int(full.modes.shape[0]))
     pca = full._replace(
         modes=full.modes[:n_modes],
@@ -799,7 +871,7 @@ def _run_pca(args, progress: Progress) -> dict:
             unconverged.append(mode + 1)
     paths = np.stack(paths)
     sigma = np.sqrt(np.asarray(pca.variances))
-    mean = np.asarray(pca.mean)
+    reached = []
     for mode, path in enumerate(paths, start=1):
         files.append(
             str(
@@ -810,11 +882,22 @@ def _run_pca(args, progress: Progress) -> dict:
                 )
             )
         )
-        if np.isfinite(path).all():
+        # Each half is a shot from the mean (frame c): a failed step leaves the frames
+        # beyond it NaN, so the solved ones are a run of frames around the centre.
+        solved = np.isfinite(path).all(axis=(1, 2, 3))
+        c = (len(path) - 1) // 2
+        down = int(np.argmin([*solved[c::-1], False]))  # solved frames from c down
+        up = int(np.argmin([*solved[c:], False]))
+        first, last = c - down + 1, c + up - 1
+        reached.append([args.sigmas * (first - c) / c, args.sigmas * (last - c) / c])
+        if solved.all():
             for end, name in ((path[0], "minus"), (path[-1], "plus")):
                 files.append(str(io.save_surface(end, args.out / f"mode{mode}_{name}.ply")))
         else:
-            progress(f"mode {mode}'s path is not finite: no meshes written for it")
+            progress(
+                f"mode {mode}: the shots reached {reached[-1][0]:+.3g} and {reached[-1][1]:+.3g} "
+                "sigma (a Newton step failed beyond); no meshes written for it"
+            )
     files.append(
         str(
             save_npz_atomic(
@@ -830,9 +913,9 @@ def _run_pca(args, progress: Progress) -> dict:
             )
         )
     )
-    names = [pathlib.Path(f).stem for f in args.files]
+    names = [pathlib.Path(f).stem for f in inputs]
     scores = {
-        "files": list(args.files),
+        "files": inputs,
         "modes": n_modes,
         "sigmas": args.sigmas,
         "variances": _json_floats(pca.variances),
@@ -855,11 +938,13 @@ def _run_pca(args, progress: Progress) -> dict:
         # All modes' variance against the mean squared distance: equal when every
         # velocity's G-norm is its distance and the mean velocity vanishes.
         "total_variance": float(np.sum(np.asarray(full.variances))),
-        "mean_sq_distance": float(np.mean(np.asarray(karcher.distances) ** 2)),
+        "mean_sq_distance": float(np.mean(np.asarray(distances) ** 2)),
         "mode_paths_unconverged": unconverged,
+        # Per mode, the sigmas the solved nodes span: [-sigmas, +sigmas] when converged.
+        "mode_paths_reached_sigmas": reached,
         "scores": scores["scores"],
     }
-    summary["converged"] = bool(karcher.converged) and not unconverged
+    summary["converged"] = karcher_converged and not unconverged
     return summary
 
 
@@ -1119,20 +1204,86 @@ def _checked(flag: str, check: Callable, *args):
         raise BadInput(str(err)) from err
 
 
+def _expand_directories(args) -> None:
+    """Each directory among the inputs stands for the surface files in it, sorted by name
+    (:func:`io.surface_files`)."""
+    files = getattr(args, "files", None)
+    if files is None or not any(pathlib.Path(f).is_dir() for f in files):
+        return
+    from . import io
+
+    expanded = []
+    for name in files:
+        if not pathlib.Path(name).is_dir():
+            expanded.append(name)
+            continue
+        try:
+            expanded += [str(p) for p in io.surface_files(name)]
+        except ValueError as err:
+            raise BadInput(str(err)) from err
+    args.files = expanded
+
+
+def _read_karcher_output(args) -> dict | None:
+    """pca's only input as a karcher run's mean.npz (it holds ``velocities``): its arrays,
+    with that run's metric, grid, dtype and options put into ``args``; else None."""
+    import dataclasses
+
+    import numpy as np
+
+    if args.command != "pca" or len(args.files) != 1:
+        return None
+    name = args.files[0]
+    if not (name.lower().endswith(".npz") and pathlib.Path(name).is_file()):
+        return None
+    try:
+        with np.load(name) as data:
+            if "velocities" not in data.files:
+                return None
+            missing = [k for k in KARCHER_OUTPUT_KEYS if k not in data.files]
+            if missing:
+                raise BadInput(f"{name}: a karcher output without {', '.join(missing)}")
+            saved = {k: data[k] for k in KARCHER_OUTPUT_KEYS}
+    except (OSError, ValueError) as err:
+        raise BadInput(f"{name}: not a readable .npz ({err})") from err
+    defaults = vars(build_parser().parse_args(["pca", name]))
+    given = [
+        flag for dest, flag in KARCHER_OWN_FLAGS.items() if getattr(args, dest) != defaults[dest]
+    ]
+    if given:
+        raise BadInput(
+            f"pca on a karcher output ({name}) uses that run's mean, metric and options; "
+            f"leave out {', '.join(given)}"
+        )
+    settings = json.loads(str(saved["settings"]))
+    fields = {f.name for f in dataclasses.fields(ShapeOptions)}
+    args.shape_options = ShapeOptions(**{k: v for k, v in settings.items() if k in fields})
+    args.metric, args.dtype = tuple(settings["metric"]), settings["dtype"]
+    args.modulo, args.grid = settings["modulo"], tuple(settings["grid"])
+    saved["settings"], saved["inputs"] = settings, json.loads(str(saved["inputs"]))
+    return saved
+
+
 def _preflight(args) -> None:
     """Refuse bad options before reading any file or starting any work."""
+    _expand_directories(args)
+    args.karcher_output = _read_karcher_output(args)
     _metric_from(args)
     if args.grid is not None:
         _checked("--grid", lambda name, grid: check_grid_shape((3, *grid), name), args.grid)
-    if args.command in SHAPE_COMMANDS:
+    if args.command in SHAPE_COMMANDS and args.karcher_output is None:
         args.shape_options = shape_options_from(args)
     else:
         _checked("--degree", check_int, args.degree, 1)
         _checked("--times", check_int, args.times, 3)
         if getattr(args, "max_steps", None) is not None:
             _checked("--max-steps", check_int, args.max_steps, 1)
-    if args.command in ("karcher", "pca", "distances") and len(args.files) < 2:
-        raise BadInput(f"{args.command} needs at least 2 surface files; got {len(args.files)}")
+    if args.command in ("karcher", "pca", "distances") and args.karcher_output is None:
+        if len(args.files) < 2:
+            also = " (or one karcher run's mean.npz)" if args.command == "pca" else ""
+            raise BadInput(
+                f"{args.command} needs at least 2 surface files{also}; got {len(args.files)}"
+            )
     if args.command in ("karcher", "pca"):
         _checked("--karcher-steps", check_int, args.karcher_steps, 0)
         _checked("--tol", check_positive, args.tol)

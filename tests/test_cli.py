@@ -119,6 +119,11 @@ def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, caps
     velocity, wrong = str(tmp_path / "v.npz"), str(tmp_path / "wrong.npz")
     np.savez(velocity, v=np.zeros((3, M, N)))
     np.savez(wrong, v=np.zeros((3, 9, 17)))
+    partial = str(tmp_path / "mean.npz")  # a karcher output that lost its settings
+    np.savez(partial, f=np.zeros((3, M, N)), velocities=np.zeros((2, 3, M, N)))
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "readme.txt").write_text("no surfaces here")
     out = tmp_path / "out"
     cases = {  # argv, what the one-line message must contain
         "times": (["shape-geodesic", good, good, "--times", "2"], "--times 2"),
@@ -137,6 +142,8 @@ def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, caps
         "geodesic max-steps": (["geodesic", good, good, "--max-steps", "0"], "--max-steps"),
         "geodesic times": (["geodesic", good, good, "--times", "2"], "--times"),
         "pca one file": (["pca", good], "at least 2"),
+        "pca partial output": (["pca", partial], "karcher output without distances"),
+        "folder without surfaces": (["karcher", str(empty), good], "suffixes found: txt"),
         "pca modes": (["pca", good, good, "--modes", "0"], "--modes"),
         "pca sigmas": (["pca", good, good, "--sigmas", "-1"], "--sigmas"),
         "pca mode-times": (["pca", good, good, "--mode-times", "2"], "--mode-times"),
@@ -306,10 +313,11 @@ def test_karcher_builds_one_options_record_and_keeps_its_own_steps(tmp_path, cap
     monkeypatch.setattr(_karcher, "karcher_mean", _fake_karcher(calls))
     files = [_save(tmp_path, f"s{i}.npz", shapes.sample(shapes.sphere, M, N)) for i in range(2)]
     argv = ["karcher", *files, *SHAPE, "--max-steps", "7", "--karcher-steps", "3"]
-    argv += ["--scheme", "forward", "--tol", "0.01", "--out", str(tmp_path / "out")]
+    argv += ["--scheme", "forward", "--tol", "0.01", "--warm-start", "--out", str(tmp_path / "out")]
     assert cli.main(argv) == 0
     summary = json.loads(capsys.readouterr().out)
     (kwargs,) = calls
+    assert kwargs["warm_start"] is True and summary["settings"]["warm_start"] is True
     assert kwargs["options"] == SHAPE_OPTIONS.replace(max_steps=7, scheme="forward")
     assert (kwargs["max_steps"], kwargs["tol"], kwargs["step_size"]) == (3, 0.01, 1.0)
     assert summary["history"]["step_size"] == [0.0, 0.5]
@@ -384,15 +392,20 @@ def test_ctrl_c_then_resume_equals_the_library(tmp_path, capsys):
 @pytest.mark.slow
 @pytest.mark.filterwarnings("ignore::elastic_jax.ConvergenceWarning")
 def test_karcher_and_shape_geodesic_equal_the_library(tmp_path, capsys):
+    """karcher on a folder, then pca on its mean.npz (no solve again), and shape-geodesic:
+    the library's numbers."""
     fs = [
         shapes.sample(shapes.ellipsoid, M, N, axes=axes, rotation=shapes.random_rotation(i))
         for i, axes in enumerate([(1.0, 0.8, 0.6), (1.2, 0.7, 0.6), (0.9, 0.9, 0.5)])
     ]
-    files = [_save(tmp_path, f"s{i}.npz", f) for i, f in enumerate(fs)]
+    folder = tmp_path / "collection"
+    folder.mkdir()
+    files = [_save(folder, f"s{i}.npz", f) for i, f in enumerate(fs)]
+    (folder / "notes.txt").write_text("not a surface: left out")
     out = tmp_path / "karcher"
     # --max-steps (the inner solves', here their default) beside --karcher-steps: it
     # raised a TypeError when both reached karcher_mean as max_steps.
-    argv = ["karcher", *files, *SHAPE, "--karcher-steps", "2", "--max-steps", "500"]
+    argv = ["karcher", str(folder), *SHAPE, "--karcher-steps", "2", "--max-steps", "500"]
     argv += ["--strategy", "loop", "--out", str(out)]
     code = cli.main(argv)
     summary = json.loads(capsys.readouterr().out)
@@ -408,6 +421,25 @@ def test_karcher_and_shape_geodesic_equal_the_library(tmp_path, capsys):
     assert {"mean.ply", "mean.png", "history.png", "summary.json"} <= {
         p.name for p in out.iterdir()
     }
+    assert summary["inputs"] == files
+
+    # pca on the karcher run's output: that mean, its velocities and settings, no solve.
+    saved = out / "mean.npz"
+    code = cli.main(["pca", str(saved), "--metric", "1,1,1,0", "--quiet", *CACHE])
+    assert code == cli.EXIT_BAD_INPUT and "leave out --metric" in capsys.readouterr().err
+    pca_out = tmp_path / "pca"
+    argv = ["pca", str(saved), "--mode-times", "3", "--quiet", *CACHE, "--out", str(pca_out)]
+    code = cli.main(argv)
+    summary = json.loads(capsys.readouterr().out)
+    pca = ej.tangent_pca(res, METRIC)
+    assert pca.modes.shape[0] == 2 and summary["settings"]["modes"] == 2
+    assert summary["karcher_inputs"] == files and summary["karcher_result"] == res.result
+    np.testing.assert_allclose(summary["pca"]["explained"], pca.explained, rtol=1e-8)
+    np.testing.assert_allclose(np.load(pca_out / "pca.npz")["scores"], pca.scores, atol=1e-8)
+    assert set(json.loads((pca_out / "scores.json").read_text())["scores"]) == {"s0", "s1", "s2"}
+    assert summary["pca"]["mode_paths_reached_sigmas"] == [[-2.0, 2.0], [-2.0, 2.0]]
+    path = ej.mode_path(pca, 0, METRIC, n_times=3, degree=4, sigmas=2.0)
+    np.testing.assert_allclose(np.load(pca_out / "pca.npz")["mode_paths"][0], path, atol=1e-8)
 
     out = tmp_path / "shape"
     code = cli.main(["shape-geodesic", files[0], files[1], *SHAPE, "--out", str(out)])
