@@ -37,6 +37,7 @@ from ._metric import SplitMetric, _metric_inner
 from ._options import ShapeOptions, check_choice, check_int, check_positive
 from ._reparam import _reparametrize
 from ._shape import check_grid_options, resolve_options, shape_geodesic
+from ._solvers import RESULTS
 from ._srnf import _center
 from ._validation import as_surface
 
@@ -54,6 +55,11 @@ _MESSAGES = {
     "than tol (relative)",
     "line_search_failed": "stopped: line search failed: no step along the mean velocity "
     f"(halved up to {_HALVINGS} times) gave a finite sum of squared distances that was not larger",
+    "resolution_limited": "stopped: line search failed (no step along the mean velocity, "
+    f"halved up to {_HALVINGS} times, gave a sum of squared distances that was not larger) "
+    "while some of the geodesics at the mean ended resolution_limited (their registration "
+    "stopped at the stretch the grid resolves; geodesics_converged is False for them): the "
+    "sum has kinks there that no step resolves; a finer grid may go further",
     "max_steps_reached": "stopped: max_steps Karcher steps taken",
     "not_finite": "stopped: the distances at the mean are not finite",
 }
@@ -79,7 +85,9 @@ class KarcherResult(NamedTuple):
         num_solves: batches of K geodesics solved, rejected line-search trials included.
         result: why the iteration stopped: ``"distances_at_rounding"``,
             ``"mean_velocity_small"``, ``"sum_sq_stalled"`` (all three converged),
-            ``"line_search_failed"``, ``"max_steps_reached"`` or ``"not_finite"``.
+            ``"line_search_failed"``, ``"resolution_limited"`` (the line search failed
+            while some geodesics at the mean are resolution_limited),
+            ``"max_steps_reached"`` or ``"not_finite"``.
     """
 
     mean: Array
@@ -180,6 +188,7 @@ def _one_geodesic(mean, shape, metric, modulo, options, start=None):
         m, n = mean.shape[-2:]
         gamma, rotation = sphere_points(m, n, mean.dtype), jnp.eye(3, dtype=mean.dtype)
         back = res.path
+        limited = jnp.zeros((), bool)
     else:
         res = shape_geodesic(shape, mean, metric, modulo=modulo, options=options)
         if start is not None:
@@ -188,7 +197,9 @@ def _one_geodesic(mean, shape, metric, modulo, options, start=None):
             res = jax.tree_util.tree_map(lambda a, b: jnp.where(lower, a, b), warm, res)
         gamma, rotation = res.gamma, res.rotation
         back = turned_back(res, mean)
-    return res.distance, back[0], initial_velocity(back[::-1]), res.converged, gamma, rotation
+        limited = res.result == RESULTS.resolution_limited
+    velocity = initial_velocity(back[::-1])
+    return res.distance, back[0], velocity, res.converged, gamma, rotation, limited
 
 
 def _pair_distance(a, b, metric, modulo, options):
@@ -386,6 +397,7 @@ class _Solved(NamedTuple):
     converged: Array
     gammas: Array  # each shape's reparametrization onto the mean (its warm start next)
     rotations: Array
+    limited: Array  # each solve ended resolution_limited (shape_geodesic's result)
 
 
 @functools.partial(jax.jit, static_argnames=("interpolation", "rigid"))
@@ -504,9 +516,11 @@ def karcher_mean(
     sqrt(G_mu(v, v)) <= tol x RMS distance ("mean_velocity_small")
     or when a full step changes the SSD by less than tol relative ("sum_sq_stalled": a
     step that lowers it is taken, one that raises it is not); stops
-    not converged when no halving lowers the SSD ("line_search_failed"), after max_steps
-    steps ("max_steps_reached"), or when the distances at the mean are not finite
-    ("not_finite"). ``result`` and ``message`` say which.
+    not converged when no halving lowers the SSD ("line_search_failed"; "resolution_limited"
+    when some of the geodesics at the mean ended resolution_limited, their registration
+    held at the stretch the grid resolves, so that the SSD has kinks there), after
+    max_steps steps ("max_steps_reached"), or when the distances at the mean are not
+    finite ("not_finite"). ``result`` and ``message`` say which.
 
     Args:
         shapes: ``(K, 3, m, n)`` surfaces on one grid.
@@ -680,7 +694,8 @@ def karcher_mean(
                     break
                 s *= 0.5
             else:
-                result = "line_search_failed"
+                limited = bool(np.any(np.asarray(solved.limited)))
+                result = "resolution_limited" if limited else "line_search_failed"
                 break
             if risen_little:  # the mean stays where it is
                 result = "sum_sq_stalled"

@@ -319,6 +319,20 @@ def test_line_search_rejects_steps_that_raise_the_sum_or_are_not_finite(monkeypa
     assert res.num_steps == 0 and res.history.shape == (1, 3) and np.isfinite(res.distances).all()
     np.testing.assert_array_equal(res.mean, coll[0])
 
+    # The same failure while a geodesic at the mean is held at the grid's resolution (its
+    # registration's result) is reported as that: the SSD has a kink there.
+    calls.clear()
+
+    def limited_then_nan(mean, shape, *args):
+        out = nan_after_first(mean, shape, *args)
+        return (*out[:-1], jnp.asarray(len(calls) == 2))
+
+    monkeypatch.setattr(_karcher, "_one_geodesic", limited_then_nan)
+    with pytest.warns(ej.ConvergenceWarning, match="resolution_limited"):
+        res = ej.karcher_mean(coll, METRIC, modulo="none", options=FAST, strategy="loop")
+    assert res.result == "resolution_limited" and not res.converged
+    assert res.num_steps == 0 and res.num_solves == 6  # the first solves and 5 trials
+
 
 SHARDED = """
 import json, jax
