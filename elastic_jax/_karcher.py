@@ -29,7 +29,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._atomic import save_npz_atomic
 from ._cache import solver_jit
-from ._checks import InputError
+from ._checks import InputError, check_bool
 from ._geodesic import ConvergenceWarning, default_tol, geodesic
 from ._grid import sphere_points
 from ._harmonics import _vector_fields_np
@@ -202,6 +202,13 @@ def _one_geodesic(mean, shape, metric, modulo, options, start=None):
     return res.distance, back[0], velocity, res.converged, gamma, rotation, limited
 
 
+def _one_item(mean, item, metric, modulo, options):
+    """:func:`_one_geodesic` for a batch item: a shape, or (shape, gamma, R) to warm-start."""
+    if isinstance(item, tuple):
+        return _one_geodesic(mean, item[0], metric, modulo, options, item[1:])
+    return _one_geodesic(mean, item, metric, modulo, options)
+
+
 def _pair_distance(a, b, metric, modulo, options):
     """Distance, status and refinement change of one pair."""
     if modulo == "none":
@@ -218,10 +225,7 @@ def _velocities_batch(mean, batch, metric, *, modulo, options, mode):
     """batch: shapes ``(b, 3, m, n)``, or (shapes, gammas, rotations) for warm starts."""
 
     def one(item):
-        if isinstance(item, tuple):
-            shape, gamma, rotation = item
-            return _one_geodesic(mean, shape, metric, modulo, options, (gamma, rotation))
-        return _one_geodesic(mean, item, metric, modulo, options)
+        return _one_item(mean, item, metric, modulo, options)
 
     return jax.lax.map(one, batch) if mode == "map" else jax.vmap(one)(batch)
 
@@ -280,9 +284,7 @@ def _velocity_chunk(mean, chunk, metric, modulo, options, strategy, size, starts
         return _velocities_batch(mean, batch, metric, modulo=modulo, options=options, mode=mode)
 
     def single_call(item):
-        if isinstance(item, tuple):
-            return _one_geodesic(mean, item[0], metric, modulo, options, item[1:])
-        return _one_geodesic(mean, item, metric, modulo, options)
+        return _one_item(mean, item, metric, modulo, options)
 
     return _solve_chunk(batch_call, single_call, batch, strategy, size)
 
@@ -576,7 +578,7 @@ def karcher_mean(
         )
     if modulo == "rigid":
         mean = _center(mean)
-    warm_start = bool(warm_start) and modulo != "none"
+    warm_start = check_bool("warm_start", warm_start) and modulo != "none"
     settings = _settings(metric, modulo, options, step_size=step_size, tol=tol, warm=warm_start)
     fingerprint = _fingerprint(shapes, mean, **settings)
     path = None if checkpoint is None else pathlib.Path(checkpoint)

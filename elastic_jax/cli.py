@@ -69,12 +69,11 @@ SHAPE_FLAGS = {
 # Flags that pca on a karcher output takes from that run: giving them is refused.
 KARCHER_OWN_FLAGS = {
     **{dest: flag for dest, flag in SHAPE_FLAGS.values()},
-    **{dest: "--" + dest.replace("_", "-") for dest in ("metric", "grid", "dtype", "modulo")},
-    **{dest: "--" + dest.replace("_", "-") for dest in ("strategy", "batch_size", "workers")},
-    **{dest: "--" + dest.replace("_", "-") for dest in ("karcher_steps", "tol", "step_size")},
-    "warm_start": "--warm-start",
-    "scheduler": "--scheduler",
-    "resume": "--resume",
+    **{
+        dest: "--" + dest.replace("_", "-")
+        for dest in ("metric", "grid", "dtype", "modulo", "strategy", "batch_size", "workers")
+        + ("scheduler", "resume", "karcher_steps", "tol", "step_size", "warm_start")
+    },
 }
 
 

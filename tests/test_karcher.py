@@ -145,6 +145,8 @@ def test_warm_start_keeps_the_lower_of_two_registrations():
     np.testing.assert_allclose(warm.mean, fresh.mean, atol=1e-10)
     assert np.all(np.asarray(warm.distances) <= np.asarray(fresh.distances) * (1 + 1e-12))
     assert warm.history[1, 0] < (1 - 5e-5) * fresh.history[1, 0]
+    with pytest.raises(ej.InputError, match="warm_start"):
+        ej.karcher_mean(coll, METRIC, warm_start="yes")
 
 
 @pytest.mark.slow
