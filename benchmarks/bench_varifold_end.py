@@ -37,10 +37,10 @@ import optimistix as optx  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
 from elastic_jax._energy import _path_energy  # noqa: E402
-from elastic_jax._geodesic import _basis_np, _path  # noqa: E402
-from elastic_jax._harmonics import _harmonics_np  # noqa: E402
-from elastic_jax._so3 import _so3_exp  # noqa: E402
-from elastic_jax._srnf import _center  # noqa: E402
+from elastic_jax._geodesic import basis_np, path_from_coefficients  # noqa: E402
+from elastic_jax._harmonics import harmonics_np  # noqa: E402
+from elastic_jax._so3 import so3_exp_unchecked  # noqa: E402
+from elastic_jax._srnf import center_unchecked  # noqa: E402
 from elastic_jax.io import _grid_faces, _grid_vertices  # noqa: E402
 
 from _common import DATA, emit, environment  # noqa: E402
@@ -77,16 +77,18 @@ def _inner(s, t, sigma, block=512):
 def _relaxed(f1, f2, *, L, degree, n_times, schedule, steps):
     m, n = f1.shape[-2:]
     target = _triangles(f2)
-    harmonics = _harmonics_np(m, n, L)
+    harmonics = harmonics_np(m, n, L)
     y_end = jnp.asarray(harmonics[0].reshape(-1, m * n) / (1.0 + harmonics[4][:, None]))
-    path_degrees = np.asarray(_harmonics_np(m, n, degree)[4][1:], float)
-    values = jnp.asarray(_basis_np(m, n, degree)[0] / (1.0 + path_degrees[:, None]))
+    path_degrees = np.asarray(harmonics_np(m, n, degree)[4][1:], float)
+    values = jnp.asarray(basis_np(m, n, degree)[0] / (1.0 + path_degrees[:, None]))
     k = values.shape[0]
 
     def pieces(v, sigma):
-        r = _so3_exp(v["w"])
+        r = so3_exp_unchecked(v["w"])
         end = f1 + (v["c"] @ y_end).reshape(3, m, n)
-        energy = _path_energy(METRIC, _path(f1, end, v["p"], values, n_times), scheme="midpoint")
+        energy = _path_energy(
+            METRIC, path_from_coefficients(f1, end, v["p"], values, n_times), scheme="midpoint"
+        )
         s = _triangles(end)
         t = (target[0] @ r.T, target[1] @ r.T)
         # <T, T> is rotation-invariant: a constant of the objective.
@@ -145,7 +147,7 @@ def main() -> None:
     if f1 is None or f2 is None:
         emit({"skipped": f"{args.pair}: ../shared/data is absent"})
         return
-    f1, f2 = _center(f1), _center(f2)
+    f1, f2 = center_unchecked(f1), center_unchecked(f2)
     base = {"benchmark": "varifold_end", "pair": args.pair, **environment()}
     if args.floor:
         data = _triangles(f2)
@@ -154,7 +156,7 @@ def main() -> None:
             norm = _inner(data, data, sigma)
 
             def residual(f, sigma=sigma, norm=norm):
-                s = _triangles(_center(f))
+                s = _triangles(center_unchecked(f))
                 d2 = _inner(s, s, sigma) - 2.0 * _inner(s, data, sigma) + norm
                 return float(jnp.sqrt(d2 / norm))
 
@@ -168,8 +170,8 @@ def main() -> None:
                 }
             )
         return
-    source = _center(ej.resample(f1, 25, 49))
-    target = f2 if args.target == "data" else _center(ej.resample(f2, 25, 49))
+    source = center_unchecked(ej.resample(f1, 25, 49))
+    target = f2 if args.target == "data" else center_unchecked(ej.resample(f2, 25, 49))
     schedule = [tuple(float(x) for x in p.split(":")) for p in args.schedule.split(",")]
     settings = {"target": args.target, "L": args.L, "degree": args.degree, "steps": args.steps}
     for record in _relaxed(

@@ -1,11 +1,11 @@
 """elastic_jax: elastic shape analysis of spherical surfaces (split metrics, Su et al. 2020)."""
 
 from . import shapes as shapes
-from ._checks import InputError as InputError
 from ._differential import differential as differential
 from ._energy import path_energy as path_energy
 from ._energy import path_length as path_length
 from ._energy import straight_path as straight_path
+from ._errors import InputError as InputError
 from ._grid import grid_angles as grid_angles
 from ._grid import integrate as integrate
 from ._grid import quadrature_weights as quadrature_weights
@@ -31,7 +31,7 @@ from ._validation import validate_surface as validate_surface
 
 __version__ = "0.1.0"
 from ._cache import enable_compilation_cache as enable_compilation_cache
-from ._geodesic import ConvergenceWarning as ConvergenceWarning
+from ._errors import ConvergenceWarning as ConvergenceWarning
 from ._geodesic import GeodesicResult as GeodesicResult
 from ._geodesic import geodesic as geodesic
 from ._geodesic import upsample_coefficients as upsample_coefficients

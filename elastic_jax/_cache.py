@@ -25,6 +25,7 @@ import pathlib
 
 import jax
 
+from ._atomic import atomic_path
 from ._checks import check_bool, check_positive, is_concrete
 
 # XLA:CPU compiles fusions with its MLIR fusion emitters by default. On the shape solve
@@ -98,7 +99,7 @@ def solver_jit(function, static_argnames=(), quick: bool = False):
     return call
 
 
-def _enable_here(path: str, min_compile_time_s: float, exported: bool = True) -> None:
+def enable_here(path: str, min_compile_time_s: float, exported: bool = True) -> None:
     from jax.experimental.compilation_cache import compilation_cache
 
     global _EXPORT_DIR
@@ -162,13 +163,13 @@ def enable_compilation_cache(
     min_compile_time_s = 0.0 if zero else check_positive("min_compile_time_s", min_compile_time_s)
     exported = check_bool("exported", exported)
     path.mkdir(parents=True, exist_ok=True)
-    _enable_here(str(path), min_compile_time_s, exported)
+    enable_here(str(path), min_compile_time_s, exported)
     if client is not None:
         from ._distributed import CompilationCache, connect
 
         client, _ = connect(client)
         client.register_plugin(
-            CompilationCache(str(path), min_compile_time_s, exported),
+            CompilationCache(enable_here, str(path), min_compile_time_s, exported),
             name="elastic-jax-cache",
         )
     return path
@@ -284,7 +285,6 @@ def _compiled(name, key, function, quick, static, treedef, leaves, n_outputs):
 def _store(file: pathlib.Path, data: bytes) -> None:
     """Write ``data`` to ``file`` atomically; a directory that cannot be written only
     loses the file (the program still runs)."""
-    from ._atomic import atomic_path
 
     try:
         with atomic_path(file) as tmp:

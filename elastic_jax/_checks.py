@@ -1,6 +1,6 @@
 """The one validation layer for options and surface arrays, shared by the library and the CLI.
 
-This module imports no other module of the package, so every module can import it (the
+This module imports only the leaf ``_errors``, so every module can import it (the
 immersion check, which needs the differential, lives in ``_validation``). Every check
 raises :class:`InputError`, a ValueError that names the option or the argument; the
 command line turns it into exit code 2 and one line on stderr.
@@ -15,9 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-
-class InputError(ValueError):
-    """An input or option the library cannot use; the message names it and says why."""
+from ._errors import InputError
 
 
 def check_choice(name: str, value, allowed: tuple[str, ...]) -> str:
@@ -112,7 +110,7 @@ def check_finite(x, name: str) -> None:
         )
 
 
-def _where(batch_shape: tuple[int, ...], flat_index: int) -> str:
+def item_suffix(batch_shape: tuple[int, ...], flat_index: int) -> str:
     if not batch_shape:
         return ""
     index = tuple(int(i) for i in np.unravel_index(flat_index, batch_shape))
@@ -139,13 +137,13 @@ def grid_array(f, name: str) -> jax.Array:
         k, c, i, j = np.argwhere(bad)[0]
         raise InputError(
             f"{name} contains {int(bad.sum())} non-finite value(s) (NaN or inf); the first "
-            f"is coordinate {c} at row i={i}, column j={j}{_where(batch, k)}"
+            f"is coordinate {c} at row i={i}, column j={j}{item_suffix(batch, k)}"
         )
     eps = np.finfo(x.dtype).eps
     extent = extents(flat)
     for k in range(flat.shape[0]):
         if extent[k] == 0:
-            raise InputError(f"{name} is a single point{_where(batch, k)}: not an immersion")
+            raise InputError(f"{name} is a single point{item_suffix(batch, k)}: not an immersion")
     tol = np.sqrt(eps) * extent
     for row, pole in ((0, "north"), (m - 1, "south")):
         dev = np.max(np.abs(flat[:, :, row, :] - flat[:, :, row, :1]), axis=(1, 2))
@@ -153,7 +151,7 @@ def grid_array(f, name: str) -> jax.Array:
         if dev[k] > tol[k]:
             j = int(np.argmax(np.max(np.abs(flat[k, :, row, :] - flat[k, :, row, :1]), axis=0)))
             raise InputError(
-                f"{name}: the {pole} pole row (i={row}) is not constant{_where(batch, k)}: "
+                f"{name}: the {pole} pole row (i={row}) is not constant{item_suffix(batch, k)}: "
                 f"column j={j} differs from column 0 by {dev[k]:.3g}, more than {tol[k]:.3g} "
                 "(sqrt(eps) times the surface's extent)"
             )
@@ -162,7 +160,7 @@ def grid_array(f, name: str) -> jax.Array:
     if dev[k] > tol[k]:
         i = int(np.argmax(np.max(np.abs(flat[k, :, :, -1] - flat[k, :, :, 0]), axis=0)))
         raise InputError(
-            f"{name}: the seam column j={n - 1} does not repeat column 0{_where(batch, k)}: "
+            f"{name}: the seam column j={n - 1} does not repeat column 0{item_suffix(batch, k)}: "
             f"they differ by {dev[k]:.3g} at row i={i}, more than {tol[k]:.3g}"
         )
     return f

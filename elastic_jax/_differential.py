@@ -45,7 +45,7 @@ def interior_frame(f: Float[ArrayLike, "*batch m n"]) -> tuple[ArrayLike, ArrayL
     return a1, a2
 
 
-def _pole_phi_derivative(f: Array) -> tuple[Array, Array]:
+def pole_phi_derivative(f: Array) -> tuple[Array, Array]:
     """f_phi on the two pole rows, ``(..., 3, n-1)`` each (central, across the pole)."""
     m = f.shape[-2]
     dphi = np.pi / (m - 1)
@@ -58,7 +58,7 @@ def _pole_phi_derivative(f: Array) -> tuple[Array, Array]:
 @jax.jit
 def _differential(f: Array) -> Array:
     a1, a2 = interior_frame(f)
-    north, south = _pole_phi_derivative(f)
+    north, south = pole_phi_derivative(f)
     zeros = jnp.zeros_like(north)
     col1 = jnp.concatenate([zeros[..., None, :], a1, zeros[..., None, :]], axis=-2)
     col2 = jnp.concatenate([north[..., None, :], a2, south[..., None, :]], axis=-2)

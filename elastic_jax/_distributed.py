@@ -7,7 +7,7 @@ task of a worker that died. This module only cuts a job into tasks and collects 
 
 - A task is one chunk of pairs (or of shapes, for a Karcher step), padded to the job's
   chunk size like an in-process chunk, and computed by the same function
-  (``_karcher._distance_chunk`` / ``_velocity_chunk``): each worker compiles one program
+  (``_karcher._distance_chunk`` / ``velocity_chunk``): each worker compiles one program
   for the whole job, and each pair's numbers do not depend on where it ran (lax.map and
   the loop solve every item on its own; vmap runs a chunk in lockstep, as in process).
 - The collection is scattered to the workers once; a task carries only its indices.
@@ -25,7 +25,7 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
-from ._checks import InputError
+from ._errors import InputError
 
 try:
     import distributed
@@ -38,16 +38,14 @@ except ImportError as err:  # pragma: no cover - the extra is part of the test i
 
 class CompilationCache(WorkerPlugin):
     """Turns JAX's persistent compilation cache on in every worker, those that join or
-    restart later included (a worker is a process of its own)."""
+    restart later included (a worker is a process of its own): ``enable(*args)`` runs in
+    each (a module-level function, pickled by reference)."""
 
-    def __init__(self, path: str, min_compile_time_s: float, exported: bool = True):
-        self.path, self.min_compile_time_s = path, min_compile_time_s
-        self.exported = exported
+    def __init__(self, enable: Callable, *args):
+        self.enable, self.args = enable, args
 
     def setup(self, worker) -> None:
-        from ._cache import _enable_here
-
-        _enable_here(self.path, self.min_compile_time_s, self.exported)
+        self.enable(*self.args)
 
 
 def connect(client):
@@ -66,19 +64,15 @@ def connect(client):
     )
 
 
-def _pairs_task(shapes, rows, cols, settings, size, x64):
-    from ._karcher import _distance_chunk
-
+def _pairs_task(chunk, shapes, rows, cols, settings, size, x64):
     with jax.enable_x64(x64):
-        out = _distance_chunk(shapes[rows], shapes[cols], *settings, size)
+        out = chunk(shapes[rows], shapes[cols], *settings, size)
         return tuple(np.asarray(x) for x in out)
 
 
-def _shapes_task(shapes, index, mean, starts, settings, size, x64):
-    from ._karcher import _velocity_chunk
-
+def _shapes_task(chunk, shapes, index, mean, starts, settings, size, x64):
     with jax.enable_x64(x64):
-        out = _velocity_chunk(mean, shapes[index], *settings, size, starts)
+        out = chunk(mean, shapes[index], *settings, size, starts)
         return tuple(np.asarray(x) for x in out)
 
 
@@ -117,24 +111,27 @@ class Pool:
             # On an error or Ctrl-C, the tasks not collected are not left running.
             self.client.cancel([f for f in futures if not f.done()])
 
-    def _submit(self, task, *args, size: int):
+    def _submit(self, task, chunk, *args, size: int):
         """One task on the scattered collection with this job's settings; never cached
         by Dask (pure=False): a rerun after a resume solves again."""
         return self.client.submit(
-            task, self._shapes, *args, self._settings, size, self._x64, pure=False
+            task, chunk, self._shapes, *args, self._settings, size, self._x64, pure=False
         )
 
-    def distances(self, rows, cols, chunks, size: int, finished: Callable) -> None:
-        """Solve the pairs (rows[a:b], cols[a:b]) of every chunk (a, b);
-        ``finished((a, b), (distances, converged, refinement_change))`` as each ends."""
+    def distances(self, chunk, rows, cols, chunks, size: int, finished: Callable) -> None:
+        """Solve the pairs (rows[a:b], cols[a:b]) of every chunk (a, b) with
+        ``chunk(first, second, *settings, size)``; ``finished((a, b), result)`` as each
+        ends."""
         futures = {
-            self._submit(_pairs_task, rows[a:b], cols[a:b], size=size): (a, b) for a, b in chunks
+            self._submit(_pairs_task, chunk, rows[a:b], cols[a:b], size=size): (a, b)
+            for a, b in chunks
         }
         self._as_completed(futures, finished)
 
-    def velocities(self, mean, chunks, size: int, starts=None) -> tuple:
-        """The geodesics from every shape to ``mean``, chunk by chunk: the ``_Solved``
-        fields, each with the shapes' leading axis. ``starts``: None or (gammas,
+    def velocities(self, chunk, mean, chunks, size: int, starts=None) -> tuple:
+        """The geodesics from every shape to ``mean``, chunk by chunk, each by
+        ``chunk(mean, shapes, *settings, size, starts)``: the fields of its result, each
+        with the shapes' leading axis concatenated. ``starts``: None or (gammas,
         rotations) with that axis, each shape's warm start."""
         mean = np.asarray(mean, self._dtype)
         starts = None if starts is None else tuple(np.asarray(x, self._dtype) for x in starts)
@@ -143,7 +140,9 @@ class Pool:
             return None if starts is None else tuple(x[a:b] for x in starts)
 
         futures = {
-            self._submit(_shapes_task, np.arange(a, b), mean, chunk_starts(a, b), size=size): i
+            self._submit(
+                _shapes_task, chunk, np.arange(a, b), mean, chunk_starts(a, b), size=size
+            ): i
             for i, (a, b) in enumerate(chunks)
         }
         parts = [None] * len(chunks)

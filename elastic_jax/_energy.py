@@ -8,10 +8,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._checks import InputError, check_choice, check_int
+from ._checks import check_choice, check_int
 from ._differential import interior_frame
+from ._errors import InputError
 from ._grid import integrate_interior
-from ._metric import SplitMetric, _split_bilinear
+from ._metric import SplitMetric, split_bilinear
 from ._options import SCHEMES
 from ._validation import as_surface
 
@@ -49,7 +50,7 @@ def frame_speeds2(metric: SplitMetric, a1: Array, a2: Array, scheme: str) -> tup
         base1, base2, v1, v2 = a1, a2, central(a1), central(a2)
         weights = jnp.full((n_times,), 1.0 / t, dtype=a1.dtype)
         weights = weights.at[0].mul(0.5).at[-1].mul(0.5)
-    speeds2 = integrate_interior(_split_bilinear(metric, base1, base2, v1, v2, v1, v2))
+    speeds2 = integrate_interior(split_bilinear(metric, base1, base2, v1, v2, v1, v2))
     return speeds2, weights
 
 
@@ -78,7 +79,7 @@ def as_path(path, name: str = "path") -> Array:
     return path
 
 
-def _check_scheme(scheme: str) -> None:
+def check_scheme(scheme: str) -> None:
     check_choice("scheme", scheme, SCHEMES)
 
 
@@ -110,7 +111,7 @@ def path_energy(
         >>> path = ej.straight_path(f1, 2.0 * f1, 13)
         >>> e = ej.path_energy(ej.SplitMetric(1.0, 1.0, 0.1, 0.0), path)  # ~ 8 pi b (2 - 1)^2
     """
-    _check_scheme(scheme)
+    check_scheme(scheme)
     return _path_energy(metric, as_path(path), scheme=scheme)
 
 
@@ -131,7 +132,7 @@ def path_length(
     Returns:
         ``(...)`` lengths.
     """
-    _check_scheme(scheme)
+    check_scheme(scheme)
     return _path_length(metric, as_path(path), scheme=scheme)
 
 

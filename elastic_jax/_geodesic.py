@@ -21,7 +21,6 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._checks import (
-    InputError,
     check_choice,
     check_finite,
     check_grid_shape,
@@ -32,18 +31,15 @@ from ._checks import (
 )
 from ._differential import area_element, interior_frame
 from ._energy import frame_energy
+from ._errors import ConvergenceWarning, InputError
 from ._grid import integrate_interior
-from ._harmonics import _harmonics_np, check_degree
+from ._harmonics import check_degree, harmonics_np
 from ._interp import resample
-from ._metric import SplitMetric, _split_bilinear
+from ._metric import SplitMetric, split_bilinear
 from ._options import SCHEMES, SOLVERS
 from ._solvers import RESULTS, Minimum, lanczos_smallest, minimize, result_message
 from ._units import in_units
 from ._validation import as_surface
-
-
-class ConvergenceWarning(UserWarning):
-    """A solve stopped before meeting its tolerance (its result says converged=False)."""
 
 
 class GeodesicResult(NamedTuple):
@@ -94,13 +90,13 @@ class GeodesicResult(NamedTuple):
 
 
 @functools.cache
-def _basis_np(m: int, n: int, degree: int) -> tuple[np.ndarray, np.ndarray]:
+def basis_np(m: int, n: int, degree: int) -> tuple[np.ndarray, np.ndarray]:
     """Harmonics of degree 1..deg as ``(K, m n)`` and their differentials as ``(K, 2 P)``.
 
     P = (m - 2)(n - 1) interior points. One matmul with the second gives the
     perturbation of every frame's differential (STACK.md: faster than an einsum).
     """
-    y = _harmonics_np(m, n, degree)[0][1:]
+    y = harmonics_np(m, n, degree)[0][1:]
     a1, a2 = interior_frame(y)
     k = y.shape[0]
     return y.reshape(k, m * n), np.concatenate([a1.reshape(k, -1), a2.reshape(k, -1)], axis=1)
@@ -110,17 +106,17 @@ def _straight_frames(f1, f2, n_times, frames=None):
     """The straight line's interior frames; ``frames`` (start, end), each (a1, a2), when
     the ends' differentials are given rather than taken by central differences."""
     start, end = (interior_frame(f1), interior_frame(f2)) if frames is None else frames
-    return _frames_between(start, end, n_times)
+    return frames_between(start, end, n_times)
 
 
-def _frames_between(start, end, n_times):
+def frames_between(start, end, n_times):
     """Interior frames of the straight line between two surfaces given by their frames."""
     t = jnp.linspace(0.0, 1.0, n_times, dtype=start[0].dtype).reshape(n_times, 1, 1, 1)
     # a + t (b - a): velocities are exactly zero when f1 = f2.
     return [a[None] + t * (b - a)[None] for a, b in zip(start, end, strict=True)]
 
 
-def _perturbed_frames(straight, coefficients, dframe):
+def perturbed_frames(straight, coefficients, dframe):
     """Frames of the straight line plus sum_j C[k, j] S_j on the interior time points."""
     s1, s2 = straight
     n_inner, shape = s1.shape[0] - 2, s1.shape[1:]
@@ -132,7 +128,7 @@ def _perturbed_frames(straight, coefficients, dframe):
     return s1.at[1:-1].add(p1), s2.at[1:-1].add(p2)
 
 
-def _path(f1, f2, coefficients, values, n_times):
+def path_from_coefficients(f1, f2, coefficients, values, n_times):
     """The path (N, 3, m, n): straight line plus the basis perturbation (paper eq. (4.2))."""
     m, n = f1.shape[-2:]
     k = values.shape[0]
@@ -142,7 +138,7 @@ def _path(f1, f2, coefficients, values, n_times):
     return jnp.concatenate([f1[None], interior, f2[None]])
 
 
-def _sqrt_inverse_pair(matrix: Array, floor: float) -> tuple[Array, Array]:
+def sqrt_inverse_pair(matrix: Array, floor: float) -> tuple[Array, Array]:
     """M^(-1/2) and M^(1/2) of a symmetric PSD matrix, eigenvalues floored at floor * max."""
     lam, vec = jnp.linalg.eigh(matrix)
     lam = jnp.maximum(lam, floor * lam[-1])
@@ -169,14 +165,14 @@ def _whitening(metric, mid1, mid2, dframe, n_times):
     def quadratic(c):
         pert = c.reshape(3, k) @ dframe
         x1, x2 = pert[:, :points].reshape(shape), pert[:, points:].reshape(shape)
-        return integrate_interior(_split_bilinear(metric, mid1, mid2, x1, x2, x1, x2))
+        return integrate_interior(split_bilinear(metric, mid1, mid2, x1, x2, x1, x2))
 
     gram = 0.5 * jax.hessian(quadratic)(jnp.zeros(3 * k, mid1.dtype))
     eye = functools.partial(jnp.eye, n_times - 2, dtype=mid1.dtype)
     lap = (n_times - 1) * (2.0 * eye() - eye(k=1) - eye(k=-1))
-    a, a_inv = _sqrt_inverse_pair(lap, 0.0)
+    a, a_inv = sqrt_inverse_pair(lap, 0.0)
     # Degenerate metrics (SRNF's (0, 1/2, 1, 0)) have nearly free directions: floor them.
-    b, b_inv = _sqrt_inverse_pair(gram, 1e-6)
+    b, b_inv = sqrt_inverse_pair(gram, 1e-6)
     return a, b, a_inv, b_inv, jnp.trace(gram) / gram.shape[0]
 
 
@@ -197,7 +193,7 @@ class _Scaling(NamedTuple):
         return (self.a_inv @ coefficients @ self.b_inv) / jnp.sqrt(self.energy_scale)
 
 
-def _scaling(metric, f1, f2, dframe, n_times, scheme, frames=None) -> _Scaling:
+def solver_scaling(metric, f1, f2, dframe, n_times, scheme, frames=None) -> _Scaling:
     straight_frames = _straight_frames(f1, f2, n_times, frames)
     straight = frame_energy(metric, *straight_frames, scheme)
     # The solver works on z with C = sqrt(E_s) A z B (see _whitening) and the energy
@@ -239,7 +235,7 @@ _LANCZOS_ITERATIONS = 24
 _ESCAPE_LENGTHS = (0.05, 0.1, 0.2, 0.4, 0.8)
 
 
-def _solve(
+def solve_path(
     metric,
     f1,
     f2,
@@ -267,13 +263,13 @@ def _solve(
     (the lowest of f(x), f(x +- s v) over a few lengths s) and minimizes again: a start in
     a symmetric subspace keeps BFGS there, where it can stop at a saddle (MATH.md 9).
     """
-    scaling = _scaling(metric, f1, f2, dframe, n_times, scheme, frames)
+    scaling = solver_scaling(metric, f1, f2, dframe, n_times, scheme, frames)
     straight = _straight_frames(f1, f2, n_times, frames)
     dtype = f1.dtype
     threshold = saddle_threshold(dtype)
 
     def objective(z):
-        frames = _perturbed_frames(straight, scaling.coefficients(z), dframe)
+        frames = perturbed_frames(straight, scaling.coefficients(z), dframe)
         return frame_energy(metric, *frames, scheme) / scaling.energy_scale
 
     x0 = scaling.whitened(init)
@@ -335,7 +331,7 @@ def _solve(
     coefficients = scaling.coefficients(x)
     energy = found.value * scaling.energy_scale
     return GeodesicResult(
-        path=_path(f1, f2, coefficients, values, n_times),
+        path=path_from_coefficients(f1, f2, coefficients, values, n_times),
         distance=jnp.sqrt(energy),
         energy=energy,
         straight_energy=scaling.straight,
@@ -349,7 +345,7 @@ def _solve(
 
 
 _geodesic = jax.jit(
-    _solve, static_argnames=("n_times", "solver", "max_steps", "tol", "scheme", "saddle_checks")
+    solve_path, static_argnames=("n_times", "solver", "max_steps", "tol", "scheme", "saddle_checks")
 )
 
 
@@ -357,8 +353,8 @@ _geodesic = jax.jit(
 def _evaluate(metric, f1, f2, coefficients, values, dframe, *, n_times, scheme):
     """The path, its energy and the straight line's energy at given coefficients."""
     straight = _straight_frames(f1, f2, n_times)
-    energy = frame_energy(metric, *_perturbed_frames(straight, coefficients, dframe), scheme)
-    path = _path(f1, f2, coefficients, values, n_times)
+    energy = frame_energy(metric, *perturbed_frames(straight, coefficients, dframe), scheme)
+    path = path_from_coefficients(f1, f2, coefficients, values, n_times)
     return path, energy, frame_energy(metric, *straight, scheme)
 
 
@@ -409,7 +405,7 @@ def upsample_coefficients(
     return lifted.reshape(new_n_times - 2, 3 * k1)
 
 
-def _check_pair(f1, f2) -> tuple[Array, Array]:
+def check_pair(f1, f2) -> tuple[Array, Array]:
     """Two single surfaces on one grid with one dtype (geodesic and shape_geodesic)."""
     f1 = as_surface(f1, "f1")
     f2 = as_surface(f2, "f2")
@@ -544,7 +540,7 @@ def geodesic(
         >>> bool(res.energy < res.straight_energy)
         True
     """
-    f1, f2 = _check_pair(f1, f2)
+    f1, f2 = check_pair(f1, f2)
     m, n = f1.shape[-2:]
     degree = check_degree(degree, m, n)
     n_times, max_steps, tol = _check_solve_options(
@@ -584,7 +580,7 @@ def geodesic(
             )
         check_finite(init, "init")
         init = init / units.scale
-    values, dframe = (jnp.asarray(a, f1.dtype) for a in _basis_np(m, n, degree))
+    values, dframe = (jnp.asarray(a, f1.dtype) for a in basis_np(m, n, degree))
     # The solve runs on constants: its loops are never differentiated (reverse mode cannot
     # go through a while loop). The energy is then evaluated again, differentiably, at the
     # optimal coefficients C*: there dE/dC = 0, so its derivative in f1, f2 and the metric

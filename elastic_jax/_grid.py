@@ -12,7 +12,7 @@ from ._checks import check_grid_shape, check_int
 
 
 @functools.cache
-def _angles_np(m: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+def angles_np(m: int, n: int) -> tuple[np.ndarray, np.ndarray]:
     phi = np.arange(m) * (np.pi / (m - 1))
     theta = np.arange(n) * (2.0 * np.pi / (n - 1))
     return phi, theta
@@ -31,16 +31,16 @@ def grid_angles(m: int, n: int, dtype=None) -> tuple[Float[Array, " m"], Float[A
     Returns:
         ``(phi, theta)`` with shapes ``(m,)`` and ``(n,)``.
     """
-    phi, theta = _angles_np(m, n)
+    phi, theta = angles_np(m, n)
     return jnp.asarray(phi, dtype=dtype), jnp.asarray(theta, dtype=dtype)
 
 
 @functools.cache
-def _interior_weights_np(m: int, n: int) -> np.ndarray:
+def interior_weights_np(m: int, n: int) -> np.ndarray:
     # Trapezoid rule in phi and theta times sin(phi). The pole rows have weight zero
     # (sin phi = 0) and the periodic trapezoid in theta gives every distinct column the
     # full weight, so only interior rows and columns 0..n-2 carry weight.
-    phi, _ = _angles_np(m, n)
+    phi, _ = angles_np(m, n)
     dphi = np.pi / (m - 1)
     dtheta = 2.0 * np.pi / (n - 1)
     w = np.sin(phi[1:-1]) * dphi * dtheta
@@ -49,7 +49,7 @@ def _interior_weights_np(m: int, n: int) -> np.ndarray:
 
 def interior_weights(m: int, n: int, dtype) -> Float[Array, "mi ni"]:
     """Quadrature weights on interior rows and distinct columns (the only ones with weight)."""
-    return jnp.asarray(_interior_weights_np(m, n), dtype=dtype)
+    return jnp.asarray(interior_weights_np(m, n), dtype=dtype)
 
 
 def quadrature_weights(m: int, n: int, dtype=None) -> Float[Array, "m n"]:
@@ -63,7 +63,7 @@ def quadrature_weights(m: int, n: int, dtype=None) -> Float[Array, "m n"]:
         ``(m, n)`` array; ``integral_{S^2} h = sum(w * h)`` for ``h`` sampled on the grid.
     """
     w = np.zeros((m, n))
-    w[1:-1, :-1] = _interior_weights_np(m, n)
+    w[1:-1, :-1] = interior_weights_np(m, n)
     # Split the seam column's weight between the two copies of theta = 0.
     w[1:-1, 0] *= 0.5
     w[1:-1, -1] = w[1:-1, 0]
@@ -108,7 +108,7 @@ def sphere_points(m: int, n: int, dtype=None) -> Float[Array, "3 m n"]:
 
 def sphere_points_np(m: int, n: int) -> np.ndarray:
     """:func:`sphere_points` in float64 numpy (usable while an outer jit traces)."""
-    phi, theta = _angles_np(m, n)
+    phi, theta = angles_np(m, n)
     sp, cp = np.sin(phi)[:, None], np.cos(phi)[:, None]
     ct, st = np.cos(theta)[None, :], np.sin(theta)[None, :]
     x = np.stack([sp * ct, sp * st, np.broadcast_to(cp, (m, n))])
@@ -117,3 +117,27 @@ def sphere_points_np(m: int, n: int) -> np.ndarray:
     x[:, -1, :] = np.array([0.0, 0.0, -1.0])[:, None]
     x[:, :, -1] = x[:, :, 0]
     return x
+
+
+def grid_directions(m: int, n: int) -> np.ndarray:
+    """Unit vectors of the distinct grid points: north pole, interior rows, south pole.
+
+    Returns:
+        ``(2 + (m - 2)(n - 1), 3)`` float64, in the vertex order of ``io.grid_to_mesh``.
+    """
+    phi, theta = angles_np(m, n)
+    phi, theta = np.meshgrid(phi[1:-1], theta[:-1], indexing="ij")
+    interior = np.stack(
+        [np.sin(phi) * np.cos(theta), np.sin(phi) * np.sin(theta), np.cos(phi)], axis=-1
+    )
+    return np.concatenate([[[0.0, 0.0, 1.0]], interior.reshape(-1, 3), [[0.0, 0.0, -1.0]]])
+
+
+def from_distinct(points: np.ndarray, m: int, n: int) -> np.ndarray:
+    """``(2 + (m - 2)(n - 1), 3)`` distinct grid points -> ``(3, m, n)`` with poles and seam."""
+    f = np.empty((3, m, n))
+    f[:, 0, :] = points[0][:, None]
+    f[:, -1, :] = points[-1][:, None]
+    f[:, 1:-1, :-1] = points[1:-1].reshape(m - 2, n - 1, 3).transpose(2, 0, 1)
+    f[:, :, -1] = f[:, :, 0]
+    return f

@@ -10,8 +10,9 @@ import numpy as np
 import scipy.special
 from jaxtyping import Array, Float, Int
 
-from ._checks import InputError, check_int
-from ._grid import _angles_np
+from ._checks import check_int
+from ._errors import InputError
+from ._grid import angles_np
 
 
 class SphericalHarmonics(NamedTuple):
@@ -49,9 +50,9 @@ def check_degree(degree: int, m: int, n: int, name: str = "degree") -> int:
 
 
 @functools.cache
-def _harmonics_np(m: int, n: int, degree: int):
+def harmonics_np(m: int, n: int, degree: int):
     """Y, dY/dphi, dY/dtheta, Y/sin(phi) (pole limits included), degree, order; float64."""
-    phi, theta = _angles_np(m, n)
+    phi, theta = angles_np(m, n)
     p, dp = scipy.special.sph_legendre_p_all(degree, degree, phi, diff_n=1)
     sin_phi = np.sin(phi)
     # p_lk(phi) / sin(phi): at the poles its limit is +-p'_lk for |k| = 1 and 0 otherwise.
@@ -109,7 +110,7 @@ def real_sph_harm(m: int, n: int, degree: int, dtype=None) -> SphericalHarmonics
         :class:`SphericalHarmonics` with ``(K, m, n)`` arrays, K = (degree + 1)^2.
     """
     check_degree(degree, m, n)
-    y, y_phi, y_theta, _, ls, ks = _harmonics_np(m, n, degree)
+    y, y_phi, y_theta, _, ls, ks = harmonics_np(m, n, degree)
     return SphericalHarmonics(
         *(jnp.asarray(a, dtype=dtype) for a in (y, y_phi, y_theta)),
         jnp.asarray(ls),
@@ -128,7 +129,7 @@ def surface_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, "L 3 
         ``(L, 3, m, n)``.
     """
     check_degree(degree, m, n)
-    y = _harmonics_np(m, n, degree)[0][1:]
+    y = harmonics_np(m, n, degree)[0][1:]
     k = y.shape[0]
     basis = np.zeros((3, k, 3, m, n))
     for i in range(3):
@@ -137,10 +138,10 @@ def surface_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, "L 3 
 
 
 @functools.cache
-def _vector_fields_np(m: int, n: int, degree: int) -> np.ndarray:
+def vector_fields_np(m: int, n: int, degree: int) -> np.ndarray:
     """grad Y / sqrt(l(l+1)) and e1 x grad Y / sqrt(l(l+1)), ``(Lbar, 3, m, n)`` float64."""
-    _, y_phi, _, grad_theta, ls, _ = _harmonics_np(m, n, degree)
-    phi, theta = _angles_np(m, n)
+    _, y_phi, _, grad_theta, ls, _ = harmonics_np(m, n, degree)
+    phi, theta = angles_np(m, n)
     cp, sp = np.cos(phi)[:, None], np.sin(phi)[:, None]
     ct, st = np.cos(theta)[None, :], np.sin(theta)[None, :]
     e_phi = np.stack([cp * ct, cp * st, -sp * np.ones_like(ct)])
@@ -169,4 +170,4 @@ def vector_field_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, 
         ``(Lbar, 3, m, n)`` fields tangent to the sphere (stored in R^3).
     """
     check_degree(degree, m, n)
-    return jnp.asarray(_vector_fields_np(m, n, degree), dtype=dtype)
+    return jnp.asarray(vector_fields_np(m, n, degree), dtype=dtype)

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._grid import _angles_np
+from ._grid import angles_np
 from ._validation import as_surface, check_grid_shape
 
 
@@ -60,5 +60,5 @@ def resample(f: Float[ArrayLike, "*batch 3 m0 n0"], m: int, n: int) -> Float[Arr
     """
     f = as_surface(f, "f", check_immersion=False)
     check_grid_shape((3, m, n), "the new grid")
-    phi, theta = _angles_np(m, n)
+    phi, theta = angles_np(m, n)
     return _resample(f, jnp.asarray(phi, f.dtype), jnp.asarray(theta, f.dtype))

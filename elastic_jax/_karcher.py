@@ -29,16 +29,17 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._atomic import save_npz_atomic
 from ._cache import solver_jit
-from ._checks import InputError, check_bool
-from ._geodesic import ConvergenceWarning, default_tol, geodesic
+from ._checks import check_bool
+from ._errors import ConvergenceWarning, InputError
+from ._geodesic import default_tol, geodesic
 from ._grid import sphere_points
-from ._harmonics import _vector_fields_np
-from ._metric import SplitMetric, _metric_inner
+from ._harmonics import vector_fields_np
+from ._metric import SplitMetric, metric_inner_unchecked
 from ._options import ShapeOptions, check_choice, check_int, check_positive
-from ._reparam import _reparametrize
-from ._shape import check_grid_options, resolve_options, shape_geodesic
+from ._reparam import reparametrize_unchecked
+from ._shape import check_grid_options, resolve_options, shape_geodesic, turned_back
 from ._solvers import RESULTS
-from ._srnf import _center
+from ._srnf import center_unchecked
 from ._validation import as_surface
 
 MODULI = ("rigid", "diff", "none")
@@ -148,26 +149,6 @@ def initial_velocity(path: Float[ArrayLike, "N 3 m n"]) -> Float[Array, "3 m n"]
     return t * (-3.0 * path[0] + 4.0 * path[1] - path[2]) / 2.0
 
 
-def _geodesic_kwargs(options: ShapeOptions) -> dict:
-    """The options :func:`geodesic` takes (modulo="none")."""
-    return {
-        "degree": options.degree,
-        "n_times": options.n_times,
-        "solver": options.solver,
-        "max_steps": options.max_steps,
-        "tol": options.tol,
-        "scheme": options.scheme,
-        "saddle_checks": options.saddle_checks,
-    }
-
-
-def turned_back(res, end):
-    """A shape geodesic's path (from f1 o gamma to R f2) turned by R^T and moved so that it
-    ends at ``end`` (its f2) as parametrized and placed (modulo "rigid" centres both)."""
-    back = jnp.einsum("ji,tj...->ti...", res.rotation, res.path)
-    return back + (end - back[-1]).mean(axis=(-2, -1), keepdims=True)[None]
-
-
 def _one_geodesic(mean, shape, metric, modulo, options, start=None):
     """Distance, registered shape, initial velocity at the mean, status and registration
     (gamma, R) for one shape.
@@ -184,7 +165,7 @@ def _one_geodesic(mean, shape, metric, modulo, options, start=None):
     finds a lower basin when there is one.
     """
     if modulo == "none":
-        res = geodesic(shape, mean, metric, **_geodesic_kwargs(options))
+        res = geodesic(shape, mean, metric, **options.geodesic_kwargs())
         m, n = mean.shape[-2:]
         gamma, rotation = sphere_points(m, n, mean.dtype), jnp.eye(3, dtype=mean.dtype)
         back = res.path
@@ -212,7 +193,7 @@ def _one_item(mean, item, metric, modulo, options):
 def _pair_distance(a, b, metric, modulo, options):
     """Distance, status and refinement change of one pair."""
     if modulo == "none":
-        res = geodesic(a, b, metric, **_geodesic_kwargs(options))
+        res = geodesic(a, b, metric, **options.geodesic_kwargs())
         return res.distance, res.converged, jnp.full_like(res.distance, jnp.nan)
     res = shape_geodesic(a, b, metric, modulo=modulo, options=options)
     return res.distance, res.converged, res.refinement.relative_change
@@ -272,7 +253,7 @@ def _solve_chunk(batch_call: Callable, single_call: Callable, batch, strategy: s
         return tuple(out[:b] for out in _batched(batch_call, single_call, padded, strategy))
 
 
-def _velocity_chunk(mean, chunk, metric, modulo, options, strategy, size, starts=None) -> tuple:
+def velocity_chunk(mean, chunk, metric, modulo, options, strategy, size, starts=None) -> tuple:
     """The geodesics from ``chunk`` (b, 3, m, n) to ``mean``: the _Solved fields.
 
     starts: None, or (gammas (b, 3, m, n), rotations (b, 3, 3)), each shape's registration
@@ -289,7 +270,7 @@ def _velocity_chunk(mean, chunk, metric, modulo, options, strategy, size, starts
     return _solve_chunk(batch_call, single_call, batch, strategy, size)
 
 
-def _distance_chunk(first, second, metric, modulo, options, strategy, size) -> tuple:
+def distance_chunk(first, second, metric, modulo, options, strategy, size) -> tuple:
     """Distance, status and refinement change of the pairs (first[i], second[i])."""
 
     def batch_call(batch, mode):
@@ -418,11 +399,11 @@ def _horizontal_part(metric, mean, v, fields, *, interpolation, rigid):
     e1 = sphere_points(m, n, mean.dtype)
 
     def sampled(gamma):
-        return _reparametrize(mean, gamma, method=interpolation)
+        return reparametrize_unchecked(mean, gamma, method=interpolation)
 
     directions = jax.vmap(lambda x: jax.jvp(sampled, (e1,), (x,))[1])(fields)
     if rigid:
-        centered = _center(mean)
+        centered = center_unchecked(mean)
         turns = [jnp.cross(jnp.eye(3, dtype=mean.dtype)[i], centered, axis=0) for i in range(3)]
         directions = jnp.concatenate([directions, jnp.stack(turns)])
 
@@ -430,8 +411,10 @@ def _horizontal_part(metric, mean, v, fields, *, interpolation, rigid):
         return jnp.einsum("k,kimn->imn", c, directions)
 
     zero = jnp.zeros(directions.shape[0], mean.dtype)
-    gram = jax.hessian(lambda c: 0.5 * _metric_inner(metric, mean, combined(c), combined(c)))(zero)
-    b = jax.grad(lambda c: _metric_inner(metric, mean, combined(c), v))(zero)
+    gram = jax.hessian(
+        lambda c: 0.5 * metric_inner_unchecked(metric, mean, combined(c), combined(c))
+    )(zero)
+    b = jax.grad(lambda c: metric_inner_unchecked(metric, mean, combined(c), v))(zero)
     values, vectors = jnp.linalg.eigh(gram)
     # Pseudo-inverse: directions the metric cannot tell apart carry no weight.
     keep = values > jnp.finfo(mean.dtype).eps ** 0.5 * jnp.max(values)
@@ -453,7 +436,7 @@ def _direction(metric, mean, solved: _Solved, modulo: str, options: ShapeOptions
     average = solved.velocities.mean(axis=0)
     if modulo != "none":
         m, n = mean.shape[-2:]
-        fields = jnp.asarray(_vector_fields_np(m, n, options.vf_degree), mean.dtype)
+        fields = jnp.asarray(vector_fields_np(m, n, options.vf_degree), mean.dtype)
         average = _horizontal_part(
             metric,
             mean,
@@ -462,9 +445,9 @@ def _direction(metric, mean, solved: _Solved, modulo: str, options: ShapeOptions
             interpolation=options.interpolation,
             rigid=modulo == "rigid",
         )
-    norm = float(jnp.sqrt(_metric_inner(metric, mean, average, average)))
-    centered = _center(mean)
-    size = float(jnp.sqrt(_metric_inner(metric, mean, centered, centered)))
+    norm = float(jnp.sqrt(metric_inner_unchecked(metric, mean, average, average)))
+    centered = center_unchecked(mean)
+    size = float(jnp.sqrt(metric_inner_unchecked(metric, mean, centered, centered)))
     return _Direction(average, norm, float(jnp.sum(solved.distances**2)), size)
 
 
@@ -577,7 +560,7 @@ def karcher_mean(
             f"got {mean.shape} {mean.dtype}"
         )
     if modulo == "rigid":
-        mean = _center(mean)
+        mean = center_unchecked(mean)
     warm_start = check_bool("warm_start", warm_start) and modulo != "none"
     settings = _settings(metric, modulo, options, step_size=step_size, tol=tol, warm=warm_start)
     fingerprint = _fingerprint(shapes, mean, **settings)
@@ -599,9 +582,11 @@ def karcher_mean(
             else:
                 starts = (previous.gammas, previous.rotations)
         if pool is not None:
-            return _Solved(*(jnp.asarray(x) for x in pool.velocities(at, chunks, size, starts)))
+            return _Solved(
+                *(jnp.asarray(x) for x in pool.velocities(velocity_chunk, at, chunks, size, starts))
+            )
         parts = [
-            _velocity_chunk(
+            velocity_chunk(
                 at,
                 shapes[a:b],
                 metric,
@@ -821,14 +806,12 @@ def distance_matrix(
         from ._distributed import Pool
 
         with Pool(client, shapes, metric, modulo, options, strategy) as pool:
-            pool.distances(rows, cols, todo, size, finished)
+            pool.distances(distance_chunk, rows, cols, todo, size, finished)
     else:
         for a, b in todo:
             # Index per chunk: all K(K-1)/2 pairs at once would copy every surface K - 1 times.
             first, second = shapes[rows[a:b]], shapes[cols[a:b]]
-            finished(
-                (a, b), _distance_chunk(first, second, metric, modulo, options, strategy, size)
-            )
+            finished((a, b), distance_chunk(first, second, metric, modulo, options, strategy, size))
 
     def symmetric(upper, diagonal, dtype):
         matrix = np.zeros((k, k), dtype)

@@ -10,8 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._checks import InputError, is_concrete
+from ._checks import is_concrete
 from ._differential import cross, dot, interior_frame
+from ._errors import InputError
 from ._grid import integrate_interior
 from ._validation import as_surface
 
@@ -99,7 +100,7 @@ def _pointwise(x: Array) -> tuple[Array, Array]:
     return x[..., 0, None, None], x[..., 1, None, None]
 
 
-def _split_bilinear(metric: SplitMetric, a1, a2, x1, x2, y1, y2) -> Array:
+def split_bilinear(metric: SplitMetric, a1, a2, x1, x2, y1, y2) -> Array:
     """G_alpha(xi, eta) for alpha = [a1 a2], xi = [x1 x2], eta = [y1 y2] (vector axis -3).
 
     The 2 x 2 algebra is written out (STACK.md: 10x faster than batched inv/det). With
@@ -219,14 +220,14 @@ def split_inner(
     alpha, xi, eta = jnp.broadcast_arrays(*map(jnp.asarray, (alpha, xi, eta)))
     if alpha.shape[-2:] != (3, 2):
         raise InputError(f"alpha, xi and eta must have shape (..., 3, 2); got {alpha.shape}")
-    out = _split_bilinear(metric, *_pointwise(alpha), *_pointwise(xi), *_pointwise(eta))
+    out = split_bilinear(metric, *_pointwise(alpha), *_pointwise(xi), *_pointwise(eta))
     return out[..., 0, 0]
 
 
 @jax.jit
-def _metric_inner(metric, f, u, v):
+def metric_inner_unchecked(metric, f, u, v):
     return integrate_interior(
-        _split_bilinear(metric, *interior_frame(f), *interior_frame(u), *interior_frame(v))
+        split_bilinear(metric, *interior_frame(f), *interior_frame(u), *interior_frame(v))
     )
 
 
@@ -271,7 +272,7 @@ def metric_inner(
         >>> # 8 pi b = 25.133 in the continuum: u = f is pure volume change; error O(h^2)
     """
     f, u, v = _broadcast_fields(f, u, v)
-    return _metric_inner(metric, f, u, v)
+    return metric_inner_unchecked(metric, f, u, v)
 
 
 def _elastic_pointwise(ae, be, ce, alpha, xi, eta):

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from ._checks import InputError, check_bool, check_choice, check_int, check_positive
+from ._checks import check_bool, check_choice, check_int, check_positive
+from ._errors import InputError
 
 __all__ = ["InputError", "ShapeOptions", "check_choice", "check_int", "check_positive"]
 
@@ -154,3 +155,9 @@ class ShapeOptions:
     def as_dict(self) -> dict:
         """The fields as a plain dict (for summaries and checkpoint fingerprints)."""
         return dataclasses.asdict(self)
+
+    def geodesic_kwargs(self) -> dict:
+        """The fields :func:`geodesic` takes, as its keywords (modulo="none": no
+        registration)."""
+        names = ("degree", "n_times", "solver", "max_steps", "tol", "scheme", "saddle_checks")
+        return {name: getattr(self, name) for name in names}

@@ -19,7 +19,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._checks import InputError, check_int, check_positive, real_array
+from ._checks import check_int, check_positive, real_array
+from ._errors import InputError
 from ._metric import SplitMetric, metric_inner
 from ._shooting import shoot
 from ._validation import as_surface

@@ -10,10 +10,10 @@ import numpy as np
 import scipy.special
 from jaxtyping import Array, ArrayLike, Float
 
-from ._checks import InputError
-from ._differential import _pole_phi_derivative, cross, dot, interior_frame, pole_fourier1
-from ._grid import _angles_np, sphere_points
-from ._harmonics import _vector_fields_np, check_degree
+from ._differential import cross, dot, interior_frame, pole_fourier1, pole_phi_derivative
+from ._errors import InputError
+from ._grid import angles_np, sphere_points
+from ._harmonics import check_degree, vector_fields_np
 from ._interp import sample_at
 from ._validation import as_surface, check_grid_shape
 
@@ -55,7 +55,7 @@ def diffeomorphism(
     check_degree(degree, m, n)
     x = jnp.asarray(x)
     _check_coefficients(x, degree)
-    fields = jnp.asarray(_vector_fields_np(m, n, degree), x.dtype)
+    fields = jnp.asarray(vector_fields_np(m, n, degree), x.dtype)
     e1 = sphere_points(m, n, dtype=x.dtype)
     lead = (1,) * (x.ndim - 1)
     return _diffeomorphism(x, fields, e1.reshape(lead + e1.shape))
@@ -68,7 +68,7 @@ def _field_derivatives_np(m: int, n: int, degree: int) -> np.ndarray:
     Exact, from the Legendre functions' first and second derivatives; interior rows only.
     Shape ``(6, Lbar, m - 2, n)``, fields ordered as in :func:`vector_field_basis`.
     """
-    phi, theta = _angles_np(m, n)
+    phi, theta = angles_np(m, n)
     p, dp, d2p = scipy.special.sph_legendre_p_all(degree, degree, phi, diff_n=2)
     sp, cp = np.sin(phi)[1:-1, None], np.cos(phi)[1:-1, None]
     out = []
@@ -129,7 +129,7 @@ def diffeomorphism_bound(
     x = jnp.asarray(x)
     _check_coefficients(x, degree)
     derivs = jnp.asarray(_field_derivatives_np(m, n, degree), x.dtype)
-    phi, _ = _angles_np(m, n)
+    phi, _ = angles_np(m, n)
     lead = (1,) * (x.ndim - 1)
     cos_phi = jnp.asarray(np.cos(phi[1:-1])[:, None], x.dtype).reshape(lead + (m - 2, 1))
     sin_phi = jnp.asarray(np.sin(phi[1:-1])[:, None], x.dtype).reshape(lead + (m - 2, 1))
@@ -137,11 +137,11 @@ def diffeomorphism_bound(
 
 
 @jax.jit
-def _jacobian_determinant(gamma):
+def jacobian_determinant_unchecked(gamma):
     a1, a2 = interior_frame(gamma)
     inner = dot(cross(a2, a1), gamma[..., 1:-1, :-1])
     # At a pole the azimuth-theta direction maps to f_phi(pole, theta) = cos X + sin Y.
-    north, south = _pole_phi_derivative(gamma)
+    north, south = pole_phi_derivative(gamma)
     xn, yn = pole_fourier1(north)
     xs, ys = pole_fourier1(south)
     jn = jnp.sum(jnp.cross(xn, yn, axis=-1) * gamma[..., :, 0, 0], axis=-1)
@@ -166,7 +166,7 @@ def jacobian_determinant(gamma: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array
     Returns:
         ``(..., m, n)``.
     """
-    return _jacobian_determinant(as_surface(gamma, "gamma", check_immersion=False))
+    return jacobian_determinant_unchecked(as_surface(gamma, "gamma", check_immersion=False))
 
 
 def _angles_of(points: Array) -> tuple[Array, Array]:
@@ -176,7 +176,7 @@ def _angles_of(points: Array) -> tuple[Array, Array]:
     off_axis = r2 > 0
     # At the poles theta is arbitrary (the pole row is constant): a safe where keeps the
     # derivative of atan2 and of the square root finite there (zero; the derivative of f
-    # read at a pole comes from _sample_points' rule instead).
+    # read at a pole comes from sample_points' rule instead).
     r = jnp.sqrt(jnp.where(off_axis, r2, 1.0))
     phi = jnp.arctan2(jnp.where(off_axis, r, 0.0), z)
     theta = jnp.arctan2(jnp.where(off_axis, y, 0.0), jnp.where(off_axis, x, 1.0))
@@ -262,12 +262,12 @@ def _sample_in_angles(f, points, method):
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
-def _sample_points(f, points, method):
+def sample_points(f, points, method):
     """f read at ``points (3, ...)`` of S^2: ``(..., 3, ...)``."""
     return _sample_in_angles(f, points, method)
 
 
-@_sample_points.defjvp
+@sample_points.defjvp
 def _sample_points_jvp(method, primals, tangents):
     # The angles are a singular chart on the z axis: _angles_of keeps their derivative
     # finite there by holding it at zero, so a point exactly on a pole (every pole-row
@@ -279,7 +279,7 @@ def _sample_points_jvp(method, primals, tangents):
     f, points = primals
     df, dpoints = tangents
     value, moved = jax.jvp(lambda p: _sample_in_angles(f, p, method), (points,), (dpoints,))
-    (xn, yn), (xs, ys) = (pole_fourier1(row) for row in _pole_phi_derivative(f))
+    (xn, yn), (xs, ys) = (pole_fourier1(row) for row in pole_phi_derivative(f))
     # Results are laid out as f's leading axes (batch and coordinate) then the points'.
     k = points.ndim - 1
 
@@ -298,8 +298,8 @@ def _sample_points_jvp(method, primals, tangents):
 
 
 @functools.partial(jax.jit, static_argnames=("method",))
-def _reparametrize(f, gamma, *, method):
-    return _sample_points(f, gamma, method)
+def reparametrize_unchecked(f, gamma, *, method):
+    return sample_points(f, gamma, method)
 
 
 def reparametrize(
@@ -325,7 +325,7 @@ def reparametrize(
     gamma = jnp.asarray(gamma, f.dtype)
     if gamma.ndim != 3 or gamma.shape[0] != 3:
         raise InputError(f"gamma must have shape (3, p, q); got {gamma.shape}")
-    return _reparametrize(f, gamma, method=method)
+    return reparametrize_unchecked(f, gamma, method=method)
 
 
 def rotate_parametrization(

@@ -28,32 +28,37 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._cache import exported_call, solver_jit
-from ._checks import InputError, check_finite, check_grid_shape, is_concrete, real_array
+from ._checks import check_finite, check_grid_shape, is_concrete, real_array
 from ._differential import area_element, interior_frame
 from ._energy import frame_energy
+from ._errors import ConvergenceWarning, InputError
 from ._geodesic import (
-    ConvergenceWarning,
     GeodesicResult,
-    _basis_np,
-    _check_pair,
-    _frames_between,
-    _path,
-    _perturbed_frames,
-    _scaling,
-    _solve,
+    basis_np,
+    check_pair,
     constant,
     default_tol,
+    frames_between,
+    path_from_coefficients,
+    perturbed_frames,
     safe_sqrt,
+    solve_path,
+    solver_scaling,
     upsample_coefficients,
 )
-from ._grid import _interior_weights_np, interior_weights, sphere_points, sphere_points_np
-from ._harmonics import _harmonics_np, _vector_fields_np, check_degree
+from ._grid import interior_weights, interior_weights_np, sphere_points, sphere_points_np
+from ._harmonics import check_degree, harmonics_np, vector_fields_np
 from ._metric import SplitMetric
 from ._options import ShapeOptions, check_choice
-from ._reparam import _jacobian_determinant, _reparametrize, _sample_points, moebius
-from ._so3 import _icosahedral_np, _so3_exp
+from ._reparam import (
+    jacobian_determinant_unchecked,
+    moebius,
+    reparametrize_unchecked,
+    sample_points,
+)
+from ._so3 import icosahedral_np, so3_exp_unchecked
 from ._solvers import RESULTS, minimize, result_message
-from ._srnf import _center
+from ._srnf import center_unchecked
 from ._units import in_units
 
 MODULI = ("diff", "rigid")
@@ -165,7 +170,7 @@ class ShapeGeodesicResult(NamedTuple):
 @functools.cache
 def _field_scale_np(m: int, n: int, degree: int) -> np.ndarray:
     """1 / sqrt(l(l+1)) per vector field: differentials grow like l; this evens the Hessian."""
-    ls = _harmonics_np(m, n, degree)[4][1:]
+    ls = harmonics_np(m, n, degree)[4][1:]
     return np.repeat(1.0 / np.sqrt(ls * (ls + 1.0)), 2)
 
 
@@ -208,7 +213,7 @@ def _grid_area_np(gamma: np.ndarray) -> float:
     a1, a2 = interior_frame(gamma)
     m, n = gamma.shape[-2:]
     signed = np.sum(np.cross(a2, a1, axis=0) * gamma[:, 1:-1, :-1], axis=0)
-    return float(np.sum(signed * _interior_weights_np(m, n)))
+    return float(np.sum(signed * interior_weights_np(m, n)))
 
 
 @functools.cache
@@ -240,7 +245,7 @@ def _resolution_np(m: int, n: int) -> tuple[float, float]:
 
 def _compose(gamma, step, interpolation):
     """gamma o step: read gamma's coordinates at the points of step, back onto the sphere."""
-    g = _reparametrize(gamma, step, method=interpolation)
+    g = reparametrize_unchecked(gamma, step, method=interpolation)
     return g / jnp.linalg.norm(g, axis=-3, keepdims=True)
 
 
@@ -274,7 +279,7 @@ def _resolved(gammas, floor):
     J > 0 at every grid point, and the discrete area of the reparametrized unit sphere
     (the integral of J) at least ``floor`` (:func:`_resolution_np`).
     """
-    jac = _jacobian_determinant(gammas)
+    jac = jacobian_determinant_unchecked(gammas)
     m, n = gammas.shape[-2:]
     area = jnp.einsum("...ij,ij->...", jac[..., 1:-1, :-1], interior_weights(m, n, jac.dtype))
     return (jnp.min(jac, axis=(-2, -1)) > 0) & (area >= floor)
@@ -331,7 +336,7 @@ class _State(NamedTuple):
 
 
 def _registered(prob, cfg, gamma):
-    return _reparametrize(prob.f1, gamma, method=cfg.interpolation)
+    return reparametrize_unchecked(prob.f1, gamma, method=cfg.interpolation)
 
 
 def _stepped_gamma(prob, cfg, gamma, x):
@@ -364,7 +369,7 @@ def _chain_frame(f, gamma, interpolation):
     points = gamma[:, 1:-1, :-1]
 
     def along(direction):
-        return jax.jvp(lambda p: _sample_points(f, p, interpolation), (points,), (direction,))[1]
+        return jax.jvp(lambda p: sample_points(f, p, interpolation), (points,), (direction,))[1]
 
     return along(g1 * c1), along(g2 * c2)
 
@@ -372,7 +377,7 @@ def _chain_frame(f, gamma, interpolation):
 def _frame_of(f, gamma, cfg):
     """The differential of f o gamma on gamma's interior points (cfg.differential)."""
     if cfg.differential == "grid":
-        return interior_frame(_reparametrize(f, gamma, method=cfg.interpolation))
+        return interior_frame(reparametrize_unchecked(f, gamma, method=cfg.interpolation))
     return _chain_frame(f, gamma, cfg.interpolation)
 
 
@@ -413,7 +418,7 @@ def _geodesic_options(cfg):
 
 def _geodesic_at(prob, cfg, gamma, rotation, init):
     """The parametrized geodesic from f1 o gamma to R f2, warm-started at ``init``."""
-    return _solve(
+    return solve_path(
         prob.metric,
         _registered(prob, cfg, gamma),
         _rotate(rotation, prob.f2),
@@ -429,7 +434,7 @@ def _straight_energy(prob, cfg, start_frame, end_frame):
     """The straight line's energy between two ends given by their frames."""
     # Ranking and refining straight lines needs no time resolution: 3 time points
     # (4.5x cheaper than N = 10) order the candidates the same way.
-    frames = _frames_between(start_frame, end_frame, 3)
+    frames = frames_between(start_frame, end_frame, 3)
     return frame_energy(prob.metric, *frames, cfg.scheme)
 
 
@@ -469,7 +474,7 @@ _DISTINCT_STARTS = 0.1
 def _start_map(points, max_boost, q, vb):
     """The start (q, vb) of the search applied to ``points (3, ...)`` of the sphere:
     q exp(hat v) phi_b, vb = (v, b), the boost b bounded to ``max_boost`` (_ball)."""
-    return _rotate(q @ _so3_exp(vb[:3]), moebius(points, _ball(vb[3:], max_boost)))
+    return _rotate(q @ so3_exp_unchecked(vb[:3]), moebius(points, _ball(vb[3:], max_boost)))
 
 
 def _aligned(prob, cfg, rigid, gamma):
@@ -657,7 +662,7 @@ def _registration_variables(prob, y, rigid):
     """Split the registration variables into the Diff step's x and R^3's rotation step."""
     n_fields = prob.bases.fields.shape[0]
     x = y[:n_fields]
-    r_step = _so3_exp(y[n_fields:]) if rigid else jnp.eye(3, dtype=y.dtype)
+    r_step = so3_exp_unchecked(y[n_fields:]) if rigid else jnp.eye(3, dtype=y.dtype)
     return x, r_step
 
 
@@ -670,15 +675,15 @@ def _joint_objective(prob, cfg, rigid, gamma, rotation, scaling):
         x, r_step = _registration_variables(prob, y, rigid)
         start = _registered_frame(prob, cfg, _stepped_gamma(prob, cfg, gamma, x))
         end = [_rotate(r_step, a) for a in end_frame]
-        straight = _frames_between(start, end, cfg.n_times)
-        frames = _perturbed_frames(straight, scaling.coefficients(z), prob.bases.dframe)
+        straight = frames_between(start, end, cfg.n_times)
+        frames = perturbed_frames(straight, scaling.coefficients(z), prob.bases.dframe)
         return frame_energy(prob.metric, *frames, cfg.scheme) / scaling.energy_scale
 
     return objective
 
 
 def _scaling_at(prob, cfg, gamma, rotation):
-    return _scaling(
+    return solver_scaling(
         prob.metric,
         _registered(prob, cfg, gamma),
         _rotate(rotation, prob.f2),
@@ -696,8 +701,8 @@ def _zero_registration(prob, rigid, dtype):
 def _path_energy_at(prob, cfg, gamma, rotation, coefficients):
     """Energy of the straight line from f1 o gamma to R f2 plus the perturbation."""
     start, end = _registered_frame(prob, cfg, gamma), _end_frame(prob, cfg, rotation)
-    straight = _frames_between(start, end, cfg.n_times)
-    frames = _perturbed_frames(straight, coefficients, prob.bases.dframe)
+    straight = frames_between(start, end, cfg.n_times)
+    frames = perturbed_frames(straight, coefficients, prob.bases.dframe)
     return frame_energy(prob.metric, *frames, cfg.scheme)
 
 
@@ -828,15 +833,15 @@ def _refinement(prob, cfg, gamma, rotation, coefficients, energy) -> Refinement:
     start, end = _registered_frame(prob, cfg, gamma), _end_frame(prob, cfg, rotation)
     n_fine = 2 * cfg.n_times - 1
     halved = upsample_coefficients(coefficients, degree, degree, n_fine)
-    straight = _frames_between(start, end, n_fine)
-    frames = _perturbed_frames(straight, halved, bases.dframe)
+    straight = frames_between(start, end, n_fine)
+    frames = perturbed_frames(straight, halved, bases.dframe)
     time_energy = frame_energy(metric, *frames, cfg.scheme)
 
     fine_gamma = _compose(gamma, bases.fine_points, cfg.interpolation)
     fine_start = _frame_of(prob.f1, fine_gamma, cfg)
     fine_end = [_rotate(rotation, a) for a in _frame_of(prob.f2, bases.fine_points, cfg)]
-    straight = _frames_between(fine_start, fine_end, cfg.n_times)
-    frames = _perturbed_frames(straight, coefficients, bases.fine_dframe)
+    straight = frames_between(fine_start, fine_end, cfg.n_times)
+    frames = perturbed_frames(straight, coefficients, bases.fine_dframe)
     grid_energy = frame_energy(metric, *frames, cfg.scheme)
 
     d = jnp.sqrt(energy)
@@ -937,7 +942,7 @@ def _final_solves(prob, cfg, state: _State):
 
     def solve(problem):
         start, end, init, (start_frame, end_frame) = problem
-        return _solve(
+        return solve_path(
             prob.metric,
             start,
             end,
@@ -955,7 +960,7 @@ def _final_solves(prob, cfg, state: _State):
 def _problem(metric, f1, f2, bases, rigid) -> _Problem:
     m, n = f1.shape[-2:]
     if rigid:
-        f1, f2 = _center(f1), _center(f2)
+        f1, f2 = center_unchecked(f1), center_unchecked(f2)
     return _Problem(metric, f1, f2, sphere_points(m, n, f1.dtype), bases)
 
 
@@ -1109,23 +1114,23 @@ def _shape_solve(metric, f1, f2, bases, cfg, rigid) -> ShapeGeodesicResult:
 def _shape_evaluate(metric, f1, f2, bases, gamma, rotation, coefficients, *, cfg, rigid):
     """The path from f1 o gamma to R f2 with the perturbation C, and its energy."""
     if rigid:
-        f1, f2 = _center(f1), _center(f2)
+        f1, f2 = center_unchecked(f1), center_unchecked(f2)
     prob = _Problem(metric, f1, f2, sphere_points(*f1.shape[-2:], f1.dtype), bases)
     start, end = _registered(prob, cfg, gamma), _rotate(rotation, f2)
-    path = _path(start, end, coefficients, bases.values, cfg.n_times)
+    path = path_from_coefficients(start, end, coefficients, bases.values, cfg.n_times)
     return path, _path_energy_at(prob, cfg, gamma, rotation, coefficients)
 
 
 def _bases(m: int, n: int, cfg: ShapeOptions, dtype) -> _Bases:
-    values, dframe = _basis_np(m, n, cfg.degree)
+    values, dframe = basis_np(m, n, cfg.degree)
     fine = (2 * m - 1, 2 * n - 1)
-    fine_dframe = _basis_np(*fine, cfg.degree)[1] if cfg.refinement else np.zeros((1, 1))
+    fine_dframe = basis_np(*fine, cfg.degree)[1] if cfg.refinement else np.zeros((1, 1))
     arrays = _Bases(
         values=values,
         dframe=dframe,
-        fields=_vector_fields_np(m, n, cfg.vf_degree),
+        fields=vector_fields_np(m, n, cfg.vf_degree),
         field_scale=_field_scale_np(m, n, cfg.vf_degree),
-        ico=_icosahedral_np(),
+        ico=icosahedral_np(),
         fine_points=sphere_points_np(*fine),
         fine_dframe=fine_dframe,
         area_floor=np.asarray(_resolution_np(m, n)[0]),
@@ -1163,7 +1168,7 @@ def _inverse_gamma(gamma: Array) -> tuple[Array, Array]:
     nearest = jax.lax.map(lambda p: jnp.argmax(p @ images), points.T, batch_size=256)
 
     def read(x):
-        y = _sample_points(gamma, x[:, None], "bicubic")[:, 0]
+        y = sample_points(gamma, x[:, None], "bicubic")[:, 0]
         return y / jnp.linalg.norm(y)
 
     def solve(x, target):
@@ -1225,7 +1230,7 @@ def _given_start(start, m: int, n: int, dtype, rigid: bool):
             raise InputError("start's rotation must be a rotation (orthogonal, det +1)")
     if gamma.shape[-2:] != (m, n):
         gamma = _compose(gamma, sphere_points(m, n, dtype), "bicubic")
-    if is_concrete(gamma) and not float(jnp.min(_jacobian_determinant(gamma))) > 0:
+    if is_concrete(gamma) and not float(jnp.min(jacobian_determinant_unchecked(gamma))) > 0:
         raise InputError(
             f"start's gamma is not a diffeomorphism on the {m} x {n} grid (its Jacobian "
             "determinant is not positive at every grid point)"
@@ -1315,7 +1320,7 @@ def shape_geodesic(
     """
     check_choice("modulo", modulo, MODULI)
     cfg = resolve_options(options, changes)
-    f1, f2 = _check_pair(f1, f2)
+    f1, f2 = check_pair(f1, f2)
     if symmetric:
         return _symmetric_solve(f1, f2, metric, modulo, cfg, start)
     m, n = f1.shape[-2:]
@@ -1358,7 +1363,10 @@ def _symmetric_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
         if float(other.distance) < float(best.distance):
             inverse, residual = _inverse_gamma(other.gamma)
             tol = 10.0 * float(np.sqrt(np.finfo(np.dtype(inverse.dtype)).eps))
-            if float(residual) <= tol and float(jnp.min(_jacobian_determinant(inverse))) > 0:
+            if (
+                float(residual) <= tol
+                and float(jnp.min(jacobian_determinant_unchecked(inverse))) > 0
+            ):
                 again = solve(f1, f2, start=(inverse, other.rotation.T))
                 if float(again.distance) < float(best.distance):
                     best = again
@@ -1424,3 +1432,10 @@ def _restore_shape_units(result: ShapeGeodesicResult, units, rigid: bool) -> Sha
             distance_grid=result.refinement.distance_grid * s,
         ),
     )
+
+
+def turned_back(res, end):
+    """A shape geodesic's path (from f1 o gamma to R f2) turned by R^T and moved so that it
+    ends at ``end`` (its f2) as parametrized and placed (modulo "rigid" centres both)."""
+    back = jnp.einsum("ji,tj...->ti...", res.rotation, res.path)
+    return back + (end - back[-1]).mean(axis=(-2, -1), keepdims=True)[None]

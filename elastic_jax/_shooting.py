@@ -28,28 +28,15 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._checks import (
-    InputError,
-    check_choice,
-    check_finite,
-    check_int,
-    check_positive,
-    is_concrete,
-    real_array,
-)
+from ._checks import check_choice, check_finite, check_int, check_positive, is_concrete, real_array
 from ._differential import interior_frame
 from ._energy import frame_energy, frame_speeds2
-from ._geodesic import (
-    ConvergenceWarning,
-    GeodesicResult,
-    _basis_np,
-    _check_pair,
-    geodesic,
-    safe_sqrt,
-)
+from ._errors import ConvergenceWarning, InputError
+from ._geodesic import GeodesicResult, basis_np, check_pair, geodesic, safe_sqrt
 from ._harmonics import check_degree
 from ._metric import SplitMetric
 from ._options import SHOOTING_SCHEMES, ShapeOptions
+from ._shape import shape_geodesic, turned_back
 from ._units import in_units
 from ._validation import as_surface
 
@@ -136,7 +123,7 @@ def _energy_of(metric, scheme, *frames):
     return frame_energy(metric, a1, a2, scheme)
 
 
-def _node_solve(metric, scheme, f_a, f_b, c_guess, values, dframe, *, unknown, tol, max_newton):
+def node_solve(metric, scheme, f_a, f_b, c_guess, values, dframe, *, unknown, tol, max_newton):
     """One node of a discrete geodesic f_a, f_mid, f_b by Newton's method on the energy's
     Euler-Lagrange equation in the middle node, projected on the surface basis.
 
@@ -202,7 +189,7 @@ def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
         f_prev, f_here, c_guess, alive = carry
 
         def solve(_):
-            f_next, c, residual, steps, ok = _node_solve(
+            f_next, c, residual, steps, ok = node_solve(
                 metric,
                 scheme,
                 f_prev,
@@ -243,7 +230,7 @@ def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
 _shoot_jit = jax.jit(_shoot, static_argnames=("n_times", "scheme", "tol", "max_newton"))
 
 
-def _check_scheme(scheme: str) -> None:
+def check_scheme(scheme: str) -> None:
     if scheme == "central":
         raise InputError(
             'scheme="central" cannot be shot: its energy couples each node to two neighbours '
@@ -289,17 +276,17 @@ def shoot(
         counts the solved nodes. Vmappable over f and v; differentiable (optimistix's
         implicit adjoint per step).
     """
-    _check_scheme(scheme)
+    check_scheme(scheme)
     f = as_surface(f, "f")
     if f.ndim != 3:
         raise InputError(f"f must be one surface (3, m, n); got {f.shape}. Batch with jax.vmap.")
-    v = _as_velocity(v, f)
+    v = as_velocity(v, f)
     m, n = f.shape[-2:]
     degree = check_degree(degree, m, n)
     n_times = check_int("n_times", n_times, 3)
     max_newton = check_int("max_newton", max_newton, 1)
     tol = default_newton_tol(f.dtype) if tol is None else check_positive("tol", tol)
-    values, dframe = (jnp.asarray(a, f.dtype) for a in _basis_np(m, n, degree))
+    values, dframe = (jnp.asarray(a, f.dtype) for a in basis_np(m, n, degree))
     # In units of f's size (see _units): the energy is homogeneous, the path scales.
     units, (g,) = in_units(f)
     s = units.scale
@@ -347,7 +334,7 @@ def _failure_message(result: ShootingResult, tol: float, max_newton: int) -> str
     )
 
 
-def _as_velocity(v, f: Array, name: str = "v") -> Array:
+def as_velocity(v, f: Array, name: str = "v") -> Array:
     """v as a finite array of f's dtype and shape (a tangent vector: no immersion check)."""
     v = real_array(v, name)
     check_finite(v, name)
@@ -392,15 +379,13 @@ def log(
     Returns:
         :class:`LogResult`.
     """
-    from ._karcher import _geodesic_kwargs, turned_back
-    from ._shape import shape_geodesic
 
     check_choice("modulo", modulo, ("none", "diff", "rigid"))
     options = (ShapeOptions() if options is None else options).replace(**changes)
-    _check_scheme(options.scheme)
-    f1, f2 = _check_pair(f1, f2)
+    check_scheme(options.scheme)
+    f1, f2 = check_pair(f1, f2)
     if modulo == "none":
-        res: GeodesicResult = geodesic(f1, f2, metric, **_geodesic_kwargs(options))
+        res: GeodesicResult = geodesic(f1, f2, metric, **options.geodesic_kwargs())
         path = res.path
     else:
         if options.scheme != "midpoint":

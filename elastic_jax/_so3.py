@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._checks import InputError
+from ._errors import InputError
 
 
 def hat(w: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
@@ -32,7 +32,7 @@ def _small(t2: Array) -> Array:
 
 
 @jax.jit
-def _so3_exp(w):
+def so3_exp_unchecked(w):
     t2 = jnp.sum(w * w, axis=-1)
     small = _small(t2)
     # The safe where: evaluate sin t / t only where t is not small, so that the unused
@@ -63,7 +63,7 @@ def so3_exp(w: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
         raise InputError(f"w must have shape (..., 3); got {w.shape}")
     if not jnp.issubdtype(w.dtype, jnp.floating):
         w = w.astype(jnp.result_type(float))
-    return _so3_exp(w)
+    return so3_exp_unchecked(w)
 
 
 @jax.jit
@@ -117,7 +117,7 @@ def so3_log(r: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
 
 
 @functools.cache
-def _icosahedral_np() -> np.ndarray:
+def icosahedral_np() -> np.ndarray:
     golden = (1.0 + np.sqrt(5.0)) / 2.0
     axis = np.array([0.0, 1.0, golden]) / np.hypot(1.0, golden)  # through a vertex
     k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
@@ -149,4 +149,4 @@ def icosahedral_group(dtype=None) -> Float[Array, "60 3 3"]:
     Returns:
         ``(60, 3, 3)``.
     """
-    return jnp.asarray(_icosahedral_np(), dtype=dtype)
+    return jnp.asarray(icosahedral_np(), dtype=dtype)

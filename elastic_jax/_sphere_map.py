@@ -46,8 +46,9 @@ import scipy.sparse.csgraph
 import scipy.sparse.linalg
 import scipy.spatial
 
-from ._checks import InputError, check_grid_shape, check_int, check_positive
-from ._geodesic import ConvergenceWarning
+from ._checks import check_grid_shape, check_int, check_positive
+from ._errors import ConvergenceWarning, InputError
+from ._grid import from_distinct, grid_directions
 
 # Faces whose area is below this fraction of the mean face area count as zero-area.
 _ZERO_AREA = 1e-12
@@ -155,11 +156,9 @@ class SphericalParametrization(NamedTuple):
         Returns:
             ``(3, m, n)`` float64 (poles and seam repeated as on the grid).
         """
-        from . import io  # the grid helpers live with the other mesh/grid conversions
-
         check_grid_shape((3, m, n), "the grid (3, m, n)")
-        directions = io._grid_directions(m, n)
-        return io._from_distinct(sample_mesh(self, directions), m, n)
+        directions = grid_directions(m, n)
+        return from_distinct(sample_mesh(self, directions), m, n)
 
 
 def _face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

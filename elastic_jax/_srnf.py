@@ -7,34 +7,35 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from ._differential import (
-    _pole_phi_derivative,
     area_element,
     cross,
     dot,
     interior_frame,
     pole_fourier1,
+    pole_phi_derivative,
 )
+from ._energy import as_path
 from ._grid import integrate_interior
 from ._validation import as_surface
 
 
-def _sqrt_normal(normal: Array) -> Array:
+def sqrt_normal(normal: Array) -> Array:
     # q = N / |N|^(1/2); |N| = 0 only where f is not an immersion.
     return normal * jax.lax.rsqrt(jnp.sqrt(dot(normal, normal)))[..., None, :, :]
 
 
 @jax.jit
-def _srnf(f: Array) -> Array:
+def srnf_unchecked(f: Array) -> Array:
     a1, a2 = interior_frame(f)
     # a1 x a2 points inward for the identity immersion; q uses the outward normal.
-    q = _sqrt_normal(cross(a2, a1))
+    q = sqrt_normal(cross(a2, a1))
     # At a pole df maps the direction at azimuth theta to f_phi(pole, theta); its
     # first Fourier mode cos(theta) X + sin(theta) Y gives the tangent plane X, Y.
-    north, south = _pole_phi_derivative(f)
+    north, south = pole_phi_derivative(f)
     xn, yn = pole_fourier1(north)
     xs, ys = pole_fourier1(south)
-    qn = _sqrt_normal(jnp.cross(xn, yn, axis=-1)[..., :, None, None])
-    qs = _sqrt_normal(jnp.cross(ys, xs, axis=-1)[..., :, None, None])
+    qn = sqrt_normal(jnp.cross(xn, yn, axis=-1)[..., :, None, None])
+    qs = sqrt_normal(jnp.cross(ys, xs, axis=-1)[..., :, None, None])
     n_cols = q.shape[-1]
     qn = jnp.broadcast_to(qn, qn.shape[:-1] + (n_cols,))
     qs = jnp.broadcast_to(qs, qs.shape[:-1] + (n_cols,))
@@ -56,12 +57,12 @@ def srnf(f: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array, "*batch 3 m n"]:
     Returns:
         ``(..., 3, m, n)``.
     """
-    return _srnf(as_surface(f, "f"))
+    return srnf_unchecked(as_surface(f, "f"))
 
 
 @jax.jit
 def _srnf_distance(f1, f2):
-    q1, q2 = _srnf(f1), _srnf(f2)
+    q1, q2 = srnf_unchecked(f1), srnf_unchecked(f2)
     diff = (q1 - q2)[..., 1:-1, :-1]
     return jnp.sqrt(integrate_interior(dot(diff, diff)))
 
@@ -85,7 +86,7 @@ def srnf_distance(
 
 @jax.jit
 def _srnf_path_length(path):
-    q = _srnf(path)[..., 1:-1, :-1]
+    q = srnf_unchecked(path)[..., 1:-1, :-1]
     steps = q[..., 1:, :, :, :] - q[..., :-1, :, :, :]
     return jnp.sum(jnp.sqrt(integrate_interior(dot(steps, steps))), axis=-1)
 
@@ -101,13 +102,12 @@ def srnf_path_length(path: Float[ArrayLike, "*batch N 3 m n"]) -> Float[Array, "
     Returns:
         ``(...)``.
     """
-    from ._energy import as_path
 
     return _srnf_path_length(as_path(path))
 
 
 @jax.jit
-def _surface_area(f):
+def surface_area_unchecked(f):
     return integrate_interior(area_element(*interior_frame(f)))
 
 
@@ -120,11 +120,11 @@ def surface_area(f: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array, "*batch"]:
     Returns:
         ``(...)``; 4 pi r^2 for a sphere of radius r, to O(h^2).
     """
-    return _surface_area(as_surface(f, "f"))
+    return surface_area_unchecked(as_surface(f, "f"))
 
 
 @jax.jit
-def _center(f):
+def center_unchecked(f):
     a1, a2 = interior_frame(f)
     dens = area_element(a1, a2)
     mass = integrate_interior(dens)
@@ -145,4 +145,4 @@ def center(f: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array, "*batch 3 m n"]:
     Returns:
         ``(..., 3, m, n)``.
     """
-    return _center(as_surface(f, "f"))
+    return center_unchecked(as_surface(f, "f"))

@@ -24,7 +24,6 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._checks import (
-    InputError,
     check_choice,
     check_finite,
     check_grid_shape,
@@ -34,17 +33,13 @@ from ._checks import (
     real_array,
 )
 from ._differential import cross, dot, interior_frame
-from ._geodesic import (
-    ConvergenceWarning,
-    _basis_np,
-    _check_pair,
-    _sqrt_inverse_pair,
-)
-from ._grid import _interior_weights_np, integrate_interior, sphere_points_np
+from ._errors import ConvergenceWarning, InputError
+from ._geodesic import basis_np, check_pair, sqrt_inverse_pair
+from ._grid import integrate_interior, interior_weights_np, sphere_points_np
 from ._harmonics import check_degree
 from ._options import SOLVERS
 from ._solvers import RESULTS, minimize, result_message
-from ._srnf import _center, _sqrt_normal, _srnf, _surface_area
+from ._srnf import center_unchecked, sqrt_normal, srnf_unchecked, surface_area_unchecked
 from ._validation import as_surface
 
 __all__ = ["SrnfGeodesic", "SrnfInversion", "srnf_geodesic", "srnf_invert"]
@@ -114,7 +109,7 @@ class SrnfGeodesic(NamedTuple):
 def _unit_sphere_area(m: int, n: int) -> float:
     # The grid's own area of the unit sphere (4 pi to O(h^2)), so that the start's discrete
     # area matches the area q encodes exactly.
-    return float(_surface_area(jnp.asarray(sphere_points_np(m, n))))
+    return float(surface_area_unchecked(jnp.asarray(sphere_points_np(m, n))))
 
 
 def _srnf_norm2(q_inner: Array) -> Array:
@@ -142,15 +137,15 @@ def _invert_level(q_inner, norm2, f0_frames, c0, dframe, *, solver, max_steps, t
         a1 = b1 + pert[:, :points].reshape(b1.shape)
         a2 = b2 + pert[:, points:].reshape(b2.shape)
         # MATH.md 3: a1 x a2 points inward for the identity; Q uses the outward normal.
-        return _sqrt_normal(cross(a2, a1))
+        return sqrt_normal(cross(a2, a1))
 
     m, n = b1.shape[-2] + 2, b1.shape[-1] + 1
-    root_w = jnp.asarray(np.sqrt(_interior_weights_np(m, n))[None], dtype)
+    root_w = jnp.asarray(np.sqrt(interior_weights_np(m, n))[None], dtype)
     jac = jax.jacfwd(lambda c: (q_of(c) * root_w).reshape(-1))(c0)
     gram = (jac.T @ jac) / norm2
     # The SRNF metric has no shear term (a = 0), so G may have nearly free directions;
     # unfloored, A would stretch them without bound (the geodesic solver's floor).
-    whiten, _ = _sqrt_inverse_pair(gram, 1e-6)
+    whiten, _ = sqrt_inverse_pair(gram, 1e-6)
 
     def objective(z):
         d = q_of(c0 + whiten @ z) - q_inner
@@ -165,7 +160,7 @@ def _invert_level(q_inner, norm2, f0_frames, c0, dframe, *, solver, max_steps, t
 def _invert(q, f0, values, dframe, *, degrees, solver, max_steps, tol):
     """Coarse-to-fine inversion of q from f0 (traceable; both in units of size ~1).
 
-    ``values``, ``dframe``: the basis of the last degree from ``_basis_np``; a lower
+    ``values``, ``dframe``: the basis of the last degree from ``basis_np``; a lower
     degree's basis is its leading rows (harmonics ordered by degree).
     """
     m, n = q.shape[-2:]
@@ -196,7 +191,7 @@ def _invert(q, f0, values, dframe, *, degrees, solver, max_steps, tol):
     surface = f0 + (c @ values[:k]).reshape(3, m, n)
     residual = residuals[-1]
     return SrnfInversion(
-        surface=_center(surface),
+        surface=center_unchecked(surface),
         residual=residual,
         relative_residual=residual / jnp.sqrt(norm2),
         coefficients=c.reshape(-1),
@@ -365,8 +360,8 @@ def srnf_invert(
                 f"f0 must have the shape and dtype of q, {q.shape} {q.dtype}; got "
                 f"{f0.shape} {f0.dtype}"
             )
-        start = _center(f0) / scale
-    values, dframe = (jnp.asarray(a, q.dtype) for a in _basis_np(m, n, degrees[-1]))
+        start = center_unchecked(f0) / scale
+    values, dframe = (jnp.asarray(a, q.dtype) for a in basis_np(m, n, degrees[-1]))
     found = _invert_jit(
         q / scale,
         start,
@@ -417,18 +412,18 @@ def srnf_geodesic(
     Returns:
         :class:`SrnfGeodesic`; a ConvergenceWarning when a node did not converge.
     """
-    f1, f2 = _check_pair(f1, f2)
+    f1, f2 = check_pair(f1, f2)
     m, n = f1.shape[-2:]
     n_times = check_int("n_times", n_times, 2)
     degrees, max_steps, tol = _check_options(degrees, solver, max_steps, tol, m, n, f1.dtype)
-    q1, q2 = _srnf(f1), _srnf(f2)
+    q1, q2 = srnf_unchecked(f1), srnf_unchecked(f2)
     scale = _srnf_units(q1, q2) if is_concrete(q1, q2) else 1.0
-    centred1 = _center(f1)
-    shift1, shift2 = f1 - centred1, f2 - _center(f2)
+    centred1 = center_unchecked(f1)
+    shift1, shift2 = f1 - centred1, f2 - center_unchecked(f2)
     t = jnp.linspace(0.0, 1.0, n_times, dtype=f1.dtype)
     zero_i, true = jnp.zeros(1, jnp.int32), jnp.ones(1, bool)
     if n_times > 2:
-        values, dframe = (jnp.asarray(a, f1.dtype) for a in _basis_np(m, n, degrees[-1]))
+        values, dframe = (jnp.asarray(a, f1.dtype) for a in basis_np(m, n, degrees[-1]))
         nodes = _srnf_line(
             q1 / scale,
             q2 / scale,
@@ -453,7 +448,7 @@ def srnf_geodesic(
         steps, converged = jnp.zeros(0, jnp.int32), jnp.zeros(0, bool)
     zero = jnp.zeros(1, f1.dtype)
     path = jnp.concatenate([f1[None], interior, f2[None]])
-    q_path = _srnf(path)[:, :, 1:-1, :-1]
+    q_path = srnf_unchecked(path)[:, :, 1:-1, :-1]
     steps_q = q_path[1:] - q_path[:-1]
     result = SrnfGeodesic(
         path=path,

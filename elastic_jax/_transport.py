@@ -26,12 +26,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._checks import InputError, check_choice, check_int, check_positive, is_concrete
+from ._checks import check_choice, check_int, check_positive, is_concrete
 from ._energy import as_path
-from ._geodesic import ConvergenceWarning, _basis_np
+from ._errors import ConvergenceWarning, InputError
+from ._geodesic import basis_np
 from ._harmonics import check_degree
 from ._metric import SplitMetric, metric_inner
-from ._shooting import _as_velocity, _check_scheme, _node_solve, default_newton_tol
+from ._shooting import as_velocity, check_scheme, default_newton_tol, node_solve
 from ._units import units_of
 
 
@@ -72,13 +73,13 @@ def _ladder(metric, w, path, values, dframe, *, scheme, midpoint, tol, max_newto
         def solve(_):
             p = f_k + h * w_k
             if midpoint == "exact":
-                m, c_m, r_mid, _, ok_mid = _node_solve(
+                m, c_m, r_mid, _, ok_mid = node_solve(
                     metric, scheme, p, f_next, c_mid, values, dframe, unknown="middle", **options
                 )
             else:
                 m, c_m = 0.5 * (p + f_next), c_mid
                 r_mid, ok_mid = jnp.zeros((), w.dtype), jnp.array(True)
-            q, c_r, r_ref, _, ok_ref = _node_solve(
+            q, c_r, r_ref, _, ok_ref = node_solve(
                 metric, scheme, f_k, m, c_ref, values, dframe, unknown="next", **options
             )
             return (q - f_next) / h, c_m, c_r, jnp.stack([r_mid, r_ref]), ok_mid & ok_ref
@@ -132,17 +133,17 @@ def parallel_transport(
     Returns:
         :class:`TransportResult`; a ConvergenceWarning when a solve failed.
     """
-    _check_scheme(scheme)
+    check_scheme(scheme)
     check_choice("midpoint", midpoint, ("exact", "affine"))
     path = as_path(path)
     if path.ndim != 4:
         raise InputError(f"path must be one path (N, 3, m, n); got {path.shape}")
-    w = _as_velocity(w, path[0], "w")
+    w = as_velocity(w, path[0], "w")
     m, n = path.shape[-2:]
     degree = check_degree(degree, m, n)
     max_newton = check_int("max_newton", max_newton, 1)
     tol = default_newton_tol(path.dtype) if tol is None else check_positive("tol", tol)
-    values, dframe = (jnp.asarray(a, path.dtype) for a in _basis_np(m, n, degree))
+    values, dframe = (jnp.asarray(a, path.dtype) for a in basis_np(m, n, degree))
     # In units of the path's size: vectors scale like the surfaces, norms with them.
     units = units_of(path[0], path[-1])
     s = units.scale

@@ -5,8 +5,9 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from ._checks import InputError, _where, check_grid_shape, extents, grid_array
+from ._checks import check_grid_shape, extents, grid_array, item_suffix
 from ._differential import area_element, interior_frame
+from ._errors import InputError
 
 __all__ = ["as_surface", "check_grid_shape", "validate_surface"]
 
@@ -44,7 +45,7 @@ def as_surface(f, name: str, *, check_immersion: bool = True) -> jax.Array:
         k, i, j = np.argwhere(degenerate)[0]
         phi, theta = (i + 1) * np.pi / (m - 1), j * 2 * np.pi / (n - 1)
         raise InputError(
-            f"{name} is not an immersion{_where(batch, k)}: the area element vanishes at "
+            f"{name} is not an immersion{item_suffix(batch, k)}: the area element vanishes at "
             f"{int(degenerate.sum())} interior grid point(s), the first at row i={i + 1}, "
             f"column j={j} (phi={phi:.4f}, theta={theta:.4f})"
         )
@@ -77,6 +78,6 @@ def validate_surface(f, name: str = "f") -> jax.Array:
         >>> validate_surface(f)  # doctest: +ELLIPSIS
         Traceback (most recent call last):
         ...
-        elastic_jax._checks.InputError: f contains 1 non-finite value(s) (NaN or inf); ...
+        elastic_jax.InputError: f contains 1 non-finite value(s) (NaN or inf); ...
     """
     return as_surface(f, name)

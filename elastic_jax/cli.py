@@ -35,7 +35,8 @@ import warnings
 from collections.abc import Callable, Sequence
 
 from ._atomic import TEMPORARY, stale_temporaries
-from ._checks import InputError, check_grid_shape, check_int, check_positive
+from ._checks import check_grid_shape, check_int, check_positive
+from ._errors import InputError
 from ._options import INITS, METHODS, SCHEMES, SHOOTING_SCHEMES, SOLVERS, ShapeOptions
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_NOT_CONVERGED = 0, 1, 2, 3
@@ -77,7 +78,7 @@ KARCHER_OWN_FLAGS = {
 }
 
 
-class BadInput(Exception):
+class BadInput(InputError):
     """An input the command cannot use; reported in one line with exit code 2."""
 
 
@@ -804,7 +805,7 @@ def _run_pca(args, progress: Progress) -> dict:
 
     from . import io, plot
     from ._atomic import save_npz_atomic, write_text_atomic
-    from ._geodesic import ConvergenceWarning
+    from ._errors import ConvergenceWarning
     from ._pca import mode_path, tangent_pca
 
     if args.karcher_output is None:
@@ -1468,7 +1469,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 "compiling without a cache",
                 file=sys.stderr,
             )
-    from ._geodesic import ConvergenceWarning
+    from ._errors import ConvergenceWarning
 
     progress = Progress(args.quiet)
     previous = signal.signal(signal.SIGTERM, _raise_terminated)

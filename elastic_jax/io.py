@@ -35,8 +35,9 @@ import scipy.io
 import trimesh
 
 from ._atomic import atomic_path, save_npz_atomic
-from ._checks import InputError, check_choice
-from ._grid import _angles_np
+from ._checks import check_choice
+from ._errors import InputError
+from ._grid import from_distinct, grid_directions
 from ._interp import resample
 from ._sphere_map import (
     DegenerateFaceError,
@@ -97,30 +98,6 @@ def _mesh_loadable_formats() -> tuple[str, ...]:
 
 def _suffix(path: pathlib.Path) -> str:
     return path.suffix.lower().lstrip(".")
-
-
-def _grid_directions(m: int, n: int) -> np.ndarray:
-    """Unit vectors of the distinct grid points: north pole, interior rows, south pole.
-
-    Returns:
-        ``(2 + (m - 2)(n - 1), 3)`` float64, in the vertex order of :func:`grid_to_mesh`.
-    """
-    phi, theta = _angles_np(m, n)
-    phi, theta = np.meshgrid(phi[1:-1], theta[:-1], indexing="ij")
-    interior = np.stack(
-        [np.sin(phi) * np.cos(theta), np.sin(phi) * np.sin(theta), np.cos(phi)], axis=-1
-    )
-    return np.concatenate([[[0.0, 0.0, 1.0]], interior.reshape(-1, 3), [[0.0, 0.0, -1.0]]])
-
-
-def _from_distinct(points: np.ndarray, m: int, n: int) -> np.ndarray:
-    """``(2 + (m - 2)(n - 1), 3)`` distinct grid points -> ``(3, m, n)`` with poles and seam."""
-    f = np.empty((3, m, n))
-    f[:, 0, :] = points[0][:, None]
-    f[:, -1, :] = points[-1][:, None]
-    f[:, 1:-1, :-1] = points[1:-1].reshape(m - 2, n - 1, 3).transpose(2, 0, 1)
-    f[:, :, -1] = f[:, :, 0]
-    return f
 
 
 def _as_trimesh(mesh) -> trimesh.Trimesh:
@@ -381,7 +358,7 @@ def _radial(mesh, vertices, m: int, n: int, center, hint: bool) -> np.ndarray:
             raise InputError(f"center must be 3 finite numbers; got {center!r}")
         about = "the given center"
     scale = float(np.max(np.linalg.norm(vertices - origin, axis=1)))
-    directions = _grid_directions(m, n)
+    directions = grid_directions(m, n)
     ray, t = _crossings(mesh, origin, directions, _MERGE_RTOL * scale)
     count = np.bincount(ray, minlength=len(directions))
 
@@ -404,7 +381,7 @@ def _radial(mesh, vertices, m: int, n: int, center, hint: bool) -> np.ndarray:
             + (_star_hint(mesh, center) if hint else "")
         )
     # One crossing per ray, sorted by ray: t lines up with the directions.
-    return _from_distinct(origin + t[:, None] * directions, m, n)
+    return from_distinct(origin + t[:, None] * directions, m, n)
 
 
 def _star_hint(mesh: trimesh.Trimesh, center) -> str:

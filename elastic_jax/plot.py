@@ -34,7 +34,8 @@ from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the "3d" proje
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from ._atomic import atomic_path
-from ._checks import InputError, check_int, check_positive
+from ._checks import check_int, check_positive
+from ._errors import InputError
 from ._metric import SplitMetric
 from ._pca import TangentPCA, mode_path
 from ._validation import as_surface

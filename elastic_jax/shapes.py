@@ -22,6 +22,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._grid import sphere_points
+from ._reparam import moebius as _moebius_map
 
 __all__ = ["sphere", "ellipsoid", "bumpy", "bent_cylinder", "sample", "random_rotation"]
 
@@ -109,9 +110,7 @@ def sample(
     """
     x = sphere_points(m, n, dtype=dtype)
     if moebius is not None:
-        from ._reparam import moebius as moebius_map
-
-        x = moebius_map(x, jnp.asarray(moebius, dtype=x.dtype))
+        x = _moebius_map(x, jnp.asarray(moebius, dtype=x.dtype))
     if rotation is not None:
         x = jnp.einsum("ij,jmn->imn", jnp.asarray(rotation, dtype=x.dtype), x)
     f = shape(x, **params)

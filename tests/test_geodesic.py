@@ -6,7 +6,7 @@ import pytest
 import elastic_jax as ej
 from elastic_jax import shapes
 from elastic_jax._energy import frame_energy
-from elastic_jax._geodesic import _basis_np, _perturbed_frames, _scaling, _straight_frames
+from elastic_jax._geodesic import _straight_frames, basis_np, perturbed_frames, solver_scaling
 
 from .conftest import relerr
 
@@ -145,12 +145,12 @@ def midpoint(saddle_pair):
 def _scaled_objective(f1, f2, degree, n_times, scheme):
     """The whitened objective the solver minimizes, and the map coefficients -> its z."""
     m, n = f1.shape[-2:]
-    dframe = jnp.asarray(_basis_np(m, n, degree)[1], f1.dtype)
-    scaling = _scaling(METRIC, f1, f2, dframe, n_times, scheme)
+    dframe = jnp.asarray(basis_np(m, n, degree)[1], f1.dtype)
+    scaling = solver_scaling(METRIC, f1, f2, dframe, n_times, scheme)
     straight = _straight_frames(f1, f2, n_times)
 
     def objective(z):
-        frames = _perturbed_frames(straight, scaling.coefficients(z), dframe)
+        frames = perturbed_frames(straight, scaling.coefficients(z), dframe)
         return frame_energy(METRIC, *frames, scheme) / scaling.energy_scale
 
     return objective, scaling.whitened

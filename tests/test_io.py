@@ -12,7 +12,7 @@ import trimesh
 
 import elastic_jax as ej
 from elastic_jax import io, resample, shapes
-from elastic_jax._grid import _angles_np
+from elastic_jax._grid import angles_np
 
 AXES = np.array([1.0, 0.7, 0.5])
 # Smallest radius of curvature of that ellipsoid: c^2 / a, at the ends of the long axis.
@@ -21,7 +21,7 @@ R_MIN = AXES.min() ** 2 / AXES.max()
 
 def grid_directions(m: int, n: int) -> np.ndarray:
     """Unit vectors e1 on the grid, (3, m, n) float64, computed here in numpy."""
-    phi, theta = _angles_np(m, n)
+    phi, theta = angles_np(m, n)
     u = np.stack(
         [
             np.outer(np.sin(phi), np.cos(theta)),

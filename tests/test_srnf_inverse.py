@@ -3,9 +3,7 @@ import numpy as np
 import pytest
 
 import elastic_jax as ej
-from elastic_jax import shapes, srnf_geodesic, srnf_invert
-from elastic_jax._checks import InputError
-from elastic_jax._geodesic import ConvergenceWarning
+from elastic_jax import ConvergenceWarning, InputError, shapes, srnf_geodesic, srnf_invert
 
 from .conftest import relerr
 
