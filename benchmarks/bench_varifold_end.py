@@ -38,10 +38,11 @@ import optimistix as optx  # noqa: E402
 import elastic_jax as ej  # noqa: E402
 from elastic_jax._energy import _path_energy  # noqa: E402
 from elastic_jax._geodesic import basis_np, path_from_coefficients  # noqa: E402
+from elastic_jax._grid import distinct_points  # noqa: E402
 from elastic_jax._harmonics import harmonics_np  # noqa: E402
 from elastic_jax._so3 import so3_exp_unchecked  # noqa: E402
 from elastic_jax._srnf import center_unchecked  # noqa: E402
-from elastic_jax.io import _grid_faces, _grid_vertices  # noqa: E402
+from elastic_jax.io import _grid_faces  # noqa: E402
 
 from _common import DATA, emit, environment  # noqa: E402
 
@@ -51,7 +52,7 @@ METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 def _triangles(f):
     """Centres and area-weighted normals ``(T, 3)`` of the grid mesh of f ``(3, m, n)``."""
     faces = _grid_faces(*f.shape[-2:])
-    v = _grid_vertices(f)
+    v = distinct_points(f)
     a, b, c = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
     return (a + b + c) / 3.0, 0.5 * jnp.cross(b - a, c - a)
 

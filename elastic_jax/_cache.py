@@ -285,7 +285,6 @@ def _compiled(name, key, function, quick, static, treedef, leaves, n_outputs):
 def _store(file: pathlib.Path, data: bytes) -> None:
     """Write ``data`` to ``file`` atomically; a directory that cannot be written only
     loses the file (the program still runs)."""
-
     try:
         with atomic_path(file) as tmp:
             tmp.write_bytes(data)

@@ -6,8 +6,9 @@ dask-kubernetes): it moves the data, balances the load by work stealing and reru
 task of a worker that died. This module only cuts a job into tasks and collects them:
 
 - A task is one chunk of pairs (or of shapes, for a Karcher step), padded to the job's
-  chunk size like an in-process chunk, and computed by the same function
-  (``_karcher._distance_chunk`` / ``velocity_chunk``): each worker compiles one program
+  chunk size like an in-process chunk, and computed by the same function, which the
+  caller passes in (``_karcher.distance_chunk`` / ``velocity_chunk``; this module imports
+  no solver): each worker compiles one program
   for the whole job, and each pair's numbers do not depend on where it ran (lax.map and
   the loop solve every item on its own; vmap runs a chunk in lockstep, as in process).
 - The collection is scattered to the workers once; a task carries only its indices.

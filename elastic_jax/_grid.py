@@ -119,18 +119,19 @@ def sphere_points_np(m: int, n: int) -> np.ndarray:
     return x
 
 
-def grid_directions(m: int, n: int) -> np.ndarray:
-    """Unit vectors of the distinct grid points: north pole, interior rows, south pole.
+def distinct_points(f):
+    """The distinct grid points of ``f (3, m, n)`` as ``(2 + (m - 2)(n - 1), 3)``: north
+    pole, interior rows without the seam column, south pole (the vertex order of
+    ``io.grid_to_mesh``); a JAX array for a JAX input, so that triangle-based quantities
+    stay differentiable. :func:`from_distinct` is its inverse."""
+    xp = np if isinstance(f, np.ndarray) else jnp
+    return xp.concatenate([f[:, 0, :1], f[:, 1:-1, :-1].reshape(3, -1), f[:, -1, :1]], axis=1).T
 
-    Returns:
-        ``(2 + (m - 2)(n - 1), 3)`` float64, in the vertex order of ``io.grid_to_mesh``.
-    """
-    phi, theta = angles_np(m, n)
-    phi, theta = np.meshgrid(phi[1:-1], theta[:-1], indexing="ij")
-    interior = np.stack(
-        [np.sin(phi) * np.cos(theta), np.sin(phi) * np.sin(theta), np.cos(phi)], axis=-1
-    )
-    return np.concatenate([[[0.0, 0.0, 1.0]], interior.reshape(-1, 3), [[0.0, 0.0, -1.0]]])
+
+def grid_directions(m: int, n: int) -> np.ndarray:
+    """The unit vectors of the distinct grid points (:func:`distinct_points` of the
+    identity immersion), float64."""
+    return distinct_points(sphere_points_np(m, n))
 
 
 def from_distinct(points: np.ndarray, m: int, n: int) -> np.ndarray:

@@ -37,7 +37,7 @@ import trimesh
 from ._atomic import atomic_path, save_npz_atomic
 from ._checks import check_choice
 from ._errors import InputError
-from ._grid import from_distinct, grid_directions
+from ._grid import distinct_points, from_distinct, grid_directions
 from ._interp import resample
 from ._sphere_map import (
     DegenerateFaceError,
@@ -424,14 +424,6 @@ def _grid_faces(m: int, n: int) -> np.ndarray:
     return np.concatenate([north, quads, southfan])
 
 
-def _grid_vertices(f):
-    """The distinct grid points of ``f (3, m, n)`` as ``(V, 3)`` in :func:`_grid_faces`'
-    order (north pole, interior rows without the seam column, south pole); a JAX array
-    for a JAX input, so that triangle-based quantities stay differentiable."""
-    xp = np if isinstance(f, np.ndarray) else jax.numpy
-    return xp.concatenate([f[:, 0, :1], f[:, 1:-1, :-1].reshape(3, -1), f[:, -1, :1]], axis=1).T
-
-
 def grid_to_mesh(f) -> trimesh.Trimesh:
     """Triangulate a surface on the grid: one vertex per distinct grid point.
 
@@ -458,7 +450,7 @@ def grid_to_mesh(f) -> trimesh.Trimesh:
     # Validate a float64 copy: validate_surface returns a JAX array, float32 without x64.
     f = _checked_surfaces(np.asarray(f, dtype=np.float64), "f", "(3, m, n)")
     m, n = f.shape[1:]
-    vertices = _grid_vertices(f)
+    vertices = distinct_points(f)
     mesh = trimesh.Trimesh(vertices=vertices, faces=_grid_faces(m, n), process=False)
     if mesh.volume < 0:
         # An orientation-reversing parametrization (a mirror image): turn every face.
