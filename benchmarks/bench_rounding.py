@@ -64,7 +64,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
-from elastic_jax import _shape, shapes  # noqa: E402
+from elastic_jax import shapes  # noqa: E402
+from elastic_jax._registration import shape as _shape  # noqa: E402
 
 from _common import DATA, emit, environment  # noqa: E402
 
@@ -133,7 +134,7 @@ def variants(f1, f2, other, cfg) -> dict:
     units, (g1, g2) = _shape.in_units(f1, f2)
     scale = float(units.scale)
     m, n = f1.shape[-2:]
-    bases = _shape._bases(m, n, cfg, np.float64)
+    bases = _shape.make_bases(m, n, cfg, np.float64)
     args = (_shape.constant(METRIC), g1, g2, bases)
     out = {}
     for label, options in COMPILATIONS.items():

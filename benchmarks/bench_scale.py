@@ -246,12 +246,12 @@ print(json.dumps({{"distance": d, "rss_mb": rss_mb()}}))
 
 COMPILE = r"""
 import re
-from elastic_jax import _shape
+from elastic_jax._registration import shape as _shape
 m, n = {grid}
 f1, f2 = cats(m, n)
 cfg = ej.ShapeOptions(degree={degree}, vf_degree={vf_degree}, n_times={n_times})
 cfg = cfg.replace(tol=_shape.default_tol(np.float64))
-bases = _shape._bases(m, n, cfg, np.float64)
+bases = _shape.make_bases(m, n, cfg, np.float64)
 # The arguments shape_geodesic gives its solve (the surfaces in units of their size).
 _, (g1, g2) = _shape.in_units(f1, f2)
 args = (_shape.constant(metric), g1, g2, bases)

@@ -149,7 +149,7 @@ def midpoint_area_ratios(path) -> list[float]:
     """Per step k: min over cells of |a1 x a2| at (f_k + f_{k+1}) / 2 over the smaller of
     its values at f_k and f_{k+1} (1 when frames only stretch; small when a cell's frame
     turns through a large angle or it passes near a fold within the step)."""
-    from elastic_jax._differential import area_element, interior_frame
+    from elastic_jax._geometry.differential import area_element, interior_frame
 
     areas = area_element(*interior_frame(jnp.asarray(path)))
     middle = area_element(*interior_frame(0.5 * (jnp.asarray(path)[1:] + jnp.asarray(path)[:-1])))

@@ -36,12 +36,12 @@ import numpy as np  # noqa: E402
 import optimistix as optx  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
-from elastic_jax._energy import _path_energy  # noqa: E402
-from elastic_jax._geodesic import basis_np, path_from_coefficients  # noqa: E402
-from elastic_jax._grid import distinct_points  # noqa: E402
-from elastic_jax._harmonics import harmonics_np  # noqa: E402
-from elastic_jax._so3 import so3_exp_unchecked  # noqa: E402
-from elastic_jax._srnf import center_unchecked  # noqa: E402
+from elastic_jax._geodesics.geodesic import basis_np, path_from_coefficients  # noqa: E402
+from elastic_jax._geometry.energy import _path_energy  # noqa: E402
+from elastic_jax._geometry.grid import distinct_points  # noqa: E402
+from elastic_jax._geometry.harmonics import harmonics_np  # noqa: E402
+from elastic_jax._geometry.so3 import so3_exp_unchecked  # noqa: E402
+from elastic_jax._geometry.srnf import center_unchecked  # noqa: E402
 from elastic_jax.io import _grid_faces  # noqa: E402
 
 from _common import DATA, emit, environment  # noqa: E402

@@ -123,7 +123,7 @@ def grid_array(f, name: str) -> jax.Array:
     Shape checks always run. Value checks (finite; constant pole rows; seam column equal
     to column 0, to sqrt(eps) times the surface's extent) run only on concrete arrays, so
     that the public functions stay usable inside ``jax.jit`` and ``jax.vmap``. The
-    immersion check is :func:`elastic_jax._validation.as_surface`'s.
+    immersion check is :func:`elastic_jax._geometry.validation.as_surface`'s.
     """
     f = real_array(f, name)
     m, n = check_grid_shape(f.shape, name)

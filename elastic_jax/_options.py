@@ -17,7 +17,7 @@ __all__ = ["InputError", "ShapeOptions", "check_choice", "check_int", "check_pos
 SOLVERS = ("bfgs", "lbfgs")
 SCHEMES = ("forward", "central", "midpoint")
 # Schemes whose energy couples each node to its two neighbours only: they can be shot
-# (the central scheme couples five nodes; see _shooting).
+# (the central scheme couples five nodes; see _geodesics/shooting.py).
 SHOOTING_SCHEMES = ("midpoint", "forward")
 METHODS = ("joint", "coordinate")
 INITS = ("moebius", "energy", "icosahedral", "none")

@@ -34,12 +34,12 @@ import numpy as np
 import scipy.io
 import trimesh
 
-from ._atomic import atomic_path, save_npz_atomic
 from ._checks import check_choice
 from ._errors import InputError
-from ._grid import distinct_points, from_distinct, grid_directions
-from ._interp import resample
-from ._sphere_map import (
+from ._geometry.grid import distinct_points, from_distinct, grid_directions
+from ._geometry.interp import resample
+from ._geometry.validation import check_grid_shape, validate_surface
+from ._meshes.sphere_map import (
     DegenerateFaceError,
     InconsistentWindingError,
     MeshError,
@@ -52,7 +52,7 @@ from ._sphere_map import (
     check_mesh,
     parametrize,
 )
-from ._validation import check_grid_shape, validate_surface
+from ._runtime.atomic import atomic_path, save_npz_atomic
 
 __all__ = [
     "MESH_FORMATS",

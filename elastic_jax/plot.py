@@ -33,12 +33,12 @@ from matplotlib.ticker import MaxNLocator
 from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the "3d" projection)
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-from ._atomic import atomic_path
 from ._checks import check_int, check_positive
 from ._errors import InputError
-from ._metric import SplitMetric
-from ._pca import TangentPCA, mode_path
-from ._validation import as_surface
+from ._geometry.metric import SplitMetric
+from ._geometry.validation import as_surface
+from ._runtime.atomic import atomic_path
+from ._statistics.pca import TangentPCA, mode_path
 
 __all__ = [
     "parametrization_colors",

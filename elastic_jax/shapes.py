@@ -21,8 +21,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._grid import sphere_points
-from ._reparam import moebius as _moebius_map
+from ._geometry.grid import sphere_points
+from ._geometry.reparam import moebius as _moebius_map
 
 __all__ = ["sphere", "ellipsoid", "bumpy", "bent_cylinder", "sample", "random_rotation"]
 

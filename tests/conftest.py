@@ -45,7 +45,7 @@ def _no_exported_programs_after_a_test():
     """A test that turns the exported shape solve on (enable_compilation_cache, the
     command line in process) leaves it off for the next one: the suite's in-process
     solves share the compiled programs of the plain jitted path."""
-    from elastic_jax import _cache
+    from elastic_jax._runtime import cache as _cache
 
     yield
     _cache._EXPORT_DIR = None

@@ -45,7 +45,7 @@ def test_the_cache_is_opt_in_and_works_after_earlier_compilations(tmp_path):
 
 def _solve(target, scale, *, max_steps):
     """A small optimistix solve whose result holds a RESULTS code, as a shape solve's does."""
-    from elastic_jax._solvers import minimize
+    from elastic_jax._geodesics.solvers import minimize
 
     return minimize(
         lambda y: scale * jnp.sum((y - target) ** 2) + jnp.sum(y**4),
@@ -57,8 +57,8 @@ def _solve(target, scale, *, max_steps):
 
 
 def test_an_exported_program_is_the_jitted_one_and_is_not_traced_again(tmp_path, monkeypatch):
-    from elastic_jax import _cache
-    from elastic_jax._solvers import RESULTS, Minimum
+    from elastic_jax._geodesics.solvers import RESULTS, Minimum
+    from elastic_jax._runtime import cache as _cache
 
     jitted = _cache.solver_jit(_solve, static_argnames=("max_steps",))
     skeleton = Minimum(0, RESULTS.successful, 0, 0, 0)
@@ -114,7 +114,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp
 import elastic_jax as ej
-from elastic_jax import _cache
+from elastic_jax._runtime import cache as _cache
 
 
 def program(a, shift):
@@ -162,7 +162,7 @@ def test_executables_are_kept_only_for_plain_programs_and_per_machine(monkeypatc
     XLA_FLAGS as well as the program."""
     from types import SimpleNamespace
 
-    from elastic_jax import _cache
+    from elastic_jax._runtime import cache as _cache
 
     def program(text, effects=()):
         return SimpleNamespace(
@@ -203,11 +203,11 @@ def test_the_shape_solve_phases_are_rebuilt_with_their_own_structures():
     """The skeletons that rebuild an exported phase's result have the structure the phase
     returns (leaf count and node types: a mismatch would scramble the fields)."""
     import elastic_jax as ej
-    from elastic_jax import _shape
+    from elastic_jax._registration import shape as _shape
 
     f1 = ej.sphere_points(7, 13)
     cfg = ej.ShapeOptions(degree=2, vf_degree=2, n_times=3, tol=1e-6, outer_steps=1)
-    bases = _shape._bases(7, 13, cfg, f1.dtype)
+    bases = _shape.make_bases(7, 13, cfg, f1.dtype)
     metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
     for rigid in (False, True):
         carried = ()
@@ -233,13 +233,15 @@ def test_the_solve_in_phases_is_the_solve_in_one_program():
     import numpy as np
 
     import elastic_jax as ej
-    from elastic_jax import _cache, _shape, shapes
+    from elastic_jax import shapes
+    from elastic_jax._registration import shape as _shape
+    from elastic_jax._runtime import cache as _cache
 
     m, n = 9, 17
     f1 = jnp.asarray(shapes.sample(shapes.bumpy, m, n))
     f2 = jnp.asarray(shapes.sample(shapes.bumpy, m, n, rotation=shapes.random_rotation(3)))
     cfg = ej.ShapeOptions(degree=3, vf_degree=3, n_times=4, tol=1e-8, outer_steps=3)
-    bases = _shape._bases(m, n, cfg, f1.dtype)
+    bases = _shape.make_bases(m, n, cfg, f1.dtype)
     args = (ej.SplitMetric(1.0, 1.0, 0.1, 0.0), f1, f2, bases)
     phased = _shape._solve_in_phases(args, cfg, False)
     whole = _cache.solver_jit(_shape._shape_solve, static_argnames=("cfg", "rigid"))(
@@ -266,13 +268,14 @@ def test_around_the_solve_a_first_call_compiles_one_program_on_each_side(monkeyp
     import numpy as np
 
     import elastic_jax as ej
-    from elastic_jax import _shape, shapes
+    from elastic_jax import shapes
+    from elastic_jax._registration import shape as _shape
 
     m, n = 9, 15  # a grid no other test uses: nothing is compiled for it yet
     f1 = np.asarray(shapes.sample(shapes.bumpy, m, n))
     f2 = np.asarray(shapes.sample(shapes.ellipsoid, m, n))
     cfg = ej.ShapeOptions(degree=2, vf_degree=2, n_times=3, tol=1e-6, outer_steps=1)
-    bases = _shape._bases(m, n, cfg, f1.dtype)
+    bases = _shape.make_bases(m, n, cfg, f1.dtype)
     metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
     layout = jax.eval_shape(
         lambda a, b: _shape._shape_solve(metric, a, b, bases, cfg, False), f1, f2
@@ -284,7 +287,7 @@ def test_around_the_solve_a_first_call_compiles_one_program_on_each_side(monkeyp
     result, names = traced_functions(
         lambda: ej.shape_geodesic(f1, f2, metric, options=cfg).distance.block_until_ready()
     )
-    assert names == ["in_units", "_shape_finish"]
+    assert names == ["in_units", "shape_finish"]
     # The stand-in's identity registration and zero perturbation: the straight line.
     straight = ej.path_energy(metric, ej.straight_path(f1, f2, 3))
     np.testing.assert_allclose(float(result) ** 2, float(straight), rtol=1e-12)
@@ -294,7 +297,7 @@ def test_solver_options_apply_at_the_top_and_give_way_inside_a_callers_trace():
     # JAX accepts compiler options only on the outermost jit: inside the caller's jit
     # (traced arguments, or concrete constants traced all the same) and vmap the solve
     # is part of the caller's program. Every way gives the solve's value.
-    from elastic_jax import _cache
+    from elastic_jax._runtime import cache as _cache
 
     options = dict(_cache._compiler_options(jax.default_backend()))
     if jax.default_backend() == "cpu":

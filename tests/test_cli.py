@@ -169,7 +169,7 @@ def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, caps
 
 
 def test_out_checkpoints_and_locks_are_checked_before_any_work(tmp_path, capsys, monkeypatch):
-    from elastic_jax import _karcher
+    from elastic_jax._statistics import karcher as _karcher
 
     good = _save(tmp_path, "good.npz", shapes.sample(shapes.sphere, M, N))
     other = _save(tmp_path, "other.npz", shapes.sample(shapes.sphere, M, N, radius=2.0))
@@ -209,7 +209,9 @@ def test_out_checkpoints_and_locks_are_checked_before_any_work(tmp_path, capsys,
     after = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     assert after == before and not stale.exists()
     # A second run on a directory that a first run holds is refused (advisory lock).
-    with cli._locked(held / cli.LOCK_NAME):
+    from elastic_jax.cli.process import _locked
+
+    with _locked(held / cli.LOCK_NAME):
         code = cli.main([*collection, "--out", str(held)])
     assert code == cli.EXIT_BAD_INPUT and "another elastic-jax run" in capsys.readouterr().err
     # --overwrite discards the checkpoint explicitly; the run then goes on.
@@ -257,7 +259,7 @@ def test_sigterm_is_handled_like_ctrl_c(tmp_path):
 
 
 def test_a_nan_solve_exits_3_with_valid_json(tmp_path, capsys, monkeypatch):
-    from elastic_jax import _geodesic
+    from elastic_jax._geodesics import geodesic as _geodesic
 
     def nan_geodesic(f1, f2, metric, **options):
         nan = np.float64(np.nan)
@@ -307,7 +309,7 @@ def _fake_karcher(calls):
 
 
 def test_karcher_builds_one_options_record_and_keeps_its_own_steps(tmp_path, capsys, monkeypatch):
-    from elastic_jax import _karcher
+    from elastic_jax._statistics import karcher as _karcher
 
     calls = []
     monkeypatch.setattr(_karcher, "karcher_mean", _fake_karcher(calls))
@@ -328,7 +330,7 @@ def test_karcher_builds_one_options_record_and_keeps_its_own_steps(tmp_path, cap
 def test_distances_reports_each_pair_and_exits_3_when_one_did_not_converge(
     tmp_path, capsys, monkeypatch
 ):
-    from elastic_jax import _karcher
+    from elastic_jax._statistics import karcher as _karcher
 
     def distance_matrix(shapes, metric, **kwargs):
         converged = np.ones((3, 3), bool)
@@ -475,7 +477,7 @@ def test_pca_and_shoot_equal_the_library_and_compose(tmp_path, capsys, monkeypat
     Karcher part, tested above, replaced by a record): its modes, scores and mode paths
     are the library's; shoot from its mean with its mode velocity lands where mode_path
     does."""
-    from elastic_jax import _karcher
+    from elastic_jax._statistics import karcher as _karcher
 
     mean = np.asarray(shapes.sample(shapes.ellipsoid, M, N, axes=(1.0, 0.8, 0.6)))
     x, y, z = mean

@@ -6,7 +6,7 @@ from jax.test_util import check_grads
 
 import elastic_jax as ej
 from elastic_jax import shapes
-from elastic_jax._energy import _path_energy
+from elastic_jax._geometry.energy import _path_energy
 
 from .conftest import load_shape, relerr
 

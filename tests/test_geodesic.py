@@ -5,8 +5,13 @@ import pytest
 
 import elastic_jax as ej
 from elastic_jax import shapes
-from elastic_jax._energy import frame_energy
-from elastic_jax._geodesic import _straight_frames, basis_np, perturbed_frames, solver_scaling
+from elastic_jax._geodesics.geodesic import (
+    _straight_frames,
+    basis_np,
+    perturbed_frames,
+    solver_scaling,
+)
+from elastic_jax._geometry.energy import frame_energy
 
 from .conftest import relerr
 
@@ -217,7 +222,7 @@ def test_the_midpoint_solution_is_a_minimum_that_refinement_keeps(saddle_pair, m
 
 def test_a_saddle_left_after_the_checks_is_not_converged(saddle_pair, monkeypatch):
     # Without trial lengths an escape cannot move: the saddle stays after every check.
-    monkeypatch.setattr("elastic_jax._geodesic._ESCAPE_LENGTHS", ())
+    monkeypatch.setattr("elastic_jax._geodesics.geodesic._ESCAPE_LENGTHS", ())
     with pytest.warns(ej.ConvergenceWarning, match="2 saddle escapes: ended at a saddle point"):
         # max_steps=999: a configuration of its own, not one compiled with the real lengths.
         res = ej.geodesic(

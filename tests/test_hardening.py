@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import elastic_jax as ej
-from elastic_jax import _karcher, io, shapes
+from elastic_jax import io, shapes
+from elastic_jax._statistics import karcher as _karcher
 
 M, N = 13, 25
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)

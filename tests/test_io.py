@@ -12,7 +12,7 @@ import trimesh
 
 import elastic_jax as ej
 from elastic_jax import io, resample, shapes
-from elastic_jax._grid import angles_np
+from elastic_jax._geometry.grid import angles_np
 
 AXES = np.array([1.0, 0.7, 0.5])
 # Smallest radius of curvature of that ellipsoid: c^2 / a, at the ends of the long axis.

@@ -72,7 +72,7 @@ def test_theorem2_pointwise():
     rng = np.random.default_rng(1)
     alpha = rng.standard_normal((500, 3, 2))
     xi, eta = rng.standard_normal((2, 500, 3, 2))
-    from elastic_jax._metric import _elastic_pointwise
+    from elastic_jax._geometry.metric import _elastic_pointwise
 
     for a, b, c in [(1.0, 1.0, 0.1), (0.0, 0.5, 1.0), (2.0, 0.3, 0.7)]:
         split = ej.split_inner(ej.SplitMetric(a, b, c, 0.0), alpha, xi, eta)

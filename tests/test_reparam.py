@@ -6,7 +6,7 @@ from jax.test_util import check_grads
 
 import elastic_jax as ej
 from elastic_jax import shapes
-from elastic_jax._reparam import _field_derivatives_np
+from elastic_jax._geometry.reparam import _field_derivatives_np
 
 DEGREE = 5
 

@@ -7,8 +7,9 @@ import pytest
 
 import elastic_jax as ej
 from elastic_jax import shapes
-from elastic_jax._grid import interior_weights
-from elastic_jax._shape import _compose, _resolution_np
+from elastic_jax._geometry.grid import interior_weights
+from elastic_jax._registration.problem import _resolution_np
+from elastic_jax._registration.problem import compose as _compose
 
 from .conftest import assert_area_bound, load_shape
 
@@ -311,7 +312,7 @@ def test_options_are_validated(field, value, message):
 
 def test_results_print_their_name():
     # equinox printed RESULTS.successful as "RESULTS<>" (its message is empty).
-    from elastic_jax._solvers import result_message
+    from elastic_jax._geodesics.solvers import result_message
 
     assert repr(ej.RESULTS.successful).endswith("RESULTS<successful>")
     assert repr(ej.RESULTS.stalled).endswith(
@@ -325,7 +326,7 @@ def test_results_print_their_name():
 
 
 def test_distinct_best_skips_starts_in_one_basin():
-    from elastic_jax._shape import _distinct_best
+    from elastic_jax._registration.starts import _distinct_best
 
     rng = np.random.default_rng(0)
     base = rng.standard_normal((3, 3, 40))
@@ -425,8 +426,8 @@ def test_the_chain_rule_differential_converges_where_grid_differences_cut_corner
     # sampled on its own grid. Measured errors (chain / grid differences): 13 x 25
     # 4.9 % / 9.8 %, 25 x 49 1.25 % / 3.1 %, 49 x 97 0.32 % / 0.83 %: both second order,
     # the chords 2-2.6 times farther off.
-    from elastic_jax._differential import interior_frame
-    from elastic_jax._shape import _chain_frame
+    from elastic_jax._geometry.differential import interior_frame
+    from elastic_jax._registration.problem import _chain_frame
 
     a = jnp.asarray(0.5 * DIRECTION)
     chain, grid = [], []
@@ -496,7 +497,7 @@ def test_a_coarse_solve_starts_the_finer_grid():
         for kw in ({}, {"rotation": h, "moebius": a})
     )
     coarse = ej.shape_geodesic(f[0], moved[0], METRIC, modulo="rigid", options=options)
-    from elastic_jax._shape import _given_start
+    from elastic_jax._registration.starts import given_start as _given_start
 
     gamma = _given_start(coarse, 25, 49, jnp.float64, True)[0][0]
     np.testing.assert_allclose(gamma[:, ::2, ::2], coarse.gamma, atol=1e-14)
@@ -529,7 +530,7 @@ def test_the_inverse_of_a_moebius_map_is_the_opposite_map():
     # phi_a^-1 = phi_-a (MATH.md 9). Newton's method solves gamma(x) = p on gamma's
     # interpolant to rounding; against the closed form what is left is the interpolation
     # of gamma, measured 3.1e-3, 3.1e-4, 3.6e-5 at 13 x 25, 25 x 49, 49 x 97.
-    from elastic_jax._shape import _inverse_gamma
+    from elastic_jax._registration.starts import inverse_gamma as _inverse_gamma
 
     a = jnp.asarray([0.2, -0.25, 0.3])
     errors = []

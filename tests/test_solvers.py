@@ -7,7 +7,7 @@ import numpy as np
 import optimistix as optx
 import pytest
 
-from elastic_jax._solvers import RESULTS, lanczos_smallest, minimize
+from elastic_jax._geodesics.solvers import RESULTS, lanczos_smallest, minimize
 
 
 def _rosenbrock(x):

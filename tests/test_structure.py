@@ -8,29 +8,75 @@ from __future__ import annotations
 
 import ast
 import pathlib
+import re
 
 PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "elastic_jax"
-# Atomic writes, compilation caches and the Dask pool: below every solver.
-RUNTIME = {"_atomic", "_cache", "_distributed"}
-LEAVES = {"_errors", "_checks"}
+# Each module's layer is its subpackage (or, for a top-level module, its own name). A
+# layer imports only layers of a lower rank and itself: the tree shows the architecture.
+LEAVES = {"_errors", "_checks", "_options"}
+RANKS = {
+    "leaves": 0,  # errors, argument checks, options: they import at most each other
+    "_runtime": 1,  # atomic writes, compilation caches, the Dask pool: below every solver
+    "_geometry": 2,
+    "_geodesics": 3,
+    "_meshes": 3,
+    "_registration": 4,
+    "_statistics": 5,
+    "public": 6,
+}
+PUBLIC_MODULES = {"io", "plot", "shapes", "cli", "__init__", "__main__"}
+
+
+def _module_name(path: pathlib.Path) -> str:
+    """``_geometry.grid`` for elastic_jax/_geometry/grid.py; a package by its name."""
+    parts = path.relative_to(PACKAGE).with_suffix("").parts
+    if parts[-1] == "__init__" and len(parts) > 1:
+        parts = parts[:-1]
+    return ".".join(parts)
 
 
 def _relative_imports(path: pathlib.Path) -> list[tuple[str, str]]:
-    """(module, name) for every ``from .module import name`` and ``from . import name`` in
-    the file, inside functions too."""
+    """(module, name) for every relative import in the file, inside functions too, the
+    module resolved to its dotted name within the package (``from .. import io`` gives
+    ("io", "io"): a module imported by name)."""
+    here = path.relative_to(PACKAGE).parent.parts
     out = []
     for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom) and node.level == 1:
+        if isinstance(node, ast.ImportFrom) and node.level >= 1:
+            base = here[: len(here) - (node.level - 1)]
             for alias in node.names:
-                out.append((node.module or alias.name, alias.name))
+                if node.module:
+                    out.append((".".join([*base, node.module]), alias.name))
+                else:
+                    out.append((".".join([*base, alias.name]), alias.name))
     return out
 
 
 def _graph() -> dict[str, set[str]]:
-    return {
-        p.stem: {module.split(".")[0] for module, _ in _relative_imports(p)}
-        for p in PACKAGE.glob("*.py")
-    }
+    graph = {_module_name(p): set() for p in PACKAGE.rglob("*.py")}
+    for p in PACKAGE.rglob("*.py"):
+        for module, name in _relative_imports(p):
+            # `from .pkg import module` names the module, not the package's __init__.
+            target = f"{module}.{name}" if f"{module}.{name}" in graph else module
+            graph[_module_name(p)].add(target)
+    return graph
+
+
+def _layer(module: str) -> str:
+    top = module.split(".")[0]
+    if top in LEAVES:
+        return "leaves"
+    return "public" if top in PUBLIC_MODULES else top
+
+
+def _upward(graph: dict[str, set[str]]) -> list[str]:
+    """Every import of a module in another layer of the same or a higher rank."""
+    return sorted(
+        f"{module} -> {target}"
+        for module, targets in graph.items()
+        for target in targets
+        if _layer(target) != _layer(module) and RANKS[_layer(target)] >= RANKS[_layer(module)]
+    )
 
 
 def _cycles(graph: dict[str, set[str]]) -> list[set[str]]:
@@ -74,26 +120,48 @@ def test_the_cycle_finder_finds_a_cycle():
 
 def test_imports_have_no_cycles():
     graph = _graph()
-    assert len(graph) >= 30  # the whole package was read
+    assert len(graph) >= 40  # the whole package was read, subpackages included
     assert _cycles(graph) == []
 
 
 def test_no_module_imports_another_modules_underscore_names():
     private = [
         f"{path.name}: from .{module} import {name}"
-        for path in sorted(PACKAGE.glob("*.py"))
+        for path in sorted(PACKAGE.rglob("*.py"))
         for module, name in _relative_imports(path)
-        if name.startswith("_") and module != name  # `from . import _module` is fine
+        if name.startswith("_") and not module.endswith(name)  # a module by name is fine
     ]
     assert private == []
 
 
-def test_runtime_and_leaf_modules_import_no_domain_code():
+def test_every_module_has_a_layer():
+    assert {_layer(m) for m in _graph()} == set(RANKS)
+
+
+def test_layers_import_only_lower_layers():
+    # The runtime knows no shape analysis, the geometry no solver, the solvers no
+    # registration, registration no statistics; the public modules sit on top.
+    assert _upward(_graph()) == []
+
+
+def test_the_layer_check_sees_an_upward_or_sideways_import():
+    # A control: a geometry module importing a solver, and the meshes importing the
+    # solvers (same rank, another layer), are both flagged; a downward import is not.
+    graph = {
+        "_geometry.energy": {"_geodesics.geodesic", "_geometry.grid"},
+        "_meshes.sphere_map": {"_geodesics.solvers"},
+        "_statistics.pca": {"_geodesics.shooting"},
+    }
+    assert _upward(graph) == [
+        "_geometry.energy -> _geodesics.geodesic",
+        "_meshes.sphere_map -> _geodesics.solvers",
+    ]
+
+
+def test_leaf_modules_import_only_errors():
     graph = _graph()
-    for module in LEAVES:
+    for module in LEAVES - {"_options"}:
         assert graph[module] <= {"_errors"}, module
-    for module in RUNTIME:
-        assert graph[module] <= RUNTIME | LEAVES, (module, graph[module] - RUNTIME - LEAVES)
 
 
 # The public API as users import it; a rename or a removal is a decision, not an accident
@@ -142,9 +210,18 @@ def test_the_public_api_is_pinned():
 def test_every_error_is_an_input_error():
     # One hierarchy: the mesh errors and the command line's bad input are InputErrors,
     # which are ValueErrors.
-    from elastic_jax import cli, io
-    from elastic_jax._errors import InputError
+    from elastic_jax import InputError, cli, io
 
     errors = [getattr(io, n) for n in io.__all__ if n.endswith("Error")] + [cli.BadInput]
     assert len(errors) == 9
     assert all(issubclass(e, InputError) and issubclass(e, ValueError) for e in errors)
+
+
+def test_the_readme_layout_names_every_subpackage():
+    # The README's table is the map a newcomer reads; it names each subpackage once.
+    readme = (PACKAGE.parent / "README.md").read_text()
+    table = readme.split("## Package layout")[1].split("\n## ")[0]
+    named = {cell.strip("`/") for cell in re.findall(r"`(\w+)/`", table)}
+    subpackages = {p.parent.name for p in PACKAGE.glob("*/__init__.py")}
+    assert named == subpackages
+    assert set(RANKS) - {"leaves", "public"} == subpackages - {"cli"}

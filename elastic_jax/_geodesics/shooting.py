@@ -1,0 +1,329 @@
+"""Geodesic shooting: the discrete exponential map of the path energy, and its inverse.
+
+The paper poses the initial value problem next to the boundary value one (Introduction;
+Appendix, the geodesic equation). Discretely (Rumpf and Wirth's discrete exponential map)
+a geodesic is a path whose energy is stationary in every interior node: for the midpoint
+and forward schemes (MATH.md 4) the energy couples f_k only to f_{k-1} and f_{k+1}, so
+
+    d/d f_k [ G_{b_{k-1}}(T (f_k - f_{k-1})) + G_{b_k}(T (f_{k+1} - f_k)) ] = 0
+
+determines f_{k+1} from f_{k-1} and f_k, one node at a time. The unknown is taken in the
+geodesic solver's own space, f_{k+1} = 2 f_k - f_{k-1} + sum_j c_j S_j with S_j the
+surface basis of :func:`surface_basis` (degree 1..d), and the equation is projected on
+the same basis: B^T r_k(c) = 0, L = 3((d + 1)^2 - 1) equations in L unknowns, solved by
+optimistix's Newton method. A path from :func:`geodesic` (same degree, N and scheme) is
+stationary in exactly these projected equations, so shooting its first step reproduces it.
+
+The central scheme couples f_k to f_{k-2} .. f_{k+2}; its recursion has a parasitic
+odd-even mode, and shooting refuses it.
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from .._checks import check_choice, check_finite, check_int, check_positive, is_concrete, real_array
+from .._errors import ConvergenceWarning, InputError
+from .._geometry.differential import interior_frame
+from .._geometry.energy import frame_energy, frame_speeds2
+from .._geometry.harmonics import check_degree
+from .._geometry.metric import SplitMetric
+from .._geometry.units import in_units
+from .._geometry.validation import as_surface
+from .._options import SHOOTING_SCHEMES
+from .geodesic import basis_np, safe_sqrt
+
+
+class ShootingResult(NamedTuple):
+    """A geodesic shot from a surface with an initial velocity; a pytree (vmappable).
+
+    Attributes:
+        path: ``(N, 3, m, n)`` f_0 = f, f_1 = f + v / T, then one node per Newton solve;
+            NaN from the first node whose solve failed on (see ``n_valid``).
+        endpoint: ``(3, m, n)`` f_{N-1} = exp_f(v).
+        velocity: ``(3, m, n)`` T (f_{N-1} - f_{N-2}), the final velocity.
+        speeds: ``(N - 1,)`` sqrt(G_b(T (f_{k+1} - f_k))) per step, b the scheme's base
+            point; constant along an exact geodesic.
+        residuals: ``(N - 2,)`` per step, the 2-norm of J0^-1 r(c) at the solution (r the
+            projected equation, J0 its Jacobian at the step's start): the size of one
+            more Newton step, in coefficients of f's units; 0 on an exact solution; NaN
+            for the steps after a failed one (not attempted).
+        coefficients: ``(N - 2, L)`` the c of each step.
+        newton_steps: ``(N - 2,)`` Newton iterations per step (0: not attempted).
+        n_valid: ``()`` how many leading nodes of ``path`` are solutions: N when converged.
+        converged: ``()`` every step's Newton solve met its tolerance.
+    """
+
+    path: Float[Array, "N 3 m n"]
+    endpoint: Float[Array, "3 m n"]
+    velocity: Float[Array, "3 m n"]
+    speeds: Float[Array, " T"]
+    residuals: Float[Array, " K"]
+    coefficients: Float[Array, "K L"]
+    newton_steps: Int[Array, " K"]
+    n_valid: Int[Array, ""]
+    converged: Array
+
+
+def default_newton_tol(dtype) -> float:
+    """Tolerance of each step's Newton solve: on the relative residual and on the change of
+    the coefficients (in units of the surface's size). Newton converges quadratically, so
+    the result is near rounding level: 1e-10 in float64, 1e-4 in float32."""
+    return 1e-10 if jnp.dtype(dtype) == jnp.float64 else 1e-4
+
+
+def _frames_of(coefficients, dframe, shape):
+    """The interior frames of sum_j c_j S_j, from the basis' precomputed differentials."""
+    k = dframe.shape[0]
+    points = dframe.shape[1] // 2
+    pert = coefficients.reshape(3, k) @ dframe
+    return pert[:, :points].reshape(shape), pert[:, points:].reshape(shape)
+
+
+def _frames_plus(frames, coefficients, dframe):
+    """frames + the frames of sum_j c_j S_j."""
+    shape = frames[0].shape
+    return tuple(
+        x + y for x, y in zip(frames, _frames_of(coefficients, dframe, shape), strict=True)
+    )
+
+
+def _energy_of(metric, scheme, *frames):
+    """The energy of the short path through the given frames (the factor from its own T
+    is common to all its terms and drops out of a stationarity equation)."""
+    a1 = jnp.stack([a[0] for a in frames])
+    a2 = jnp.stack([a[1] for a in frames])
+    return frame_energy(metric, a1, a2, scheme)
+
+
+def node_solve(metric, scheme, f_a, f_b, c_guess, values, dframe, *, unknown, tol, max_newton):
+    """One node of a discrete geodesic f_a, f_mid, f_b by Newton's method on the energy's
+    Euler-Lagrange equation in the middle node, projected on the surface basis.
+
+    unknown="next": f_a, f_mid = f_b are known and the unknown is the third node,
+    2 f_b - f_a + sum_j c_j S_j (a shooting step). unknown="middle": the ends are known and
+    the unknown is the middle, (f_a + f_b) / 2 + sum_j c_j S_j (the discrete midpoint).
+    Returns (the unknown node, c, the residual as a Newton step's size, Newton steps,
+    success).
+    """
+    import optimistix as optx
+
+    m, n = f_a.shape[-2:]
+    a_a, a_b = interior_frame(f_a), interior_frame(f_b)
+    zero = jnp.zeros(c_guess.shape, f_a.dtype)
+    if unknown == "next":
+        base = 2.0 * f_b - f_a
+        a_base = tuple(2.0 * x - y for x, y in zip(a_b, a_a, strict=True))
+
+        def frames(c, d):  # (first, middle, last)
+            return a_a, _frames_plus(a_b, d, dframe), _frames_plus(a_base, c, dframe)
+
+    else:
+        base = 0.5 * (f_a + f_b)
+        a_base = tuple(0.5 * (x + y) for x, y in zip(a_a, a_b, strict=True))
+
+        def frames(c, d):
+            return a_a, _frames_plus(a_base, c + d, dframe), a_b
+
+    def gradient(c):
+        return jax.grad(lambda d: _energy_of(metric, scheme, *frames(c, d)))(zero)
+
+    # The equation is solved as J0^-1 r(c) = 0, J0 its Jacobian at the start: Newton's
+    # iterates are the same (it is affine invariant), and the residual is then the size of
+    # a Newton step, in the surface's units, whatever the scale of r: a ladder's rung
+    # along the path has nearly coinciding known nodes and a vanishing r.
+    factor = jax.scipy.linalg.lu_factor(jax.jacfwd(gradient)(c_guess))
+
+    def residual(c, _):
+        return jax.scipy.linalg.lu_solve(factor, gradient(c))
+
+    solver = optx.Newton(rtol=tol, atol=tol)
+    sol = optx.root_find(residual, solver, c_guess, max_steps=max_newton, throw=False)
+    c = sol.value
+    node = base + (c.reshape(3, -1) @ values).reshape(3, m, n)
+    ok = sol.result == optx.RESULTS.successful
+    return node, c, jnp.linalg.norm(residual(c, None)), sol.stats["num_steps"], ok
+
+
+def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
+    """Traceable shooting in the units of f (the jitted entry point is ``_shoot_jit``).
+
+    The recursion stops at the first step whose Newton solve fails: that node and every
+    later one are NaN (their steps report no Newton iterations and a NaN residual). A
+    node that does not solve its equation is not on the geodesic, and every later node
+    is built on it: at 50 x 99 on the cats the shot path went on from a failed node at
+    speed 5462 instead of 2.3, each later node solved to 1e-13 on a path that had left.
+    """
+    t = n_times - 1
+    size = dframe.shape[0] * 3
+    dtype = f.dtype
+
+    def step(carry, _):
+        f_prev, f_here, c_guess, alive = carry
+
+        def solve(_):
+            f_next, c, residual, steps, ok = node_solve(
+                metric,
+                scheme,
+                f_prev,
+                f_here,
+                c_guess,
+                values,
+                dframe,
+                unknown="next",
+                tol=tol,
+                max_newton=max_newton,
+            )
+            return f_next, c, residual, jnp.asarray(steps, jnp.int32), ok
+
+        def skip(_):
+            nan = jnp.asarray(jnp.nan, dtype)
+            return jnp.full_like(f_here, nan), c_guess, nan, jnp.zeros((), jnp.int32), alive
+
+        f_next, c, residual, steps, ok = jax.lax.cond(alive, solve, skip, None)
+        f_next = jnp.where(ok, f_next, jnp.nan)
+        # After a failure the known pair stays the last solved one (the later steps skip).
+        kept = jax.tree_util.tree_map(
+            functools.partial(jnp.where, ok), (f_here, f_next, c), (f_prev, f_here, c_guess)
+        )
+        return (*kept, ok), (f_next, (c, residual, steps, ok))
+
+    f_first = f + v / t
+    carry = (f, f_first, jnp.zeros(size, dtype), jnp.asarray(True))
+    _, (nodes, (coefficients, residuals, newton_steps, ok)) = jax.lax.scan(
+        step, carry, None, length=n_times - 2
+    )
+    path = jnp.concatenate([f[None], f_first[None], nodes])
+    speeds2, _ = frame_speeds2(metric, *interior_frame(path), scheme)
+    speeds = jnp.where(jnp.isnan(speeds2), jnp.nan, safe_sqrt(speeds2))
+    n_valid = 2 + jnp.sum(ok.astype(jnp.int32))
+    return path, speeds, residuals, coefficients, newton_steps, n_valid
+
+
+_shoot_jit = jax.jit(_shoot, static_argnames=("n_times", "scheme", "tol", "max_newton"))
+
+
+def check_scheme(scheme: str) -> None:
+    if scheme == "central":
+        raise InputError(
+            'scheme="central" cannot be shot: its energy couples each node to two neighbours '
+            "on each side, and the recursion has a parasitic odd-even mode; use "
+            '"midpoint" (default) or "forward"'
+        )
+    check_choice("scheme", scheme, SHOOTING_SCHEMES)
+
+
+def shoot(
+    f: Float[ArrayLike, "3 m n"],
+    v: Float[ArrayLike, "3 m n"],
+    metric: SplitMetric,
+    *,
+    n_times: int = 13,
+    degree: int = 7,
+    scheme: str = "midpoint",
+    tol: float | None = None,
+    max_newton: int = 20,
+) -> ShootingResult:
+    """Shoot the discrete geodesic from f with initial velocity v (the discrete exp map).
+
+    f_0 = f, f_1 = f + v / T (T = N - 1), then for k = 1 .. N - 2 the node f_{k+1} =
+    2 f_k - f_{k-1} + sum_j c_j S_j whose c makes the path energy stationary in f_k,
+    projected on the surface basis of ``degree`` (module docstring; the Euler-Lagrange
+    equation of MATH.md 4's energy, paper Appendix). The scheme is first order in 1/N
+    (the start f + v / T); a path of :func:`geodesic` with the same degree, N and scheme
+    is reproduced node by node from its T (f_1 - f_0) (see :func:`log`).
+
+    Args:
+        f: ``(3, m, n)`` the starting immersion.
+        v: ``(3, m, n)`` the initial velocity (a vector field on the grid).
+        metric: the split metric coefficients.
+        n_times: N >= 3 time points, f and the endpoint included.
+        degree: the surface basis' degree (limit: min(m - 3, (n - 3) // 2)).
+        scheme: ``"midpoint"`` (default) or ``"forward"``; ``"central"`` is refused.
+        tol: each Newton solve's tolerance (:func:`default_newton_tol`).
+        max_newton: Newton iterations per step.
+
+    Returns:
+        :class:`ShootingResult`; a ConvergenceWarning when a step's solve failed. The
+        recursion stops there: that node and the later ones are NaN and ``n_valid``
+        counts the solved nodes. Vmappable over f and v; differentiable (optimistix's
+        implicit adjoint per step).
+    """
+    check_scheme(scheme)
+    f = as_surface(f, "f")
+    if f.ndim != 3:
+        raise InputError(f"f must be one surface (3, m, n); got {f.shape}. Batch with jax.vmap.")
+    v = as_velocity(v, f)
+    m, n = f.shape[-2:]
+    degree = check_degree(degree, m, n)
+    n_times = check_int("n_times", n_times, 3)
+    max_newton = check_int("max_newton", max_newton, 1)
+    tol = default_newton_tol(f.dtype) if tol is None else check_positive("tol", tol)
+    values, dframe = (jnp.asarray(a, f.dtype) for a in basis_np(m, n, degree))
+    # In units of f's size (see _geometry/units.py): the energy is homogeneous, the path scales.
+    units, (g,) = in_units(f)
+    s = units.scale
+    path, speeds, residuals, coefficients, newton_steps, n_valid = _shoot_jit(
+        metric,
+        g,
+        v / s,
+        values,
+        dframe,
+        n_times=n_times,
+        scheme=scheme,
+        tol=float(tol),
+        max_newton=max_newton,
+    )
+    path = units.restore(path).at[0].set(f)
+    t = n_times - 1
+    converged = n_valid == n_times
+    result = ShootingResult(
+        path=path,
+        endpoint=path[-1],
+        velocity=t * (path[-1] - path[-2]),
+        speeds=speeds * s,
+        residuals=residuals,
+        coefficients=coefficients * s,
+        newton_steps=newton_steps,
+        n_valid=n_valid,
+        converged=converged,
+    )
+    if is_concrete(converged) and not bool(converged):
+        warnings.warn(_failure_message(result, tol, max_newton), ConvergenceWarning, stacklevel=2)
+    return result
+
+
+def _failure_message(result: ShootingResult, tol: float, max_newton: int) -> str:
+    """Which node failed and how far its Newton solve got."""
+    k = int(result.n_valid)  # the first node that is not a solution
+    last = result.path.shape[0] - 1
+    residual = float(result.residuals[k - 2])
+    return (
+        f"shoot: node {k} of {last} did not solve (Newton: {max_newton} iterations, step "
+        f"still {residual:.3g} in units of f's size, tol={tol:g}); nodes {k}..{last} are "
+        f"NaN, path[:{k}] is the solved part. Measured on real surfaces: Newton fails at a "
+        "step that makes a grid cell's area at the step's midpoint fall well below its "
+        "area at the nodes (README, Known failures); more time points do not avoid it."
+    )
+
+
+def as_velocity(v, f: Array, name: str = "v") -> Array:
+    """v as a finite array of f's dtype and shape (a tangent vector: no immersion check)."""
+    v = real_array(v, name)
+    check_finite(v, name)
+    if v.shape != f.shape:
+        raise InputError(f"{name} must have the shape of its surface {f.shape}; got {v.shape}")
+    return v.astype(f.dtype)
+
+
+def exp(
+    f: Float[ArrayLike, "3 m n"], v: Float[ArrayLike, "3 m n"], metric: SplitMetric, **options
+) -> Float[Array, "3 m n"]:
+    """The discrete exponential map: :func:`shoot`'s endpoint (same arguments)."""
+    return shoot(f, v, metric, **options).endpoint

@@ -1,0 +1,294 @@
+"""Minimizers from optimistix and jaxopt behind one small interface (no own quasi-Newton)."""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import Array
+
+from .._checks import check_choice
+from .._options import SOLVERS
+
+
+class _NamedEnumeration(type(optx.RESULTS)):
+    """The metaclass of optimistix's RESULTS, whose items then print their name.
+
+    equinox prints an item as ``RESULTS<message>``, and the message of ``successful`` is
+    empty (``RESULTS<>``); with the name in front a result reads ``RESULTS<successful>``
+    or ``RESULTS<stalled: The solver stopped ...>``. Only the text changes: items, codes
+    and ``where`` / ``promote`` are equinox's own.
+    """
+
+    def __getitem__(cls, item) -> str:
+        message = cls.message(item)
+        name = cls.name(item)
+        return f"{name}: {message}" if message else name
+
+    def message(cls, item) -> str:
+        """The item's message alone ('' for ``successful``)."""
+        return super().__getitem__(item)
+
+    def name(cls, item) -> str:
+        """The item's name, e.g. ``"successful"`` (its code must be concrete)."""
+        code = int(item._value)
+        # equinox keeps the items by name in _name_to_item (its own table of the class).
+        for name, candidate in getattr(cls, "_name_to_item", {}).items():
+            if int(candidate._value) == code:
+                return name
+        return f"code {code}"
+
+
+class RESULTS(optx.RESULTS, metaclass=_NamedEnumeration):  # pyright: ignore
+    """optimistix's result codes and two more: a solve that stopped making progress, and
+    registration rounds that the grid's resolution stopped."""
+
+    stalled = (
+        "The solver stopped making progress (steps and value changes at rounding level) "
+        "before the gradient norm reached tol: the precision cannot resolve tol; raise tol "
+        "or use float64."
+    )
+    resolution_limited = (
+        "The registration rounds stopped at the edge of the reparametrizations the solver "
+        "accepts: the last round's Diff step towards a lower energy folded gamma or "
+        "stretched it past the area floor (5 times the grid's own area error, so about the "
+        "stretch of a Moebius map with |a| = 0.64 on any grid), and shrunk until accepted, "
+        "it lowered the energy little or not at all. The distance is the lowest energy the "
+        "rounds reached within that edge, not a converged minimum. The edge bounds the "
+        "stretch alike on every grid; another grid, init or init_candidates may still end "
+        "elsewhere."
+    )
+
+
+class Minimum(NamedTuple):
+    """What a solve returns: the minimizer, its result code, step count, and the gradient
+    norm and value there (the solver's own evaluations)."""
+
+    x: Array
+    result: RESULTS
+    num_steps: Array
+    grad_norm: Array
+    value: Array
+
+
+def _jaxopt():
+    # jaxopt announces on import that it is unmaintained; silence exactly that message.
+    with warnings.catch_warnings():
+        warnings.filterwarnings(
+            "ignore", message="JAXopt is no longer maintained", category=DeprecationWarning
+        )
+        import jaxopt
+    return jaxopt
+
+
+def check_solver(solver: str) -> None:
+    check_choice("solver", solver, SOLVERS)
+
+
+class _GradientBFGS(optx.BFGS):
+    """optimistix's BFGS, stopped by the gradient norm: ``|grad f(y)|_2 <= gtol`` at an
+    accepted point (optimistix's own rule, on changes of y and f, is kept at rounding
+    level, rtol = atol = 100 eps, so that a solve that cannot move stops there)."""
+
+    gtol: float
+
+    def __init__(self, gtol: float, rounding: float):
+        super().__init__(rtol=rounding, atol=rounding)
+        self.gtol = gtol
+
+    def terminate(self, fn, y, args, options, state, tags):
+        # Before the first accepted step f_info holds no gradient yet.
+        small = optx.two_norm(state.f_info.grad) <= self.gtol
+        return (~state.first_step) & (small | state.terminate), state.result
+
+
+class _Capped(optx.AbstractMinimiser):
+    """A minimiser stopped after ``args`` steps (the solve's args carry the cap): a traced
+    cap, at most the static ``max_steps``, so that one compiled solve serves solves of
+    different lengths. It stops exactly where a solve with ``max_steps = cap`` stops (the
+    same iterates, result code and step count)."""
+
+    inner: optx.AbstractMinimiser
+    rtol: float
+    atol: float
+    norm: Callable
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.rtol, self.atol, self.norm = inner.rtol, inner.atol, inner.norm
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        state = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
+        return state, jnp.zeros((), jnp.int32)
+
+    def step(self, fn, y, args, options, state, tags):
+        y, inner, aux = self.inner.step(fn, y, args, options, state[0], tags)
+        return y, (inner, state[1] + 1), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        done, result = self.inner.terminate(fn, y, args, options, state[0], tags)
+        capped = (state[1] >= args) & ~done
+        result = optx.RESULTS.where(capped, optx.RESULTS.nonlinear_max_steps_reached, result)
+        return done | capped, result
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return self.inner.postprocess(fn, y, aux, args, options, state[0], tags, result)
+
+
+@functools.cache
+def _capped_lbfgs():
+    """jaxopt's LBFGS whose loop also stops at the ``step_cap`` given to ``run`` (made on
+    first use: jaxopt is imported lazily, see _jaxopt)."""
+
+    class CappedLBFGS(_jaxopt().LBFGS):
+        def _cond_fun(self, inputs):
+            (_, state), (_, kwargs) = inputs
+            cap = kwargs["step_cap"].astype(state.iter_num.dtype)
+            return (state.error > self.tol) & (state.iter_num < cap)
+
+    return CappedLBFGS
+
+
+def minimize(
+    fun: Callable[[Array], Array],
+    x0,
+    *,
+    solver: str,
+    max_steps: int,
+    tol: float,
+    step_cap: Array | None = None,
+) -> Minimum:
+    """Minimize a smooth scalar function of one array (traceable, vmappable).
+
+    ``tol`` means the same for both solvers: the solve has converged when the 2-norm of
+    the gradient of ``fun`` at the returned point is at most tol (the caller scales x
+    and the value to O(1), so that this is a relative accuracy; near a minimum with
+    Hessian ~2 I the value is then within ~tol^2 / 4 of the minimum). bfgs:
+    optimistix's BFGS (dense inverse Hessian, suits up to a few thousand variables)
+    stopped by that rule; lbfgs: ``jaxopt.LBFGS(tol=tol)``, whose own rule it is.
+    Neither raises: a solve that hits ``max_steps`` returns
+    ``RESULTS.nonlinear_max_steps_reached`` and one that stops moving before meeting tol
+    (rounding) ``RESULTS.stalled``. A start that already meets tol stops after the
+    solver's first step, which evaluates it (``num_steps`` 1, x unchanged for bfgs). The
+    returned gradient norm is the solver's own, at the returned point.
+
+    ``step_cap`` (an int array, at most ``max_steps``; None: ``max_steps``) stops the
+    solve after that many steps as if it were ``max_steps``, but traced: call sites that
+    differ only in their step limit can share one solve, and with it one compiled copy of
+    the objective and its gradient.
+    """
+    check_solver(solver)
+    if step_cap is not None:
+        step_cap = jnp.asarray(step_cap, jnp.int32)
+    if solver == "bfgs":
+        rounding = 100 * float(jnp.finfo(jax.tree_util.tree_leaves(x0)[0].dtype).eps)
+        bfgs = _GradientBFGS(gtol=tol, rounding=rounding)
+        sol = optx.minimise(
+            lambda x, _: fun(x),
+            bfgs if step_cap is None else _Capped(bfgs),
+            x0,
+            args=step_cap,
+            max_steps=max_steps,
+            throw=False,
+        )
+        x, result, steps = sol.value, RESULTS.promote(sol.result), sol.stats["num_steps"]
+        # The value and gradient at the returned (last accepted) point, as the solver
+        # evaluated them: evaluating them again would put another copy of the objective
+        # and its gradient into the compiled program at every call site.
+        info = (sol.state if step_cap is None else sol.state[0]).f_info
+        value, gradient = info.f, info.grad
+    else:
+        if step_cap is None:
+            x, state = _jaxopt().LBFGS(fun=fun, maxiter=max_steps, tol=tol).run(x0)
+            cut = state.iter_num >= max_steps
+        else:
+            capped = _capped_lbfgs()(fun=lambda x, step_cap: fun(x), maxiter=max_steps, tol=tol)
+            x, state = capped.run(x0, step_cap=step_cap)
+            cut = state.iter_num >= step_cap.astype(state.iter_num.dtype)
+        # jaxopt stops silently at maxiter; its other stops are judged below.
+        result = RESULTS.where(cut, RESULTS.nonlinear_max_steps_reached, RESULTS.successful)
+        steps = state.iter_num
+        value, gradient = state.value, state.grad
+    grad_norm = optx.two_norm(gradient)
+    ok = (grad_norm <= tol) & jnp.isfinite(value)
+    # A solver that stopped on its own before meeting tol stalled (the step limit and
+    # other failures keep their own codes).
+    failed = RESULTS.where(result == RESULTS.successful, RESULTS.stalled, result)
+    result = RESULTS.where(ok, RESULTS.successful, failed)
+    return Minimum(x, result, jnp.asarray(steps, jnp.int32), grad_norm, value)
+
+
+def lanczos_smallest(
+    matvec: Callable[[Array], Array], start: Array, *, iterations: int
+) -> tuple[Array, Array]:
+    """Smallest eigenvalue and unit eigenvector of a symmetric operator, by Lanczos.
+
+    k = min(iterations, n) steps (static) of the Lanczos recurrence from ``start``,
+    q_0 = start / |start|, beta_j q_{j+1} = H q_j - alpha_j q_j - beta_{j-1} q_{j-1},
+    alpha_j = q_j . H q_j, with full reorthogonalization of each new vector against all
+    earlier ones (applied twice, "twice is enough"); the smallest eigenpair (theta, y) of
+    the tridiagonal T = tridiag(beta, alpha, beta) gives the Ritz pair (theta, Q^T y).
+    theta >= lambda_min(H) (Cauchy interlacing), with equality up to rounding once k = n;
+    the extreme eigenvalues converge first, fastest when lambda_min is separated from
+    the rest of the spectrum. k operator products; memory (k + 1) n.
+
+    Args:
+        matvec: v -> H v on arrays shaped like ``start`` (e.g. a Hessian-vector product).
+        start: nonzero start vector, any shape (flattened inside); it should not lie in an
+            invariant subspace of H (a random vector does not).
+        iterations: number of Lanczos steps (static).
+
+    Returns:
+        ``(theta, v)``: ``()`` the smallest Ritz value and ``v`` (shape of ``start``) its
+        unit Ritz vector. Traceable and vmappable.
+    """
+    shape, dtype = start.shape, start.dtype
+    n = start.size
+    k = min(iterations, n)
+    q0 = start.reshape(n) / jnp.linalg.norm(start)
+    eps, tiny = jnp.finfo(dtype).eps, jnp.finfo(dtype).tiny
+
+    def step(j, carry):
+        basis, alpha, beta = carry
+        w = matvec(basis[j].reshape(shape)).reshape(n)
+        alpha = alpha.at[j].set(basis[j] @ w)
+        # Rows j + 1.. of basis are still zero, so projecting on all rows is harmless; it
+        # subtracts alpha_j q_j and beta_{j-1} q_{j-1} and the rounding drift at once.
+        w = w - basis.T @ (basis @ w)
+        w = w - basis.T @ (basis @ w)
+        norm = jnp.linalg.norm(w)
+        # Breakdown (w is rounding noise of |H q_j|): the Krylov space is invariant and T
+        # already has H's eigenvalues on it; go on from a new direction orthogonal to it,
+        # decoupled (beta = 0), instead of normalizing noise or dividing by zero.
+        scale = jnp.abs(alpha[j]) + norm
+        # The coordinate axis least represented in the span has |projection|^2 <= (j+1)/n
+        # < 1, so its orthogonal part is never zero before k = n.
+        axis = jnp.argmin(jnp.sum(basis * basis, axis=0))
+        fresh = jnp.zeros(n, dtype).at[axis].set(1.0)
+        fresh = fresh - basis.T @ (basis @ fresh)
+        fresh = fresh - basis.T @ (basis @ fresh)
+        broke = norm <= 100 * eps * scale
+        w = jnp.where(broke, fresh, w)
+        beta = beta.at[j].set(jnp.where(broke, 0.0, norm))
+        # After k = n steps even the fresh direction is zero; row k is never used.
+        basis = basis.at[j + 1].set(w / jnp.maximum(jnp.linalg.norm(w), tiny))
+        return basis, alpha, beta
+
+    basis = jnp.zeros((k + 1, n), dtype).at[0].set(q0)
+    carry = (basis, jnp.zeros(k, dtype), jnp.zeros(k, dtype))
+    basis, alpha, beta = jax.lax.fori_loop(0, k, step, carry)
+    off = beta[: k - 1]
+    tridiagonal = jnp.diag(alpha) + jnp.diag(off, 1) + jnp.diag(off, -1)
+    theta, y = jnp.linalg.eigh(tridiagonal)
+    vector = basis[:k].T @ y[:, 0]
+    return theta[0], (vector / jnp.linalg.norm(vector)).reshape(shape)
+
+
+def result_message(result: RESULTS) -> str:
+    """The solver's words for a (concrete, unbatched) result code; '' on success."""
+    return RESULTS.message(result)

@@ -1,0 +1,179 @@
+"""Parallel transport along a path of surfaces: Schild's ladder with exact discrete midpoints.
+
+One rung carries a vector w_k at f_k to f_{k+1} (Ehlers, Pirani and Schild; in the
+discrete geodesic calculus of Rumpf and Wirth, where a one-step path is a geodesic, exp
+is f + v and log is the difference):
+
+1. p = f_k + h w_k, the rung's far end (h = 1 / (N - 1): the rung as long as a step);
+2. m = the discrete midpoint of p and f_{k+1}: the middle node of the 3-node discrete
+   geodesic between them (its Euler-Lagrange equation, Newton's method);
+3. q = the reflection of f_k through m: the third node of the discrete geodesic that
+   starts f_k, m (one shooting step);
+4. w_{k+1} = (q - f_{k+1}) / h.
+
+Both solves are in the geodesic solver's surface basis (:mod:`_shooting`). The ladder
+is first order in 1/N. With the affine average (p + f_{k+1}) / 2 as the midpoint
+(``midpoint="affine"``, as in H2_SurfaceMatch) step 2 ignores the metric, and the
+error does not shrink with N.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from .._checks import check_choice, check_int, check_positive, is_concrete
+from .._errors import ConvergenceWarning, InputError
+from .._geometry.energy import as_path
+from .._geometry.harmonics import check_degree
+from .._geometry.metric import SplitMetric, metric_inner
+from .._geometry.units import units_of
+from .geodesic import basis_np
+from .shooting import as_velocity, check_scheme, default_newton_tol, node_solve
+
+
+class TransportResult(NamedTuple):
+    """A vector carried along a path by Schild's ladder; a pytree.
+
+    Attributes:
+        vector: ``(3, m, n)`` the transported vector at the path's last surface.
+        vectors: ``(N, 3, m, n)`` the vector at every node (the input first).
+        norms: ``(N,)`` sqrt(G_{f_k}(w_k, w_k)); constant under exact transport.
+        norm_drift: ``()`` norms[-1] / norms[0] - 1.
+        residuals: ``(N - 1, 2)`` relative residuals of each rung's midpoint and reflection
+            solves (the midpoint's is 0 for ``midpoint="affine"``); NaN after a failed rung.
+        n_valid: ``()`` how many leading vectors are transports: N when converged; the
+            rung that failed and the later ones give NaN vectors and norms.
+        converged: ``()`` every Newton solve met its tolerance.
+    """
+
+    vector: Float[Array, "3 m n"]
+    vectors: Float[Array, "N 3 m n"]
+    norms: Float[Array, " N"]
+    norm_drift: Float[Array, ""]
+    residuals: Float[Array, "K 2"]
+    n_valid: Int[Array, ""]
+    converged: Array
+
+
+def _ladder(metric, w, path, values, dframe, *, scheme, midpoint, tol, max_newton):
+    n_times = path.shape[0]
+    h = 1.0 / (n_times - 1)
+    size = 3 * dframe.shape[0]
+    options = {"tol": tol, "max_newton": max_newton}
+
+    def rung(carry, nodes):
+        w_k, c_mid, c_ref, alive = carry
+        f_k, f_next = nodes
+
+        def solve(_):
+            p = f_k + h * w_k
+            if midpoint == "exact":
+                m, c_m, r_mid, _, ok_mid = node_solve(
+                    metric, scheme, p, f_next, c_mid, values, dframe, unknown="middle", **options
+                )
+            else:
+                m, c_m = 0.5 * (p + f_next), c_mid
+                r_mid, ok_mid = jnp.zeros((), w.dtype), jnp.array(True)
+            q, c_r, r_ref, _, ok_ref = node_solve(
+                metric, scheme, f_k, m, c_ref, values, dframe, unknown="next", **options
+            )
+            return (q - f_next) / h, c_m, c_r, jnp.stack([r_mid, r_ref]), ok_mid & ok_ref
+
+        def skip(_):
+            nan = jnp.asarray(jnp.nan, w.dtype)
+            return jnp.full_like(w_k, nan), c_mid, c_ref, jnp.full((2,), nan), alive
+
+        # As in shooting, a rung whose solve failed ends the ladder: its vector and every
+        # later one are NaN rather than built on a vector that is not a transport.
+        w_next, c_m, c_r, residuals, ok = jax.lax.cond(alive, solve, skip, None)
+        w_next = jnp.where(ok, w_next, jnp.nan)
+        c_m, c_r = jnp.where(ok, c_m, c_mid), jnp.where(ok, c_r, c_ref)
+        return (w_next, c_m, c_r, ok), (w_next, residuals, ok)
+
+    zeros = jnp.zeros(size, w.dtype)
+    start = (w, zeros, zeros, jnp.asarray(True))
+    _, (vectors, residuals, ok) = jax.lax.scan(rung, start, (path[:-1], path[1:]))
+    vectors = jnp.concatenate([w[None], vectors])
+    norms = jnp.sqrt(jnp.clip(metric_inner(metric, path, vectors, vectors), 0.0))
+    return vectors, norms, residuals, 1 + jnp.sum(ok.astype(jnp.int32))
+
+
+_ladder_jit = jax.jit(_ladder, static_argnames=("scheme", "midpoint", "tol", "max_newton"))
+
+
+def parallel_transport(
+    w: Float[ArrayLike, "3 m n"],
+    path: Float[ArrayLike, "N 3 m n"],
+    metric: SplitMetric,
+    *,
+    degree: int = 7,
+    scheme: str = "midpoint",
+    midpoint: str = "exact",
+    tol: float | None = None,
+    max_newton: int = 20,
+) -> TransportResult:
+    """Carry the tangent vector w at path[0] along the path to path[-1] (Schild's ladder,
+    module docstring; the discrete parallel transport of the paper's metric).
+
+    Args:
+        w: ``(3, m, n)`` a vector at path[0].
+        path: ``(N, 3, m, n)`` N >= 2 surfaces, e.g. a geodesic's path or a shot path.
+        metric: the split metric coefficients.
+        degree: the surface basis of the midpoint and reflection solves.
+        scheme: the energy's scheme, ``"midpoint"`` or ``"forward"``.
+        midpoint: ``"exact"`` (the discrete geodesic midpoint, default) or ``"affine"``
+            (the coordinates' average; for comparison: it does not converge).
+        tol, max_newton: each Newton solve's tolerance and iteration limit.
+
+    Returns:
+        :class:`TransportResult`; a ConvergenceWarning when a solve failed.
+    """
+    check_scheme(scheme)
+    check_choice("midpoint", midpoint, ("exact", "affine"))
+    path = as_path(path)
+    if path.ndim != 4:
+        raise InputError(f"path must be one path (N, 3, m, n); got {path.shape}")
+    w = as_velocity(w, path[0], "w")
+    m, n = path.shape[-2:]
+    degree = check_degree(degree, m, n)
+    max_newton = check_int("max_newton", max_newton, 1)
+    tol = default_newton_tol(path.dtype) if tol is None else check_positive("tol", tol)
+    values, dframe = (jnp.asarray(a, path.dtype) for a in basis_np(m, n, degree))
+    # In units of the path's size: vectors scale like the surfaces, norms with them.
+    units = units_of(path[0], path[-1])
+    s = units.scale
+    vectors, norms, residuals, n_valid = _ladder_jit(
+        metric,
+        w / s,
+        units.remove(path),
+        values,
+        dframe,
+        scheme=scheme,
+        midpoint=midpoint,
+        tol=float(tol),
+        max_newton=max_newton,
+    )
+    vectors, norms = vectors * s, norms * s
+    converged = n_valid == path.shape[0]
+    if is_concrete(converged) and not bool(converged):
+        warnings.warn(
+            f"parallel_transport: rung {int(n_valid)} of {path.shape[0] - 1} did not solve "
+            f"(Newton: {max_newton} iterations, step still {float(jnp.nanmax(residuals)):.3g}, "
+            f"tol={tol:g}); its vector and the later ones are NaN",
+            ConvergenceWarning,
+            stacklevel=2,
+        )
+    return TransportResult(
+        vector=vectors[-1],
+        vectors=vectors,
+        norms=norms,
+        norm_drift=norms[-1] / norms[0] - 1,
+        residuals=residuals,
+        n_valid=n_valid,
+        converged=converged,
+    )

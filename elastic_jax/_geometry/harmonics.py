@@ -1,0 +1,173 @@
+"""Real spherical harmonics on the grid and the two bases built from them (MATH.md 5)."""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+import scipy.special
+from jaxtyping import Array, Float, Int
+
+from .._checks import check_int
+from .._errors import InputError
+from .grid import angles_np
+
+
+class SphericalHarmonics(NamedTuple):
+    """Real spherical harmonics Y_lk of degree 0..deg on the grid, ordered by (l, k), k = -l..l.
+
+    values, d_phi, d_theta: ``(K, m, n)``, K = (deg + 1)^2; degree, order: ``(K,)``.
+    """
+
+    values: Float[Array, "K m n"]
+    d_phi: Float[Array, "K m n"]
+    d_theta: Float[Array, "K m n"]
+    degree: Int[Array, " K"]
+    order: Int[Array, " K"]
+
+
+def max_degree(m: int, n: int) -> int:
+    """The highest degree whose harmonics stay linearly independent on the m x n grid.
+
+    Order k needs |k| < (n - 1) / 2 distinct azimuths and degree l <= m - 3 interior rows
+    for order 0, so deg <= min(m - 3, (n - 3) // 2): 9 at 12 x 25, 22 at 25 x 49, 47 at 50 x 99.
+    """
+    return min(m - 3, (n - 3) // 2)
+
+
+def check_degree(degree: int, m: int, n: int, name: str = "degree") -> int:
+    """``degree`` as an int if 1 <= degree <= :func:`max_degree` (m, n); else InputError."""
+    degree = check_int(name, degree, 1)
+    limit = max_degree(m, n)
+    if degree > limit:
+        raise InputError(
+            f"{name}={degree} is too high for the {m} x {n} grid: the limit is {limit} "
+            "(min(m - 3, (n - 3) // 2), beyond which the harmonics are not independent on the grid)"
+        )
+    return degree
+
+
+@functools.cache
+def harmonics_np(m: int, n: int, degree: int):
+    """Y, dY/dphi, dY/dtheta, Y/sin(phi) (pole limits included), degree, order; float64."""
+    phi, theta = angles_np(m, n)
+    p, dp = scipy.special.sph_legendre_p_all(degree, degree, phi, diff_n=1)
+    sin_phi = np.sin(phi)
+    # p_lk(phi) / sin(phi): at the poles its limit is +-p'_lk for |k| = 1 and 0 otherwise.
+    ratio = np.zeros_like(p)
+    ratio[..., 1:-1] = p[..., 1:-1] / sin_phi[1:-1]
+    for k in (1, -1):
+        ratio[:, k, 0] = dp[:, k, 0]
+        ratio[:, k, -1] = -dp[:, k, -1]
+    rows = []
+    for l in range(degree + 1):
+        for k in range(-l, l + 1):
+            a = abs(k)
+            if k == 0:
+                trig, dtrig, scale = np.ones_like(theta), np.zeros_like(theta), 1.0
+            elif k > 0:
+                trig, dtrig, scale = (
+                    np.cos(a * theta),
+                    -a * np.sin(a * theta),
+                    np.sqrt(2) * (-1) ** a,
+                )
+            else:
+                trig, dtrig, scale = (
+                    np.sin(a * theta),
+                    a * np.cos(a * theta),
+                    np.sqrt(2) * (-1) ** a,
+                )
+            # The seam column repeats column 0 exactly.
+            trig[-1], dtrig[-1] = trig[0], dtrig[0]
+            rows.append(
+                (
+                    scale * np.outer(p[l, a], trig),
+                    scale * np.outer(dp[l, a], trig),
+                    scale * np.outer(p[l, a], dtrig),
+                    scale * np.outer(ratio[l, a], dtrig),
+                    l,
+                    k,
+                )
+            )
+    y, y_phi, y_theta, grad_theta, ls, ks = map(np.asarray, zip(*rows, strict=True))
+    return y, y_phi, y_theta, grad_theta, ls, ks
+
+
+def real_sph_harm(m: int, n: int, degree: int, dtype=None) -> SphericalHarmonics:
+    """Orthonormal real spherical harmonics of degree 0..degree on the grid (MATH.md 5).
+
+    Y_l0 = Re Y_l0, Y_lk = sqrt2 (-1)^k Re Y_lk (k > 0), Y_lk = sqrt2 (-1)^k Im Y_l|k| (k < 0),
+    from scipy's normalized associated Legendre functions (stable recurrences, fine to
+    degree 47 at 50 x 99), with analytic phi and theta derivatives. Cached per (m, n, degree).
+
+    Args:
+        m, n: grid size; degree: highest degree (at most :func:`max_degree`).
+        dtype: floating dtype (default: JAX's default float).
+
+    Returns:
+        :class:`SphericalHarmonics` with ``(K, m, n)`` arrays, K = (degree + 1)^2.
+    """
+    check_degree(degree, m, n)
+    y, y_phi, y_theta, _, ls, ks = harmonics_np(m, n, degree)
+    return SphericalHarmonics(
+        *(jnp.asarray(a, dtype=dtype) for a in (y, y_phi, y_theta)),
+        jnp.asarray(ls),
+        jnp.asarray(ks),
+    )
+
+
+def surface_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, "L 3 m n"]:
+    """Perturbations S_j = Y_lk e_i of a surface, degree 1..degree (paper section 4.1).
+
+    Degree 0 (translations) is left out: L = 3((degree + 1)^2 - 1). Index j = i K + k for
+    coordinate i and harmonic k (K = (degree + 1)^2 - 1), so coefficients ``(..., L)``
+    reshape to ``(..., 3, K)``. Orthonormal in L2(S^2, R^3) up to the quadrature error.
+
+    Returns:
+        ``(L, 3, m, n)``.
+    """
+    check_degree(degree, m, n)
+    y = harmonics_np(m, n, degree)[0][1:]
+    k = y.shape[0]
+    basis = np.zeros((3, k, 3, m, n))
+    for i in range(3):
+        basis[i, :, i] = y
+    return jnp.asarray(basis.reshape(3 * k, 3, m, n), dtype=dtype)
+
+
+@functools.cache
+def vector_fields_np(m: int, n: int, degree: int) -> np.ndarray:
+    """grad Y / sqrt(l(l+1)) and e1 x grad Y / sqrt(l(l+1)), ``(Lbar, 3, m, n)`` float64."""
+    _, y_phi, _, grad_theta, ls, _ = harmonics_np(m, n, degree)
+    phi, theta = angles_np(m, n)
+    cp, sp = np.cos(phi)[:, None], np.sin(phi)[:, None]
+    ct, st = np.cos(theta)[None, :], np.sin(theta)[None, :]
+    e_phi = np.stack([cp * ct, cp * st, -sp * np.ones_like(ct)])
+    e_theta = np.stack([-st * np.ones_like(cp), ct * np.ones_like(cp), np.zeros((m, n))])
+    norm = np.sqrt(ls[1:] * (ls[1:] + 1.0))[:, None, None, None]
+    a, b = y_phi[1:, None], grad_theta[1:, None]
+    grad = (a * e_phi + b * e_theta) / norm
+    rotated = (a * e_theta - b * e_phi) / norm
+    fields = np.stack([grad, rotated], axis=1).reshape(-1, 3, m, n)
+    # The pole rows describe one tangent vector each; remove the rounding across columns.
+    fields[..., 0, :] = fields[..., 0, :1]
+    fields[..., -1, :] = fields[..., -1, :1]
+    fields[..., -1] = fields[..., 0]
+    return fields
+
+
+def vector_field_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, "Lbar 3 m n"]:
+    """Tangent vector fields on S^2: grad Y_lk and e1 x grad Y_lk over sqrt(l(l+1)) (MATH.md 5).
+
+    grad Y = Y_phi e_phi + (Y_theta / sin phi) e_theta with e_phi, e_theta the unit
+    coordinate vectors; on the pole rows the limit of Y_theta / sin phi is used, so the
+    fields are exact there too. Lbar = 2(degree + 1)^2 - 2; entries 2j and 2j + 1 are the
+    gradient and the rotated gradient of harmonic j (degree >= 1). Unit L2 norm each.
+
+    Returns:
+        ``(Lbar, 3, m, n)`` fields tangent to the sphere (stored in R^3).
+    """
+    check_degree(degree, m, n)
+    return jnp.asarray(vector_fields_np(m, n, degree), dtype=dtype)

@@ -1,0 +1,337 @@
+"""The split elastic metric on M+(3, 2) and its integral over a surface (MATH.md 3)."""
+
+from __future__ import annotations
+
+import dataclasses
+import numbers
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from .._checks import is_concrete
+from .._errors import InputError
+from .differential import cross, dot, interior_frame
+from .grid import integrate_interior
+from .validation import as_surface
+
+
+def _coefficient(name: str, value):
+    if isinstance(value, jax.core.Tracer):
+        return value
+    if isinstance(value, numbers.Real) and not isinstance(value, bool):
+        arr = np.asarray(float(value))
+    else:
+        arr = np.asarray(value)
+        if not np.issubdtype(arr.dtype, np.floating) and not np.issubdtype(arr.dtype, np.integer):
+            raise InputError(
+                f"SplitMetric: coefficient {name} must be a real number; got {value!r}"
+            )
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"SplitMetric: coefficient {name}={value!r} is not finite")
+    if np.any(arr < 0):
+        raise InputError(f"SplitMetric: coefficient {name}={value!r} is negative; all must be >= 0")
+    # Python floats stay weakly typed, so one metric serves float32 and float64 surfaces.
+    return float(arr) if arr.ndim == 0 and not isinstance(value, jax.Array) else value
+
+
+@jax.tree_util.register_pytree_node_class
+@dataclasses.dataclass(frozen=True)
+class SplitMetric:
+    """Coefficients (a, b, c, d) >= 0 of the split metric (paper eq. (3.4), MATH.md 3).
+
+    G = a <xi_m, xi_m> + b <xi_vol, xi_vol> + c <xi_perp, xi_perp> + d <xi_0, xi_0>:
+    a weighs shearing (change of the metric at fixed volume), b the change of volume
+    density, c bending (change of the normal), d local rotation in the tangent plane.
+    (0, 1/2, 1, 0) is the SRNF metric. A pytree whose leaves are the four coefficients,
+    so jitted functions trace them: changing the values never recompiles.
+
+    Raises:
+        InputError (a ValueError): a coefficient is negative, not finite or not a real
+            number, or all four are zero (for arrays: at some element).
+
+    Example:
+        >>> SplitMetric(1.0, 1.0, 0.1, 0.0)
+        SplitMetric(a=1.0, b=1.0, c=0.1, d=0.0)
+    """
+
+    # Python floats, or arrays (a batch of metrics, traced leaves under jit and vmap).
+    a: ArrayLike
+    b: ArrayLike
+    c: ArrayLike
+    d: ArrayLike
+
+    def __post_init__(self):
+        values = [_coefficient(k, getattr(self, k)) for k in "abcd"]
+        for k, v in zip("abcd", values, strict=True):
+            object.__setattr__(self, k, v)
+        if is_concrete(values):
+            # Elementwise, so that a batch of metrics (arrays) is checked member by member.
+            total = sum(np.asarray(v, dtype=np.float64) for v in values)
+            if np.any(total == 0):
+                raise InputError("SplitMetric: all four coefficients are zero; the metric vanishes")
+
+    @classmethod
+    def from_elastic(cls, ae, be, ce) -> SplitMetric:
+        """The split metric equal to Jermyn's elastic metric (ae, be, ce) (paper Theorem 2).
+
+        a = 4 ae, b = 8 be + 4 ae, c = ce, d = 0; needs ae >= 0, be >= -ae / 2, ce >= 0.
+        """
+        return cls(4 * ae, 8 * be + 4 * ae, ce, 0.0)
+
+    def tree_flatten(self):
+        return (self.a, self.b, self.c, self.d), None
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        # Bypass __post_init__: JAX rebuilds pytrees with tracers and placeholder leaves.
+        obj = object.__new__(cls)
+        for k, v in zip("abcd", children, strict=True):
+            object.__setattr__(obj, k, v)
+        return obj
+
+
+SRNF_METRIC = (0.0, 0.5, 1.0, 0.0)
+
+
+def _pointwise(x: Array) -> tuple[Array, Array]:
+    """Columns of ``(..., 3, 2)`` matrices in the kernels' layout ``(..., 3, 1, 1)``."""
+    return x[..., 0, None, None], x[..., 1, None, None]
+
+
+def split_bilinear(metric: SplitMetric, a1, a2, x1, x2, y1, y2) -> Array:
+    """G_alpha(xi, eta) for alpha = [a1 a2], xi = [x1 x2], eta = [y1 y2] (vector axis -3).
+
+    The 2 x 2 algebra is written out (STACK.md: 10x faster than batched inv/det). With
+    A = alpha^T xi, S = sym A, w = skew part of A, M = adj(g) S (so g^-1 S = M / det g):
+      shear  = tr(M°_xi M°_eta) / det^(3/2)      (M° the trace-free part)
+      volume = tr M_xi tr M_eta / (2 det^(3/2))
+      perp   = (N^T xi) adj(g) (N^T eta)^T / det^(3/2),   N = a1 x a2, |N|^2 = det g
+      rot    = 2 w_xi w_eta / det^(1/2)
+    """
+    g11, g12, g22 = dot(a1, a1), dot(a1, a2), dot(a2, a2)
+    normal = cross(a1, a2)
+    det = dot(normal, normal)  # = g11 g22 - g12^2 without the cancellation
+    sqrt_det = jnp.sqrt(det)
+    det32 = det * sqrt_det
+
+    def parts(v1, v2):
+        s11, s22 = dot(a1, v1), dot(a2, v2)
+        a12, a21 = dot(a1, v2), dot(a2, v1)
+        s12, w = 0.5 * (a12 + a21), 0.5 * (a12 - a21)
+        m11 = g22 * s11 - g12 * s12
+        m12 = g22 * s12 - g12 * s22
+        m21 = g11 * s12 - g12 * s11
+        m22 = g11 * s22 - g12 * s12
+        return m11 - m22, m11 + m22, m12, m21, w, dot(normal, v1), dot(normal, v2)
+
+    dx, tx, m12x, m21x, wx, p1x, p2x = parts(x1, x2)
+    dy, ty, m12y, m21y, wy, p1y, p2y = parts(y1, y2)
+    shear = 0.5 * dx * dy + m12x * m21y + m21x * m12y
+    volume = 0.5 * tx * ty
+    perp = g22 * p1x * p1y - g12 * (p1x * p2y + p2x * p1y) + g11 * p2x * p2y
+    tangential = metric.a * shear + metric.b * volume + metric.c * perp
+    return tangential / det32 + metric.d * 2.0 * wx * wy / sqrt_det
+
+
+def split_parts(
+    alpha: Float[ArrayLike, "*batch 3 2"], xi: Float[ArrayLike, "*batch 3 2"]
+) -> tuple[Array, Array, Array, Array]:
+    """The orthogonal decomposition xi = xi_m + xi_vol + xi_perp + xi_0 (MATH.md 3).
+
+    With g = alpha^T alpha, alpha^+ = g^-1 alpha^T, P = alpha alpha^+:
+    xi_vol = 1/2 tr(alpha^+ xi) alpha; xi_m = 1/2 alpha g^-1 (alpha^T xi + xi^T alpha) - xi_vol;
+    xi_perp = xi - P xi; xi_0 = 1/2 alpha g^-1 (alpha^T xi - xi^T alpha).
+
+    Args:
+        alpha: ``(..., 3, 2)`` matrices of rank 2.
+        xi: ``(..., 3, 2)`` tangent vectors (broadcast against alpha).
+
+    Returns:
+        ``(xi_m, xi_vol, xi_perp, xi_0)``, each ``(..., 3, 2)``.
+    """
+    alpha, xi = jnp.broadcast_arrays(jnp.asarray(alpha), jnp.asarray(xi))
+    if alpha.shape[-2:] != (3, 2):
+        raise InputError(f"alpha and xi must have shape (..., 3, 2); got {alpha.shape}")
+    return _split_parts(alpha, xi)
+
+
+def _inv2(g: Array) -> Array:
+    det = g[..., 0, 0] * g[..., 1, 1] - g[..., 0, 1] * g[..., 1, 0]
+    adj = jnp.stack(
+        [
+            jnp.stack([g[..., 1, 1], -g[..., 0, 1]], -1),
+            jnp.stack([-g[..., 1, 0], g[..., 0, 0]], -1),
+        ],
+        -2,
+    )
+    return adj / det[..., None, None]
+
+
+@jax.jit
+def _split_parts(alpha, xi):
+    at = jnp.swapaxes(alpha, -1, -2)
+    ginv = _inv2(at @ alpha)
+    a_xi = at @ xi
+    lift = alpha @ ginv  # alpha g^-1, (..., 3, 2)
+    tangential = lift @ a_xi
+    xi_vol = 0.5 * jnp.trace(ginv @ a_xi, axis1=-2, axis2=-1)[..., None, None] * alpha
+    xi_m = lift @ (0.5 * (a_xi + jnp.swapaxes(a_xi, -1, -2))) - xi_vol
+    xi_0 = lift @ (0.5 * (a_xi - jnp.swapaxes(a_xi, -1, -2)))
+    return xi_m, xi_vol, xi - tangential, xi_0
+
+
+def base_inner(
+    alpha: Float[ArrayLike, "*batch 3 2"],
+    xi: Float[ArrayLike, "*batch 3 2"],
+    eta: Float[ArrayLike, "*batch 3 2"],
+) -> Float[Array, "*batch"]:
+    """The base inner product <xi, eta>_alpha = tr(xi g^-1 eta^T) sqrt(det g) (paper eq. (3.3)).
+
+    Args:
+        alpha, xi, eta: ``(..., 3, 2)``, broadcast together.
+
+    Returns:
+        ``(...)``.
+    """
+    alpha, xi, eta = jnp.broadcast_arrays(*map(jnp.asarray, (alpha, xi, eta)))
+    at = jnp.swapaxes(alpha, -1, -2)
+    g = at @ alpha
+    det = g[..., 0, 0] * g[..., 1, 1] - g[..., 0, 1] * g[..., 1, 0]
+    return jnp.einsum("...ij,...jk,...ik->...", xi, _inv2(g), eta) * jnp.sqrt(det)
+
+
+def split_inner(
+    metric: SplitMetric,
+    alpha: Float[ArrayLike, "*batch 3 2"],
+    xi: Float[ArrayLike, "*batch 3 2"],
+    eta: Float[ArrayLike, "*batch 3 2"],
+) -> Float[Array, "*batch"]:
+    """The split metric G^{a,b,c,d}_alpha(xi, eta) at one point (paper eq. (3.4), MATH.md 3).
+
+    Args:
+        metric: the coefficients.
+        alpha: ``(..., 3, 2)`` of rank 2; xi, eta: ``(..., 3, 2)``; broadcast together.
+
+    Returns:
+        ``(...)``.
+    """
+    alpha, xi, eta = jnp.broadcast_arrays(*map(jnp.asarray, (alpha, xi, eta)))
+    if alpha.shape[-2:] != (3, 2):
+        raise InputError(f"alpha, xi and eta must have shape (..., 3, 2); got {alpha.shape}")
+    out = split_bilinear(metric, *_pointwise(alpha), *_pointwise(xi), *_pointwise(eta))
+    return out[..., 0, 0]
+
+
+@jax.jit
+def metric_inner_unchecked(metric, f, u, v):
+    return integrate_interior(
+        split_bilinear(metric, *interior_frame(f), *interior_frame(u), *interior_frame(v))
+    )
+
+
+def _broadcast_fields(f, u, v) -> tuple[Array, Array, Array]:
+    f = as_surface(f, "f")
+    u, v = (jnp.asarray(x, dtype=f.dtype) for x in (u, v))
+    grid = ", ".join(map(str, f.shape[-3:]))
+    for name, x in (("u", u), ("v", v)):
+        if x.shape[-3:] != f.shape[-3:]:
+            raise InputError(
+                f"{name} must be a field on the grid of f, (..., {grid}); got {x.shape}"
+            )
+        if not isinstance(x, jax.core.Tracer) and not np.isfinite(np.asarray(x)).all():
+            raise InputError(f"{name} contains non-finite values (NaN or inf)")
+    return tuple(jnp.broadcast_arrays(f, u, v))
+
+
+def metric_inner(
+    metric: SplitMetric,
+    f: Float[ArrayLike, "*batch 3 m n"],
+    u: Float[ArrayLike, "*batch 3 m n"],
+    v: Float[ArrayLike, "*batch 3 m n"],
+) -> Float[Array, "*batch"]:
+    """The split metric of a surface, G_f(u, v) = integral over S^2 of G_{df}(du, dv) (MATH.md 3).
+
+    The integrand uses the differential of MATH.md 2 and the quadrature of MATH.md 2
+    (trapezoid in phi and theta, times sin phi). Exactly invariant under rotations and
+    translations of R^3; invariant under reparametrizations up to discretization.
+
+    Args:
+        metric: the coefficients (a, b, c, d).
+        f: ``(..., 3, m, n)`` base surface(s), an immersion.
+        u, v: ``(..., 3, m, n)`` tangent vectors (vector fields along f); leading axes broadcast.
+
+    Returns:
+        ``(...)`` the inner products.
+
+    Example:
+        >>> from elastic_jax import SplitMetric, metric_inner, sphere_points
+        >>> e1 = sphere_points(25, 49)
+        >>> g = metric_inner(SplitMetric(1, 1, 0, 0), e1, e1, e1)  # 24.954 in float64
+        >>> # 8 pi b = 25.133 in the continuum: u = f is pure volume change; error O(h^2)
+    """
+    f, u, v = _broadcast_fields(f, u, v)
+    return metric_inner_unchecked(metric, f, u, v)
+
+
+def _elastic_pointwise(ae, be, ce, alpha, xi, eta):
+    """Jermyn's elastic metric from dg and dn in matrix form (independent of the split kernel)."""
+    at = jnp.swapaxes(alpha, -1, -2)
+    g = at @ alpha
+    ginv = jnp.linalg.inv(g)
+    sqrt_det = jnp.sqrt(jnp.linalg.det(g))
+    a1, a2 = alpha[..., 0], alpha[..., 1]
+    normal = jnp.cross(a1, a2)
+
+    def dg_dn(x):
+        dg = at @ x + jnp.swapaxes(x, -1, -2) @ alpha
+        tr = jnp.trace(ginv @ at @ x, axis1=-2, axis2=-1)
+        dn = jnp.cross(x[..., 0], a2) + jnp.cross(a1, x[..., 1]) - normal * tr[..., None]
+        return dg, dn / sqrt_det[..., None]
+
+    dg_x, dn_x = dg_dn(xi)
+    dg_y, dn_y = dg_dn(eta)
+    term_a = jnp.trace(ginv @ dg_x @ ginv @ dg_y, axis1=-2, axis2=-1)
+    term_b = jnp.trace(ginv @ dg_x, axis1=-2, axis2=-1) * jnp.trace(ginv @ dg_y, axis1=-2, axis2=-1)
+    term_c = jnp.sum(dn_x * dn_y, axis=-1)
+    return (ae * term_a + be * term_b + ce * term_c) * sqrt_det
+
+
+def _as_matrices(f: Array) -> Array:
+    """Interior differential as ``(..., m-2, n-1, 3, 2)`` matrices."""
+    a1, a2 = interior_frame(f)
+    return jnp.moveaxis(jnp.stack([a1, a2], axis=-3), (-4, -3), (-2, -1))
+
+
+@jax.jit
+def _elastic_metric_inner(ae, be, ce, f, u, v):
+    values = _elastic_pointwise(ae, be, ce, _as_matrices(f), _as_matrices(u), _as_matrices(v))
+    return integrate_interior(values)
+
+
+def elastic_metric_inner(
+    ae,
+    be,
+    ce,
+    f: Float[ArrayLike, "*batch 3 m n"],
+    u: Float[ArrayLike, "*batch 3 m n"],
+    v: Float[ArrayLike, "*batch 3 m n"],
+) -> Float[Array, "*batch"]:
+    """The general elastic metric of Jermyn et al., written from dg and dn (MATH.md 3).
+
+    integral of [ae tr(g^-1 dg_u g^-1 dg_v) + be tr(g^-1 dg_u) tr(g^-1 dg_v) + ce <dn_u, dn_v>]
+    sqrt(det g), with dg = alpha^T xi + xi^T alpha and
+    dn = (xi1 x a2 + a1 x xi2 - (a1 x a2) tr(alpha^+ xi)) / sqrt(det g). A cross-check of
+    the split metric: with d = 0 it equals G^{a,b,c,0} for ae = a/4, be = (b-a)/8, ce = c
+    (paper Theorem 2). Uses batched matrix routines, so it is slower than metric_inner.
+
+    Args:
+        ae, be, ce: the elastic coefficients (be may be negative down to -ae/2).
+        f, u, v: as in :func:`metric_inner`.
+
+    Returns:
+        ``(...)``.
+    """
+    f, u, v = _broadcast_fields(f, u, v)
+    return _elastic_metric_inner(ae, be, ce, f, u, v)

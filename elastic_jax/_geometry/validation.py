@@ -1,0 +1,83 @@
+"""The immersion check at the public boundary (outside jit), on top of ``_checks``."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+from .._checks import check_grid_shape, extents, grid_array, item_suffix
+from .._errors import InputError
+from .differential import area_element, interior_frame
+
+__all__ = ["as_surface", "check_grid_shape", "validate_surface"]
+
+
+def as_surface(f, name: str, *, check_immersion: bool = True) -> jax.Array:
+    """Convert to a real JAX array and check it is a well-formed surface on the grid.
+
+    :func:`elastic_jax._checks.grid_array`'s checks (shape, dtype, finite values, pole
+    rows, seam) and, on concrete arrays, a nonzero area element at every interior grid
+    point. The area is measured on the surface moved to its bounding box's centre and
+    divided by its extent, so the check means the same at every scale.
+
+    Raises:
+        InputError: naming the problem, the argument and the grid point.
+    """
+    f = grid_array(f, name)
+    if not check_immersion or isinstance(f, jax.core.Tracer):
+        return f
+    m, n = f.shape[-2:]
+    x = np.asarray(f)
+    batch = x.shape[:-3]
+    flat = x.reshape((-1, 3, m, n))
+    lower = flat.reshape(flat.shape[0], 3, -1).min(axis=-1)
+    upper = flat.reshape(flat.shape[0], 3, -1).max(axis=-1)
+    centre = (0.5 * lower + 0.5 * upper)[..., None, None]
+    unit = ((flat - centre) / extents(flat)[:, None, None, None]).astype(x.dtype)
+    # In numpy: no program to compile on a process's first call, and none traced when a
+    # concrete array is closed over inside a caller's jit.
+    area = area_element(*interior_frame(unit))
+    # Zero to working precision: the cross product of columns of size ~1 has rounding
+    # error ~eps; thin real features stay far above this.
+    eps = np.finfo(x.dtype).eps
+    degenerate = area <= 100 * eps
+    if degenerate.any():
+        k, i, j = np.argwhere(degenerate)[0]
+        phi, theta = (i + 1) * np.pi / (m - 1), j * 2 * np.pi / (n - 1)
+        raise InputError(
+            f"{name} is not an immersion{item_suffix(batch, k)}: the area element vanishes at "
+            f"{int(degenerate.sum())} interior grid point(s), the first at row i={i + 1}, "
+            f"column j={j} (phi={phi:.4f}, theta={theta:.4f})"
+        )
+    return f
+
+
+def validate_surface(f, name: str = "f") -> jax.Array:
+    """Check that ``f`` is a well-formed surface ``(..., 3, m, n)`` on the grid (MATH.md 1).
+
+    Raises :class:`elastic_jax.InputError` (a ValueError) naming the problem and the grid
+    point for: a wrong shape, an even n, fewer than 5 rows or columns, complex or float16
+    values, NaN/inf, pole rows that are not constant or a seam column that does not
+    repeat column 0 (beyond sqrt(eps) times the surface's extent), and a vanishing area
+    element at an interior grid point (not an immersion; judged relative to the
+    surface's extent, so at any scale). Every public function runs these checks on
+    concrete input; call this to check data early.
+
+    Args:
+        f: array-like ``(..., 3, m, n)``.
+        name: the name used in error messages.
+
+    Returns:
+        ``f`` as a floating JAX array.
+
+    Example:
+        >>> import numpy as np
+        >>> from elastic_jax import shapes, validate_surface
+        >>> f = np.array(shapes.sample(shapes.sphere, 13, 25))
+        >>> f[0, 5, 7] = np.nan
+        >>> validate_surface(f)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        elastic_jax.InputError: f contains 1 non-finite value(s) (NaN or inf); ...
+    """
+    return as_surface(f, name)

@@ -1,0 +1,205 @@
+"""Phases 4 and 5: the unregistered and the registered geodesics, the result record and
+the refinement check (halved time steps, the finer grid).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+
+from .._geodesics.geodesic import (
+    frames_between,
+    path_from_coefficients,
+    perturbed_frames,
+    safe_sqrt,
+    solve_path,
+    upsample_coefficients,
+)
+from .._geodesics.solvers import RESULTS
+from .._geometry.energy import frame_energy
+from .._geometry.grid import sphere_points
+from .._geometry.srnf import center_unchecked
+from .problem import (
+    Problem,
+    State,
+    compose,
+    frame_of,
+    geodesic_options,
+    identity_frames,
+    joint_objective,
+    make_problem,
+    path_energy_at,
+    registered_f1,
+    registered_frame,
+    rotate_surface,
+    rotated_end_frame,
+    scaling_at,
+    zero_coefficients,
+    zero_registration,
+)
+from .records import Refinement, ShapeGeodesicResult
+from .rounds import Rounds
+
+
+def _refinement(prob, cfg, gamma, rotation, coefficients, energy) -> Refinement:
+    """The result re-evaluated with halved time steps and on the (2m - 1) x (2n - 1) grid."""
+    metric, bases, degree = prob.metric, prob.bases, cfg.degree
+    start, end = registered_frame(prob, cfg, gamma), rotated_end_frame(prob, cfg, rotation)
+    n_fine = 2 * cfg.n_times - 1
+    halved = upsample_coefficients(coefficients, degree, degree, n_fine)
+    straight = frames_between(start, end, n_fine)
+    frames = perturbed_frames(straight, halved, bases.dframe)
+    time_energy = frame_energy(metric, *frames, cfg.scheme)
+
+    fine_gamma = compose(gamma, bases.fine_points, cfg.interpolation)
+    fine_start = frame_of(prob.f1, fine_gamma, cfg)
+    fine_end = [rotate_surface(rotation, a) for a in frame_of(prob.f2, bases.fine_points, cfg)]
+    straight = frames_between(fine_start, fine_end, cfg.n_times)
+    frames = perturbed_frames(straight, coefficients, bases.fine_dframe)
+    grid_energy = frame_energy(metric, *frames, cfg.scheme)
+
+    d = jnp.sqrt(energy)
+    d_time, d_grid = jnp.sqrt(time_energy), jnp.sqrt(grid_energy)
+    change = jnp.maximum(jnp.abs(d_time - d), jnp.abs(d_grid - d))
+    return Refinement(d_time, d_grid, change / jnp.maximum(d, jnp.finfo(d.dtype).tiny))
+
+
+def _final_solves(prob, cfg, state: State):
+    """The unregistered and the registered geodesics, saddle-checked.
+
+    One traced solve for both (lax.map runs them one after the other): half the
+    compilation of two call sites.
+    """
+    f1, f2, bases = prob.f1, prob.f2, prob.bases
+    starts = jnp.stack([f1, registered_f1(prob, cfg, state.gamma)])
+    ends = jnp.stack([f2, rotate_surface(state.rotation, f2)])
+    inits = jnp.stack([zero_coefficients(prob, cfg), state.coefficients])
+    identity = identity_frames(prob, cfg)
+    registered = (
+        registered_frame(prob, cfg, state.gamma),
+        rotated_end_frame(prob, cfg, state.rotation),
+    )
+    frames = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), identity, registered)
+
+    def solve(problem):
+        start, end, init, (start_frame, end_frame) = problem
+        return solve_path(
+            prob.metric,
+            start,
+            end,
+            init,
+            bases.values,
+            bases.dframe,
+            **geodesic_options(cfg),
+            saddle_checks=cfg.saddle_checks,
+            frames=(start_frame, end_frame),
+        )
+
+    return jax.lax.map(solve, (starts, ends, inits, frames))
+
+
+def geodesics_phase(metric, f1, f2, bases, rounds: Rounds, cfg, rigid):
+    """Phase 4: the parametrized and the final geodesic (``rounds`` passed on)."""
+    prob = make_problem(metric, f1, f2, bases, rigid)
+    return rounds, _final_solves(prob, cfg, rounds.state)
+
+
+def end_phase(metric, f1, f2, bases, solved, cfg, rigid) -> ShapeGeodesicResult:
+    """Phase 5: the result from the rounds and the geodesics (status, refinement)."""
+    prob = make_problem(metric, f1, f2, bases, rigid)
+    dtype = prob.f1.dtype
+    rounds, both = solved
+    parametrized, final = (jax.tree_util.tree_map(lambda x, i=i: x[i], both) for i in (0, 1))
+    state, history = rounds.state, rounds.history
+    history = history.at[0].set(parametrized.energy)
+    steps = state.steps + jnp.sum(both.num_steps).astype(jnp.int32)
+    scaling = scaling_at(prob, cfg, state.gamma, state.rotation)
+    joint = joint_objective(prob, cfg, rigid, state.gamma, state.rotation, scaling)
+    zero_step = zero_registration(prob, rigid, dtype)
+    grad_norm = optx.two_norm(jax.grad(joint)((scaling.whitened(final.coefficients), zero_step)))
+    rounds_result = RESULTS.where(
+        state.shrunk,
+        RESULTS.resolution_limited,
+        RESULTS.where(rounds.done, RESULTS.successful, RESULTS.nonlinear_max_steps_reached),
+    )
+    result = RESULTS.where(final.converged, rounds_result, final.result)
+    if cfg.refinement:
+        refinement = _refinement(
+            prob, cfg, state.gamma, state.rotation, final.coefficients, final.energy
+        )
+    else:
+        nan = jnp.asarray(jnp.nan, dtype)
+        refinement = Refinement(nan, nan, nan)
+    return ShapeGeodesicResult(
+        path=final.path,
+        distance=final.distance,
+        energy=final.energy,
+        parametrized_distance=parametrized.distance,
+        f1_registered=final.path[0],
+        gamma=state.gamma,
+        rotation=state.rotation,
+        coefficients=final.coefficients,
+        energy_history=history,
+        rounds=rounds.rounds,
+        num_steps=steps,
+        converged=final.converged & rounds.done & ~state.shrunk,
+        result=result,
+        grad_norm=grad_norm,
+        min_curvature=final.min_curvature,
+        refinement=refinement,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "rigid"))
+def _shape_evaluate(metric, f1, f2, bases, gamma, rotation, coefficients, *, cfg, rigid):
+    """The path from f1 o gamma to R f2 with the perturbation C, and its energy."""
+    if rigid:
+        f1, f2 = center_unchecked(f1), center_unchecked(f2)
+    prob = Problem(metric, f1, f2, sphere_points(*f1.shape[-2:], f1.dtype), bases)
+    start, end = registered_f1(prob, cfg, gamma), rotate_surface(rotation, f2)
+    path = path_from_coefficients(start, end, coefficients, bases.values, cfg.n_times)
+    return path, path_energy_at(prob, cfg, gamma, rotation, coefficients)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "rigid"))
+def shape_finish(metric, g1, g2, bases, solved, units, *, cfg, rigid) -> ShapeGeodesicResult:
+    """The result in the user's units from the solve's: the path and its energy evaluated
+    again at the solution (differentiably, see shape_geodesic), then the units restored.
+    One compiled program: op by op, a first call would compile each operation alone."""
+    gamma, rotation, coefficients = (
+        jax.lax.stop_gradient(x) for x in (solved.gamma, solved.rotation, solved.coefficients)
+    )
+    path, energy = _shape_evaluate(
+        metric, g1, g2, bases, gamma, rotation, coefficients, cfg=cfg, rigid=rigid
+    )
+    unit_result = solved._replace(
+        path=path, f1_registered=path[0], energy=energy, distance=safe_sqrt(energy)
+    )
+    return _restore_shape_units(unit_result, units, rigid)
+
+
+def _restore_shape_units(result: ShapeGeodesicResult, units, rigid: bool) -> ShapeGeodesicResult:
+    """A result solved in ``units`` in the user's units again. Modulo "rigid" the solve
+    centres both surfaces, so the path is only scaled back; modulo "diff" it is also
+    moved back to the inputs' place."""
+    s = units.scale
+
+    def surfaces(x):
+        return x * s if rigid else units.restore(x)
+
+    return result._replace(
+        path=surfaces(result.path),
+        distance=result.distance * s,
+        energy=result.energy * s**2,
+        parametrized_distance=result.parametrized_distance * s,
+        f1_registered=surfaces(result.f1_registered),
+        coefficients=result.coefficients * s,
+        energy_history=result.energy_history * s**2,
+        refinement=result.refinement._replace(
+            distance_time=result.refinement.distance_time * s,
+            distance_grid=result.refinement.distance_grid * s,
+        ),
+    )

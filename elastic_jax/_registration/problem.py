@@ -1,0 +1,444 @@
+"""The registration problem and the arithmetic its phases share.
+
+One record holds the metric, the two surfaces and the bases; the functions here step a
+reparametrization gamma (MATH.md 6), turn f2 by R, take the frames of f1 o gamma and R f2,
+and evaluate the matching criteria and the path energy (MATH.md 4) the phases minimize.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from .._geodesics.geodesic import (
+    basis_np,
+    frames_between,
+    perturbed_frames,
+    solve_path,
+    solver_scaling,
+)
+from .._geometry.differential import area_element, interior_frame
+from .._geometry.energy import frame_energy
+from .._geometry.grid import interior_weights, interior_weights_np, sphere_points, sphere_points_np
+from .._geometry.harmonics import harmonics_np, vector_fields_np
+from .._geometry.metric import SplitMetric
+from .._geometry.reparam import (
+    jacobian_determinant_unchecked,
+    reparametrize_unchecked,
+    sample_points,
+)
+from .._geometry.so3 import icosahedral_np, so3_exp_unchecked
+from .._geometry.srnf import center_unchecked
+from .._options import ShapeOptions
+
+# Shrink factors tried for a reparametrization step, largest first; 0 keeps gamma.
+_STEP_SCALES = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.0)
+
+
+@functools.cache
+def _field_scale_np(m: int, n: int, degree: int) -> np.ndarray:
+    """1 / sqrt(l(l+1)) per vector field: differentials grow like l; this evens the Hessian."""
+    ls = harmonics_np(m, n, degree)[4][1:]
+    return np.repeat(1.0 / np.sqrt(ls * (ls + 1.0)), 2)
+
+
+class _Bases(NamedTuple):
+    """The arrays a solve needs besides the surfaces (precomputed per grid and degree)."""
+
+    values: Array  # (K, m n) path harmonics
+    dframe: Array  # (K, 2 P) their differentials
+    fields: Array  # (Lbar, 3, m, n) Diff-step vector fields
+    field_scale: Array  # (Lbar,)
+    ico: Array  # (60, 3, 3)
+    fine_points: Array  # (3, 2m - 1, 2n - 1) the refinement grid's points
+    fine_dframe: Array  # (K, 2 P') the path harmonics' differentials there
+    area_floor: Array  # () least grid area a reparametrization may keep (_resolution_np)
+    max_boost: Array  # () largest |a| of a Moebius map the grid resolves
+
+
+def into_ball(b: Array, radius: Array) -> Array:
+    """b -> radius tanh(|b|) b / |b|: R^3 onto the open ball of that radius, smooth at 0."""
+    t2 = jnp.sum(b * b)
+    small = t2 < np.sqrt(np.finfo(b.dtype).eps)
+    # Safe where: tanh(t)/t's series below sqrt(eps), so no 0/0 reaches the gradient.
+    t = jnp.sqrt(jnp.where(small, 1.0, t2))
+    return radius * b * jnp.where(small, 1.0 - t2 / 3.0, jnp.tanh(t) / t)
+
+
+# A reparametrization is resolved by the grid when the unit sphere it reparametrizes keeps
+# its discrete area to within this many times the area the grid already loses for the
+# identity (0.71 % at 25 x 49): a Moebius map with |a| = 0.6 needs 2.6-3.2 times, and the
+# bounded boost search below must reach it well inside its bound.
+_RESOLUTION_FACTOR = 5.0
+
+
+# BFGS steps per round of the L2 matching of every start.
+MATCH_STEPS = 30
+
+
+def _grid_area_np(gamma: np.ndarray) -> float:
+    """Discrete area of the unit sphere reparametrized by gamma: the integral of its J."""
+    a1, a2 = interior_frame(gamma)
+    m, n = gamma.shape[-2:]
+    signed = np.sum(np.cross(a2, a1, axis=0) * gamma[:, 1:-1, :-1], axis=0)
+    return float(np.sum(signed * interior_weights_np(m, n)))
+
+
+@functools.cache
+def _resolution_np(m: int, n: int) -> tuple[float, float]:
+    """(area floor, largest resolved Moebius |a|) of the m x n grid.
+
+    Where a reparametrization stretches a region beyond what the grid resolves, finite
+    differences of f o gamma lose area (chords for arcs), and a registration that wants a
+    smaller start surface gains by it: the radius-3 sphere registered to a unit sphere
+    came out at 40 % of the distance before this floor. A gamma may keep no less than
+    (1 - 5 eps_id) of the identity's discrete area, eps_id = 1 - A_grid(e1) / (4 pi); the
+    boost |a| of the initial Moebius search is bounded to where a Moebius map keeps it.
+    """
+    e1 = sphere_points_np(m, n)
+    area_id = _grid_area_np(e1)
+    floor = area_id * (1.0 - _RESOLUTION_FACTOR * (1.0 - area_id / (4.0 * np.pi)))
+    # A direction that no grid symmetry favours; moebius() written out in numpy, because
+    # this runs while callers (karcher_mean) trace their jitted batches.
+    direction = np.array([0.36, 0.48, 0.8]) / np.linalg.norm([0.36, 0.48, 0.8])
+    low, high = 0.0, 0.99
+    for _ in range(30):
+        mid = 0.5 * (low + high)
+        a = mid * direction[:, None, None]
+        d = e1 - a
+        gamma = (1.0 - mid * mid) * d / np.sum(d * d, axis=0) - a
+        low, high = (mid, high) if _grid_area_np(gamma) >= floor else (low, mid)
+    return floor, low
+
+
+def compose(gamma, step, interpolation):
+    """gamma o step: read gamma's coordinates at the points of step, back onto the sphere."""
+    g = reparametrize_unchecked(gamma, step, method=interpolation)
+    return g / jnp.linalg.norm(g, axis=-3, keepdims=True)
+
+
+def _step_field(y, fields, scale, e1):
+    """Proj(Id + sum_k y_k s_k v_k) (MATH.md 6), s_k = 1 / sqrt(l(l+1))."""
+    w = e1 + jnp.einsum("k,kimn->imn", y * scale, fields)
+    return w / jnp.linalg.norm(w, axis=-3, keepdims=True)
+
+
+def rotate_surface(r, f):
+    return jnp.einsum("ij,j...->i...", r, f)
+
+
+def kabsch(source, target):
+    """The rotation R minimizing the area-weighted sum |R source - target|^2 (centered)."""
+    m, n = target.shape[-2:]
+    weights = area_element(*interior_frame(target)) * interior_weights(m, n, target.dtype)
+    x, y = source[:, 1:-1, :-1], target[:, 1:-1, :-1]
+    total = jnp.sum(weights)
+    x = x - jnp.sum(x * weights[None], axis=(1, 2), keepdims=True) / total
+    y = y - jnp.sum(y * weights[None], axis=(1, 2), keepdims=True) / total
+    h = jnp.einsum("imn,jmn,mn->ij", x, y, weights)
+    u, _, vt = jnp.linalg.svd(h)
+    d = jnp.sign(jnp.linalg.det(vt.T @ u.T))
+    return vt.T @ jnp.diag(jnp.asarray([1.0, 1.0, 1.0], h.dtype).at[2].set(d)) @ u.T
+
+
+def are_resolved(gammas, floor):
+    """Whether each of ``gammas (..., 3, m, n)`` is a diffeomorphism the grid resolves.
+
+    J > 0 at every grid point, and the discrete area of the reparametrized unit sphere
+    (the integral of J) at least ``floor`` (:func:`_resolution_np`).
+    """
+    jac = jacobian_determinant_unchecked(gammas)
+    m, n = gammas.shape[-2:]
+    area = jnp.einsum("...ij,ij->...", jac[..., 1:-1, :-1], interior_weights(m, n, jac.dtype))
+    return (jnp.min(jac, axis=(-2, -1)) > 0) & (area >= floor)
+
+
+def safe_update(prob, cfg, gamma, y):
+    """The largest shrink of the step whose composition with gamma stays resolved, and
+    whether the step had to shrink.
+
+    The shrinks are tried one after the other (a loop, not one candidate per shrink in
+    the program): the first usually passes, and each candidate is a bicubic composition
+    whose kernels would otherwise be compiled six times over at each of three call sites.
+    """
+    bases = prob.bases
+    scales = jnp.asarray(_STEP_SCALES, y.dtype)
+    last = len(_STEP_SCALES) - 1
+
+    def candidate(i):
+        step = _step_field(scales[i] * y, bases.fields, bases.field_scale, prob.e1)
+        return compose(gamma, step, cfg.interpolation)
+
+    def usable(i, g):
+        # The last shrink (scale 0) is gamma itself, which is valid.
+        return are_resolved(g, bases.area_floor) | (i == last)
+
+    def next_shrink(carry):
+        i, _, _ = carry
+        g = candidate(i + 1)
+        return i + 1, g, usable(i + 1, g)
+
+    first = candidate(0)
+    start = (jnp.zeros((), jnp.int32), first, usable(0, first))
+    index, chosen, _ = jax.lax.while_loop(lambda c: ~c[2], next_shrink, start)
+    return chosen, index > 0
+
+
+class Problem(NamedTuple):
+    """The traced data of one solve: metric, surfaces (centered when rigid), bases."""
+
+    metric: SplitMetric
+    f1: Array
+    f2: Array
+    e1: Array
+    bases: _Bases
+
+
+class State(NamedTuple):
+    gamma: Array
+    rotation: Array
+    coefficients: Array
+    energy: Array
+    steps: Array
+    shrunk: Array  # () bool: the (last) round's step had to shrink to stay resolved
+
+
+def registered_f1(prob, cfg, gamma):
+    return reparametrize_unchecked(prob.f1, gamma, method=cfg.interpolation)
+
+
+def stepped_gamma(prob, cfg, gamma, x):
+    """gamma o Proj(Id + sum x_k v_k): the reparametrization after one more Diff step."""
+    step = _step_field(x, prob.bases.fields, prob.bases.field_scale, prob.e1)
+    return compose(gamma, step, cfg.interpolation)
+
+
+@functools.cache
+def _chord_correction_np(m: int, n: int) -> tuple[float, float]:
+    """h / sin(h) per grid direction: central differences of the identity (and of any
+    rotation) are chords of great circles, shorter than its tangents by sin(h) / h."""
+    dtheta, dphi = 2.0 * np.pi / (n - 1), np.pi / (m - 1)
+    return dtheta / np.sin(dtheta), dphi / np.sin(dphi)
+
+
+def _chain_frame(f, gamma, interpolation):
+    """The differential of f o gamma on the interior points by the chain rule (MATH.md 2's
+    frame): (df at gamma) applied to gamma's frame.
+
+    df is the exact derivative of f's interpolant (at grid points, for bicubic, the
+    central difference); gamma's frame is its central differences with the chords of a
+    rotation made exact. Central differences of f o gamma itself are chords across
+    gamma(p +- h), which on a real shape cut corners wherever gamma stretches: they lower
+    the energy, and a registration minimizing it learns to under-sample f.
+    """
+    m, n = gamma.shape[-2:]
+    g1, g2 = interior_frame(gamma)
+    c1, c2 = _chord_correction_np(m, n)
+    points = gamma[:, 1:-1, :-1]
+
+    def along(direction):
+        return jax.jvp(lambda p: sample_points(f, p, interpolation), (points,), (direction,))[1]
+
+    return along(g1 * c1), along(g2 * c2)
+
+
+def frame_of(f, gamma, cfg):
+    """The differential of f o gamma on gamma's interior points (cfg.differential)."""
+    if cfg.differential == "grid":
+        return interior_frame(reparametrize_unchecked(f, gamma, method=cfg.interpolation))
+    return _chain_frame(f, gamma, cfg.interpolation)
+
+
+def registered_frame(prob, cfg, gamma):
+    """The differential of f1 o gamma (interior points)."""
+    if cfg.differential == "grid":
+        return interior_frame(registered_f1(prob, cfg, gamma))
+    return _chain_frame(prob.f1, gamma, cfg.interpolation)
+
+
+def rotated_end_frame(prob, cfg, rotation):
+    """The differential of R f2 (interior points), taken as f1 o gamma's at the identity:
+    identical inputs then have identical frames."""
+    if cfg.differential == "grid":
+        frame = interior_frame(prob.f2)
+    else:
+        frame = _chain_frame(prob.f2, prob.e1, cfg.interpolation)
+    return tuple(rotate_surface(rotation, a) for a in frame)
+
+
+def identity_frames(prob, cfg):
+    """(f1's frame, f2's frame): the straight line without registration."""
+    if cfg.differential == "grid":  # the surfaces themselves, not read back at their points
+        return interior_frame(prob.f1), interior_frame(prob.f2)
+    eye = jnp.eye(3, dtype=prob.f1.dtype)
+    return registered_frame(prob, cfg, prob.e1), rotated_end_frame(prob, cfg, eye)
+
+
+def geodesic_options(cfg):
+    return {
+        "n_times": cfg.n_times,
+        "solver": cfg.solver,
+        "max_steps": cfg.max_steps,
+        "tol": cfg.tol,
+        "scheme": cfg.scheme,
+    }
+
+
+def geodesic_at(prob, cfg, gamma, rotation, init):
+    """The parametrized geodesic from f1 o gamma to R f2, warm-started at ``init``."""
+    return solve_path(
+        prob.metric,
+        registered_f1(prob, cfg, gamma),
+        rotate_surface(rotation, prob.f2),
+        init,
+        prob.bases.values,
+        prob.bases.dframe,
+        **geodesic_options(cfg),
+        frames=(registered_frame(prob, cfg, gamma), rotated_end_frame(prob, cfg, rotation)),
+    )
+
+
+def straight_line_energy(prob, cfg, start_frame, end_frame):
+    """The straight line's energy between two ends given by their frames."""
+    # Ranking and refining straight lines needs no time resolution: 3 time points
+    # (4.5x cheaper than N = 10) order the candidates the same way.
+    frames = frames_between(start_frame, end_frame, 3)
+    return frame_energy(prob.metric, *frames, cfg.scheme)
+
+
+def l2_mismatch(start, end):
+    """int |start - end|^2 dsigma over the round sphere, for ``(3, m, n)`` surfaces."""
+    m, n = start.shape[-2:]
+    gap = jnp.sum((start - end)[:, 1:-1, :-1] ** 2, axis=0)
+    return jnp.sum(gap * interior_weights(m, n, start.dtype))
+
+
+def registration_variables(prob, y, rigid):
+    """Split the registration variables into the Diff step's x and R^3's rotation step."""
+    n_fields = prob.bases.fields.shape[0]
+    x = y[:n_fields]
+    r_step = so3_exp_unchecked(y[n_fields:]) if rigid else jnp.eye(3, dtype=y.dtype)
+    return x, r_step
+
+
+def joint_objective(prob, cfg, rigid, gamma, rotation, scaling):
+    """Energy / scale as a function of (whitened path coefficients z, registration step y)."""
+    end_frame = rotated_end_frame(prob, cfg, rotation)
+
+    def objective(variables):
+        z, y = variables
+        x, r_step = registration_variables(prob, y, rigid)
+        start = registered_frame(prob, cfg, stepped_gamma(prob, cfg, gamma, x))
+        end = [rotate_surface(r_step, a) for a in end_frame]
+        straight = frames_between(start, end, cfg.n_times)
+        frames = perturbed_frames(straight, scaling.coefficients(z), prob.bases.dframe)
+        return frame_energy(prob.metric, *frames, cfg.scheme) / scaling.energy_scale
+
+    return objective
+
+
+def scaling_at(prob, cfg, gamma, rotation):
+    return solver_scaling(
+        prob.metric,
+        registered_f1(prob, cfg, gamma),
+        rotate_surface(rotation, prob.f2),
+        prob.bases.dframe,
+        cfg.n_times,
+        cfg.scheme,
+        (registered_frame(prob, cfg, gamma), rotated_end_frame(prob, cfg, rotation)),
+    )
+
+
+def zero_registration(prob, rigid, dtype):
+    return jnp.zeros(prob.bases.fields.shape[0] + (3 if rigid else 0), dtype)
+
+
+def path_energy_at(prob, cfg, gamma, rotation, coefficients):
+    """Energy of the straight line from f1 o gamma to R f2 plus the perturbation."""
+    start, end = registered_frame(prob, cfg, gamma), rotated_end_frame(prob, cfg, rotation)
+    straight = frames_between(start, end, cfg.n_times)
+    frames = perturbed_frames(straight, coefficients, prob.bases.dframe)
+    return frame_energy(prob.metric, *frames, cfg.scheme)
+
+
+def matching_criterion(prob, cfg, weight):
+    """weight * L2 position mismatch + (1 - weight) * straight-line energy (3 time points).
+
+    The L2 mismatch int |f1 o gamma - R f2|^2 dsigma has no derivatives of the surfaces
+    in it, so its landscape over gamma is far smoother than the elastic energy's: from a
+    wrong basin it finds the right correspondence where the energy cannot (cat1 against
+    itself under two large Diff steps: the energy stalled at 0.63, the L2 rounds found the
+    map to 0.017 rad). It only initializes: the rounds that follow minimize the energy.
+    """
+
+    def criterion(gamma, rotation):
+        l2 = l2_mismatch(registered_f1(prob, cfg, gamma), rotate_surface(rotation, prob.f2))
+        frames = registered_frame(prob, cfg, gamma), rotated_end_frame(prob, cfg, rotation)
+        return weight * l2 + (1.0 - weight) * straight_line_energy(prob, cfg, *frames)
+
+    return criterion
+
+
+def iterate(round_fn, state: State, max_rounds: int, small_change, history=None):
+    """Rounds until one changes the energy little, or max_rounds; never a rising energy.
+
+    Returns (state, history, rounds taken, whether the last round met small_change or
+    was refused); ``state.shrunk`` says whether the last round's step had to shrink.
+    ``history`` (optional) gets each round's energy at index 2 + round.
+    """
+    if history is None:
+        history = jnp.zeros((max_rounds + 2,), state.energy.dtype)
+
+    def keep_going(carry):
+        _, _, k, done = carry
+        return (k < max_rounds) & ~done
+
+    def body(carry):
+        state, history, k, _ = carry
+        new = round_fn(state)
+        # A round whose step had to shrink can end higher: keep the better registration
+        # (no round may raise the energy), and stop there.
+        better = new.energy <= state.energy
+        kept = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), new, state)
+        # The last round's shrink is kept whether or not the round was: rounds that end
+        # shrunk ended at the edge of what the grid resolves, not at a minimum.
+        kept = kept._replace(steps=new.steps, shrunk=new.shrunk)
+        done = ~better | small_change(state.energy, kept.energy)
+        return kept, history.at[k + 2].set(kept.energy), k + 1, done
+
+    start = (state, history, jnp.zeros((), jnp.int32), jnp.asarray(max_rounds == 0))
+    return jax.lax.while_loop(keep_going, body, start)
+
+
+def zero_coefficients(prob, cfg):
+    return jnp.zeros((cfg.n_times - 2, prob.bases.dframe.shape[0] * 3), prob.f1.dtype)
+
+
+def make_problem(metric, f1, f2, bases, rigid) -> Problem:
+    m, n = f1.shape[-2:]
+    if rigid:
+        f1, f2 = center_unchecked(f1), center_unchecked(f2)
+    return Problem(metric, f1, f2, sphere_points(m, n, f1.dtype), bases)
+
+
+def make_bases(m: int, n: int, cfg: ShapeOptions, dtype) -> _Bases:
+    values, dframe = basis_np(m, n, cfg.degree)
+    fine = (2 * m - 1, 2 * n - 1)
+    fine_dframe = basis_np(*fine, cfg.degree)[1] if cfg.refinement else np.zeros((1, 1))
+    arrays = _Bases(
+        values=values,
+        dframe=dframe,
+        fields=vector_fields_np(m, n, cfg.vf_degree),
+        field_scale=_field_scale_np(m, n, cfg.vf_degree),
+        ico=icosahedral_np(),
+        fine_points=sphere_points_np(*fine),
+        fine_dframe=fine_dframe,
+        area_floor=np.asarray(_resolution_np(m, n)[0]),
+        max_boost=np.asarray(_resolution_np(m, n)[1]),
+    )
+    return _Bases(*(jnp.asarray(a, dtype) for a in arrays))

@@ -1,0 +1,121 @@
+"""What a registration returns: the result record, its refinement check, and the
+path turned back onto the caller's second surface.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from .._geodesics.solvers import RESULTS, result_message
+
+MODULI = ("diff", "rigid")
+
+
+class Refinement(NamedTuple):
+    """The distance of a result re-evaluated at a finer discretization (MATH.md 9).
+
+    Nothing is optimized again: the registered ends and the path are carried over, so a
+    discretization the solve exploited shows as a jump here.
+
+    Attributes:
+        distance_time: ``()`` the same path with every time step halved (2N - 1 time
+            points, frames linearly interpolated).
+        distance_grid: ``()`` the same path on the (2m - 1) x (2n - 1) grid: gamma and
+            f2 interpolated there, f1 o gamma read from f1's own grid, the path's
+            spherical-harmonic perturbation evaluated on the finer grid.
+        relative_change: ``()`` max(|distance_time - d|, |distance_grid - d|) / d.
+    """
+
+    distance_time: Float[Array, ""]
+    distance_grid: Float[Array, ""]
+    relative_change: Float[Array, ""]
+
+
+class ShapeGeodesicResult(NamedTuple):
+    """A geodesic between shapes; a pytree, batched by ``jax.vmap``.
+
+    Attributes:
+        path: ``(N, 3, m, n)`` from f1 o gamma to R f2 (centered surfaces when modulo="rigid").
+        distance: ``()`` sqrt(energy), the shape distance.
+        energy: ``()`` the energy of ``path`` (the options' scheme).
+        parametrized_distance: ``()`` the geodesic distance without registration (same scheme).
+        f1_registered: ``(3, m, n)`` f1 o gamma (= path[0]).
+        gamma: ``(3, m, n)`` the reparametrization, a point of S^2 per grid point; its
+            Jacobian determinant is positive at every grid point.
+        rotation: ``(3, 3)`` R applied to f2 (the identity for modulo="diff").
+        coefficients: ``(N - 2, L)`` the path's perturbation (as in :class:`GeodesicResult`).
+        energy_history: ``(outer_steps + 2,)`` the parametrized geodesic's energy, the
+            straight line's after the initialization, then the energy after each
+            registration round (NaN for rounds not taken).
+        rounds: ``()`` registration rounds taken.
+        num_steps: ``()`` solver steps, all solves together.
+        converged: ``()`` the final geodesic solve converged (a minimum, not a saddle, when
+            saddle_checks >= 1) and the last round changed the
+            energy by at most outer_tol (E + outer_tol E_0) (always true when outer_steps=0
+            asks for no rounds) or was refused, and that round's step did not have to shrink
+            to stay resolved.
+        result: an ``elastic_jax.RESULTS`` code: the final solve's failure if it failed, else
+            ``resolution_limited`` when the last round's step had to shrink until the grid
+            resolved it (J > 0, area floor) and then lowered the energy little or not at
+            all, else ``nonlinear_max_steps_reached`` when the rounds ran out, else successful.
+        grad_norm: ``()`` 2-norm of the gradient of the joint objective (path in whitened
+            coefficients and the next Diff step, energy / its scale) at the result.
+        min_curvature: ``()`` the final geodesic solve's estimate of the smallest Hessian
+            eigenvalue of its scaled objective (:class:`GeodesicResult`): positive at a
+            minimum of the path for this registration.
+        refinement: :class:`Refinement` (NaN when the options turn it off).
+    """
+
+    path: Float[Array, "N 3 m n"]
+    distance: Float[Array, ""]
+    energy: Float[Array, ""]
+    parametrized_distance: Float[Array, ""]
+    f1_registered: Float[Array, "3 m n"]
+    gamma: Float[Array, "3 m n"]
+    rotation: Float[Array, "3 3"]
+    coefficients: Float[Array, "K L"]
+    energy_history: Float[Array, " H"]
+    rounds: Int[Array, ""]
+    num_steps: Int[Array, ""]
+    converged: Array
+    result: RESULTS
+    grad_norm: Float[Array, ""]
+    min_curvature: Float[Array, ""]
+    refinement: Refinement
+
+    @property
+    def message(self) -> str:
+        """How the solve ended, in words; '' when the last round met outer_tol.
+
+        A converged result whose last round was refused (its full step, resolved by the
+        grid, raised the energy: the composed reparametrization's interpolation cost more
+        than the step gained) says so.
+        """
+        message = result_message(self.result)
+        if not message and not bool(self.converged):
+            message = (
+                "the final geodesic ended at a saddle point (smallest Hessian eigenvalue "
+                f"{float(self.min_curvature):.3g}); raise saddle_checks"
+            )
+        history, k = np.asarray(self.energy_history), int(self.rounds)
+        # After at least one accepted round: a first round refused at once is a match at
+        # interpolation noise (identical inputs), not a registration held back.
+        if not message and k >= 2 and history[k + 1] == history[k] > 0:
+            change = 100.0 * (history[k - 1] - history[k]) / history[k]
+            message = (
+                "the rounds ended where the next round's Diff step raised the energy (the "
+                f"last accepted round lowered it by {change:.2g} %); refinement shows how a "
+                "finer grid sees the result"
+            )
+        return message
+
+
+def turned_back(res, end):
+    """A shape geodesic's path (from f1 o gamma to R f2) turned by R^T and moved so that it
+    ends at ``end`` (its f2) as parametrized and placed (modulo "rigid" centres both)."""
+    back = jnp.einsum("ji,tj...->ti...", res.rotation, res.path)
+    return back + (end - back[-1]).mean(axis=(-2, -1), keepdims=True)[None]

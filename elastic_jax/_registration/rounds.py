@@ -1,0 +1,89 @@
+"""Phase 3, the registration rounds with the whole path (paper Algorithms 2 and 3) until
+the energy stops changing.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+from jaxtyping import Array
+
+from .._geodesics.solvers import minimize
+from .problem import (
+    State,
+    geodesic_at,
+    identity_frames,
+    iterate,
+    joint_objective,
+    make_problem,
+    path_energy_at,
+    registration_variables,
+    safe_update,
+    scaling_at,
+    straight_line_energy,
+    zero_registration,
+)
+
+
+def _round(prob, cfg, rigid, state: State) -> State:
+    """One registration round.
+
+    joint (Algorithm 2): BFGS over the path coefficients and the next Diff step (and a
+    rotation of f2) together; the path is not solved again for a shrunk step (the next
+    round or the final solve does it). coordinate: BFGS over the Diff step (and
+    rotation) with the path's perturbation held, then the geodesic. The paper's
+    Algorithm 3 holds the path's interior frames instead, which pins the start to its
+    neighbour: it moved the energy by 7-8 % per round on the cats where this reaches
+    1 % of its limit in 4 rounds.
+    """
+    dtype = state.energy.dtype
+    scaling = scaling_at(prob, cfg, state.gamma, state.rotation)
+    objective = joint_objective(prob, cfg, rigid, state.gamma, state.rotation, scaling)
+    y0 = zero_registration(prob, rigid, dtype)
+    z0 = scaling.whitened(state.coefficients)
+    options = {"solver": cfg.solver, "max_steps": cfg.max_steps, "tol": cfg.tol}
+    if cfg.method == "joint":
+        found = minimize(objective, (z0, y0), **options)
+        z, y = found.x
+    else:
+        found = minimize(lambda y: objective((z0, y)), y0, **options)
+        z, y = z0, found.x
+    x, r_step = registration_variables(prob, y, rigid)
+    gamma, shrunk = safe_update(prob, cfg, state.gamma, x)
+    rotation = r_step @ state.rotation
+    coefficients = scaling.coefficients(z)
+    steps = state.steps + found.num_steps
+    if cfg.method == "joint":
+        energy = path_energy_at(prob, cfg, gamma, rotation, coefficients)
+    else:
+        res = geodesic_at(prob, cfg, gamma, rotation, coefficients)
+        coefficients, energy, steps = res.coefficients, res.energy, steps + res.num_steps
+    return State(gamma, rotation, coefficients, energy, steps, shrunk)
+
+
+class Rounds(NamedTuple):
+    """Where the registration rounds stand between the phases of a solve."""
+
+    state: State
+    history: Array  # (outer_steps + 2,) as ShapeGeodesicResult.energy_history, [0] unset
+    rounds: Array  # () rounds with the whole path taken
+    done: Array  # () bool: the last round met outer_tol or was refused
+
+
+def rounds_phase(metric, f1, f2, bases, coarse, cfg, rigid) -> Rounds:
+    """Phase 3: the registration rounds with the whole path."""
+    prob = make_problem(metric, f1, f2, bases, rigid)
+    straight0 = straight_line_energy(prob, cfg, *identity_frames(prob, cfg))
+
+    def small_change(before, after):
+        # Relative to the current energy, with a floor at outer_tol times the straight
+        # line's: near a perfect match the energy is interpolation noise.
+        return jnp.abs(before - after) <= cfg.outer_tol * (after + cfg.outer_tol * straight0)
+
+    state, history = coarse
+    return Rounds(
+        *iterate(
+            lambda s: _round(prob, cfg, rigid, s), state, cfg.outer_steps, small_change, history
+        )
+    )

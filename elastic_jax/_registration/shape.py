@@ -1,0 +1,272 @@
+"""Geodesics between shapes: registration modulo reparametrization and rigid motion.
+
+Paper sections 4.2-4.3 (Algorithms 2 and 3, Remark 4), MATH.md 6, 7 and 9. f1 is
+reparametrized by gamma (f1 o gamma), f2 is rotated in R^3 by R for modulo="rigid";
+translations cost nothing (the metric sees only df), so both surfaces are centered for
+modulo="rigid".
+
+The solve runs in phases over one problem record: the starts (icosahedral rotations
+ranked, the best refined over rotations and over the Moebius group); coarse-to-fine
+registration rounds (every start on the L2 mismatch, the best on the straight line's
+energy, then with the whole path) until the energy stops changing; the parametrized and
+the final geodesics; and the refinement check (the result re-evaluated with halved time
+steps and on a finer grid). Every phase is traceable: a single solve compiles one
+program per phase (smaller programs, less compiler memory), and under a caller's jit or
+vmap the whole solve is one program, vmappable over f2.
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Float
+
+from .._checks import is_concrete
+from .._errors import ConvergenceWarning, InputError
+from .._geodesics.geodesic import (
+    GeodesicResult,
+    check_pair,
+    constant,
+    default_tol,
+)
+from .._geodesics.solvers import RESULTS
+from .._geometry.harmonics import check_degree
+from .._geometry.metric import SplitMetric
+from .._geometry.reparam import (
+    jacobian_determinant_unchecked,
+)
+from .._geometry.units import in_units
+from .._options import ShapeOptions, check_choice
+from .._runtime.cache import exported_call, solver_jit
+from .coarse import coarse_phase
+from .final import end_phase, geodesics_phase, shape_finish
+from .problem import State, make_bases
+from .records import MODULI, Refinement, ShapeGeodesicResult
+from .rounds import Rounds, rounds_phase
+from .starts import given_start, inverse_gamma, starts_phase
+
+# The structures of the phases' results (leaves are placeholders), to rebuild them from
+# an exported program's flat outputs (see _runtime/cache.py.exported_call).
+_STATE_SKELETON = State(*([0] * 6))
+
+
+_ROUNDS_SKELETON = Rounds(_STATE_SKELETON, 0, 0, 0)
+
+
+_RESULT_SKELETON = ShapeGeodesicResult(*([0] * 12), RESULTS.successful, 0, 0, Refinement(0, 0, 0))
+
+
+_GEODESIC_SKELETON = GeodesicResult(*([0] * 7), RESULTS.successful, 0, 0)
+
+
+# (name, function, skeleton) per phase, in order; each takes the previous one's result.
+_PHASES = (
+    ("shape_starts", starts_phase, (0, 0, 0)),
+    ("shape_coarse", coarse_phase, (_STATE_SKELETON, 0)),
+    ("shape_rounds", rounds_phase, _ROUNDS_SKELETON),
+    ("shape_geodesics", geodesics_phase, (_ROUNDS_SKELETON, _GEODESIC_SKELETON)),
+    ("shape_end", end_phase, _RESULT_SKELETON),
+)
+
+
+# The last phase runs for milliseconds and decides nothing the result reports as found
+# (its gradient norm and refinement are diagnostics): compiled for compile speed.
+_PHASE_JITS = {
+    name: solver_jit(f, static_argnames=("cfg", "rigid"), quick=name == "shape_end")
+    for name, f, _ in _PHASES
+}
+
+
+def _solve_in_phases(
+    args: tuple, cfg: ShapeOptions, rigid: bool, starts=None
+) -> ShapeGeodesicResult:
+    """_shape_solve(*args, cfg, rigid), one compiled program per phase; ``starts`` (the
+    first phase's result, given) skips the start search.
+
+    XLA:CPU's compile time and memory grow with a program, and the phases share no
+    compiled code: compiled one after the other, the largest program sets the peak
+    memory, not their sum (measured: 25 x 49 at the defaults, peak RSS 789 MB as one
+    program, 600 MB as five). JAX's asynchronous dispatch loads (or compiles) a phase
+    while the one before runs. The arithmetic is that of one program, except the last
+    phase's diagnostics (solver_jit's quick compilation: grad_norm rounds differently,
+    about 1e-11 relative). Inside a caller's trace (karcher_mean, distance_matrix) the
+    phases are part of the caller's one program.
+    """
+    static = {"cfg": cfg, "rigid": rigid}
+    phases, carried = (_PHASES, ()) if starts is None else (_PHASES[1:], (starts,))
+    for name, function, skeleton in phases:
+        carried = (
+            exported_call(name, function, _PHASE_JITS[name], (*args, *carried), static, skeleton),
+        )
+    return carried[0]
+
+
+def _shape_solve(metric, f1, f2, bases, cfg, rigid) -> ShapeGeodesicResult:
+    """The whole solve (_solve_in_phases); traced inside a jit, one program."""
+    return _solve_in_phases((metric, f1, f2, bases), cfg, rigid)
+
+
+def resolve_options(options: ShapeOptions | None, changes: dict) -> ShapeOptions:
+    """``options`` (default ShapeOptions()) with keyword changes applied and validated."""
+    if options is None:
+        options = ShapeOptions()
+    elif not isinstance(options, ShapeOptions):
+        raise TypeError(f"options must be a ShapeOptions; got {type(options).__name__}")
+    return options.replace(**changes) if changes else options
+
+
+def check_grid_options(options: ShapeOptions, m: int, n: int) -> None:
+    """The grid-dependent limits of ``options`` (degrees) on an m x n grid."""
+    check_degree(options.degree, m, n)
+    check_degree(options.vf_degree, m, n, "vf_degree")
+
+
+def shape_geodesic(
+    f1: Float[ArrayLike, "3 m n"],
+    f2: Float[ArrayLike, "3 m n"],
+    metric: SplitMetric,
+    *,
+    modulo: str = "diff",
+    options: ShapeOptions | None = None,
+    start: ShapeGeodesicResult | tuple[ArrayLike, ArrayLike] | None = None,
+    symmetric: bool = False,
+    **changes,
+) -> ShapeGeodesicResult:
+    """Geodesic between the shapes of f1 and f2, modulo reparametrization (and rigid motion).
+
+    Minimizes the path energy (MATH.md 4; the options' scheme, midpoint by default) over
+    paths from f1 o gamma to R f2 and over gamma in Diff+(S^2) (and R in SO(3) for
+    modulo="rigid"); paper sections 4.2-4.3.
+
+    1. The parametrized geodesic f1 -> f2 (``parametrized_distance``).
+    2. Starts (``init="moebius"``): the 60 icosahedral rotations as reparametrizations
+       ranked by straight-line energy, the best ``init_candidates`` refined over the
+       rotations and over the Moebius group of S^2 (rotations and conformal boosts).
+       Every start gets registration rounds on the L2 mismatch; the one whose straight
+       line then has the lowest energy gets rounds on that energy (coarse to fine in the
+       criterion and in time).
+    3. Registration rounds with the whole path (``method="joint"``: path and Diff step
+       together, Algorithm 2; ``"coordinate"``: alternately). Each Diff step
+       Proj(Id + sum x_k v_k) of degree vf_degree is composed onto gamma and shrunk (by
+       halves, down to no step) until the composed gamma has a positive Jacobian at every
+       grid point and keeps the area the grid can resolve (MATH.md 9); rounds never raise
+       the energy and stop when one changes it by at most outer_tol, or after outer_steps.
+       Rounds whose last step had to shrink stopped at that edge, not at a minimum:
+       ``RESULTS.resolution_limited``, not converged.
+    4. The final geodesic, its status, and the refinement check (:class:`Refinement`).
+
+    Each phase is one compiled program (five in all, see _solve_in_phases); under
+    ``jax.vmap`` or a caller's ``jax.jit`` the whole solve is one program, vmappable
+    over f2.
+
+    Args:
+        f1, f2: ``(3, m, n)`` immersions on the same grid.
+        metric: split metric coefficients.
+        modulo: ``"diff"`` (reparametrizations) or ``"rigid"`` (also rotations; centers both).
+        options: a :class:`ShapeOptions` (its defaults when None).
+        start: a registration to start the rounds from instead of the start search (step
+            2; ``init`` is then not used): a :class:`ShapeGeodesicResult`, e.g. of the same
+            pair on a coarser grid (multiresolution in grid, the paper's section 5), or
+            a pair (gamma ``(3, p, q)``, rotation ``(3, 3)``). gamma on another grid is
+            read at this grid's points (bicubic); the rotation is ignored modulo "diff".
+        symmetric: also solve the other order, f2 to f1; when it ends lower, solve this
+            order again from its registration inverted (gamma^-1 by Newton's method on
+            gamma's interpolant, R^T), and return the lower of this order's results. The
+            two orders' rounds end in different local minima (the cats at 25 x 49: 0.751
+            one way, 0.722 the other, and 0.7225 this way from the other's registration),
+            so this finds the lower basin from either side. Two or three solves; concrete
+            inputs only (not under jit or vmap).
+        **changes: fields of ShapeOptions to change, e.g. ``degree=5, n_times=9``.
+
+    Returns:
+        :class:`ShapeGeodesicResult`. A result that did not converge also warns
+        (:class:`ConvergenceWarning`); it never raises for that.
+
+    Example:
+        >>> import elastic_jax as ej
+        >>> from elastic_jax import shapes
+        >>> f1 = shapes.sample(shapes.bumpy, 13, 25)
+        >>> f2 = shapes.sample(shapes.bumpy, 13, 25, rotation=shapes.random_rotation(1))
+        >>> options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+        >>> metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+        >>> res = ej.shape_geodesic(f1, f2, metric, modulo="rigid", options=options)
+        >>> bool(res.distance < 0.1 * res.parametrized_distance)
+        True
+    """
+    check_choice("modulo", modulo, MODULI)
+    cfg = resolve_options(options, changes)
+    f1, f2 = check_pair(f1, f2)
+    if symmetric:
+        return _symmetric_solve(f1, f2, metric, modulo, cfg, start)
+    m, n = f1.shape[-2:]
+    check_grid_options(cfg, m, n)
+    dtype = f1.dtype
+    if cfg.tol is None:
+        cfg = cfg.replace(tol=default_tol(dtype))
+    rigid = modulo == "rigid"
+    # Solve in units of the surfaces' size (see _geometry/units.py): float32 works at any scale.
+    units, (g1, g2) = in_units(f1, f2)
+    bases = make_bases(m, n, cfg, dtype)
+    starts = None if start is None else given_start(start, m, n, dtype, rigid)
+    # As in geodesic: the solve runs on constants and the energy is evaluated again,
+    # differentiably, at the solution (envelope theorem: the derivative of the minimal
+    # energy in f1, f2 and the metric, with gamma, R and C held).
+    solved = _solve_in_phases(
+        (constant(metric), jax.lax.stop_gradient(g1), jax.lax.stop_gradient(g2), bases),
+        cfg,
+        rigid,
+        starts,
+    )
+    result = shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
+    _warn_unless_converged(result)
+    return result
+
+
+def _symmetric_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
+    """shape_geodesic(symmetric=True): the lower of this order's solve and its solve from
+    the other order's registration inverted (when that one ends lower)."""
+    if not is_concrete(f1, f2, metric):
+        raise InputError(
+            "symmetric=True compares whole solves: it needs concrete inputs, not tracers "
+            "(call it outside jax.jit and jax.vmap)"
+        )
+    solve = functools.partial(shape_geodesic, metric=metric, modulo=modulo, options=cfg)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        best = solve(f1, f2, start=start)
+        other = solve(f2, f1)
+        if float(other.distance) < float(best.distance):
+            inverse, residual = inverse_gamma(other.gamma)
+            tol = 10.0 * float(np.sqrt(np.finfo(np.dtype(inverse.dtype)).eps))
+            if (
+                float(residual) <= tol
+                and float(jnp.min(jacobian_determinant_unchecked(inverse))) > 0
+            ):
+                again = solve(f1, f2, start=(inverse, other.rotation.T))
+                if float(again.distance) < float(best.distance):
+                    best = again
+    _warn_unless_converged(best)
+    return best
+
+
+def _warn_unless_converged(result: ShapeGeodesicResult) -> None:
+    """ConvergenceWarning for a concrete result that did not converge."""
+    if is_concrete(result.converged, result.energy_history, result.rounds) and not bool(
+        result.converged
+    ):
+        history = np.asarray(result.energy_history)
+        # Every other ending's words (stalled, saddle, resolution-limited) say what to
+        # change; running out of steps is the one that does not.
+        ran_out = bool(result.result == RESULTS.nonlinear_max_steps_reached)
+        advice = "; raise outer_steps or max_steps" if ran_out else ""
+        warnings.warn(
+            f"shape_geodesic: not converged after {int(result.rounds)} registration rounds "
+            f"({result.message}; energies {history[np.isfinite(history)].round(6).tolist()})"
+            f"{advice}",
+            ConvergenceWarning,
+            stacklevel=3,
+        )

@@ -1,0 +1,155 @@
+"""Distance matrices and Karcher steps on a Dask cluster (``pip install "elastic-jax[dask]"``).
+
+Dask distributed is the scientific Python stack's engine for independent tasks of unequal
+length on many machines (LocalCluster on a laptop, dask-jobqueue on Slurm or PBS,
+dask-kubernetes): it moves the data, balances the load by work stealing and reruns the
+task of a worker that died. This module only cuts a job into tasks and collects them:
+
+- A task is one chunk of pairs (or of shapes, for a Karcher step), padded to the job's
+  chunk size like an in-process chunk, and computed by the same function, which the
+  caller passes in (``_karcher.distance_chunk`` / ``velocity_chunk``; this module imports
+  no solver): each worker compiles one program
+  for the whole job, and each pair's numbers do not depend on where it ran (lax.map and
+  the loop solve every item on its own; vmap runs a chunk in lockstep, as in process).
+- The collection is scattered to the workers once; a task carries only its indices.
+- A task runs under the caller's 64-bit setting (``jax.enable_x64`` as a context, so the
+  worker's global configuration is left alone): float64 stays float64 on every worker.
+- Results are handed back as they finish (``as_completed``): the caller checkpoints
+  each one, so a job stopped at any point resumes with what had arrived.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+
+import jax
+import numpy as np
+
+from .._errors import InputError
+
+try:
+    import distributed
+    from distributed.diagnostics.plugin import WorkerPlugin
+except ImportError as err:  # pragma: no cover - the extra is part of the test install
+    raise ImportError(
+        'a Dask client needs Dask distributed: pip install "elastic-jax[dask]"'
+    ) from err
+
+
+class CompilationCache(WorkerPlugin):
+    """Turns JAX's persistent compilation cache on in every worker, those that join or
+    restart later included (a worker is a process of its own): ``enable(*args)`` runs in
+    each (a module-level function, pickled by reference)."""
+
+    def __init__(self, enable: Callable, *args):
+        self.enable, self.args = enable, args
+
+    def setup(self, worker) -> None:
+        self.enable(*self.args)
+
+
+def connect(client):
+    """``(client, owned)``: a ``distributed.Client`` as given, or a new one for a scheduler
+    address (owned: the caller closes it when the job ends)."""
+    if isinstance(client, distributed.Client):
+        return client, False
+    if isinstance(client, str | os.PathLike):
+        try:
+            return distributed.Client(os.fspath(client)), True
+        except OSError as err:  # unreachable, refused or timed out
+            raise InputError(f"client {os.fspath(client)!r}: cannot connect ({err})") from err
+    raise InputError(
+        "client must be a dask.distributed.Client or a scheduler address such as "
+        f"'tcp://host:8786'; got {type(client).__name__}"
+    )
+
+
+def _pairs_task(chunk, shapes, rows, cols, settings, size, x64):
+    with jax.enable_x64(x64):
+        out = chunk(shapes[rows], shapes[cols], *settings, size)
+        return tuple(np.asarray(x) for x in out)
+
+
+def _shapes_task(chunk, shapes, index, mean, starts, settings, size, x64):
+    with jax.enable_x64(x64):
+        out = chunk(mean, shapes[index], *settings, size, starts)
+        return tuple(np.asarray(x) for x in out)
+
+
+class Pool:
+    """One job's link to a cluster: the scattered collection and the solve's settings.
+
+    Use as a context manager: a client made from an address is closed at the end, and the
+    collection is released from the workers' memory.
+    """
+
+    def __init__(self, client, shapes, metric, modulo, options, strategy):
+        self.client, self._owned = connect(client)
+        self._x64 = bool(jax.config.read("jax_enable_x64"))
+        self._dtype = np.asarray(shapes).dtype
+        # Every worker gets the collection once (broadcast): tasks carry indices only.
+        self._shapes = self.client.scatter(np.asarray(shapes), broadcast=True, hash=False)
+        self._settings = (metric, modulo, options, strategy)
+
+    def __enter__(self) -> Pool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._shapes.release()
+        if self._owned:
+            self.client.close()
+
+    def _as_completed(self, futures: dict, finished: Callable) -> None:
+        """Call ``finished(key, result)`` as each task ends, in the order they end."""
+        try:
+            for future in distributed.as_completed(list(futures)):
+                finished(futures[future], future.result())
+        finally:
+            # On an error or Ctrl-C, the tasks not collected are not left running.
+            self.client.cancel([f for f in futures if not f.done()])
+
+    def _submit(self, task, chunk, *args, size: int):
+        """One task on the scattered collection with this job's settings; never cached
+        by Dask (pure=False): a rerun after a resume solves again."""
+        return self.client.submit(
+            task, chunk, self._shapes, *args, self._settings, size, self._x64, pure=False
+        )
+
+    def distances(self, chunk, rows, cols, chunks, size: int, finished: Callable) -> None:
+        """Solve the pairs (rows[a:b], cols[a:b]) of every chunk (a, b) with
+        ``chunk(first, second, *settings, size)``; ``finished((a, b), result)`` as each
+        ends."""
+        futures = {
+            self._submit(_pairs_task, chunk, rows[a:b], cols[a:b], size=size): (a, b)
+            for a, b in chunks
+        }
+        self._as_completed(futures, finished)
+
+    def velocities(self, chunk, mean, chunks, size: int, starts=None) -> tuple:
+        """The geodesics from every shape to ``mean``, chunk by chunk, each by
+        ``chunk(mean, shapes, *settings, size, starts)``: the fields of its result, each
+        with the shapes' leading axis concatenated. ``starts``: None or (gammas,
+        rotations) with that axis, each shape's warm start."""
+        mean = np.asarray(mean, self._dtype)
+        starts = None if starts is None else tuple(np.asarray(x, self._dtype) for x in starts)
+
+        def chunk_starts(a, b):
+            return None if starts is None else tuple(x[a:b] for x in starts)
+
+        futures = {
+            self._submit(
+                _shapes_task, chunk, np.arange(a, b), mean, chunk_starts(a, b), size=size
+            ): i
+            for i, (a, b) in enumerate(chunks)
+        }
+        parts = [None] * len(chunks)
+
+        def finished(i, result):
+            parts[i] = result
+
+        self._as_completed(futures, finished)
+        return tuple(np.concatenate(p) for p in zip(*parts, strict=True))

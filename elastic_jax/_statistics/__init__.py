@@ -1,0 +1,3 @@
+"""Statistics of shape collections: the log map, Karcher means, distance matrices, tangent
+PCA.
+"""

@@ -1,0 +1,95 @@
+"""The discrete log map: the initial velocity of the geodesic from f1 to f2, modulo
+nothing, reparametrizations or rigid motions (the inverse of :func:`exp`).
+
+It sits above registration because the shape-space log runs :func:`shape_geodesic`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from jaxtyping import Array, ArrayLike, Float
+
+from .._checks import check_choice
+from .._errors import InputError
+from .._geodesics.geodesic import GeodesicResult, check_pair, geodesic
+from .._geodesics.shooting import check_scheme
+from .._geometry.metric import SplitMetric
+from .._options import ShapeOptions
+from .._registration.records import turned_back
+from .._registration.shape import shape_geodesic
+
+
+class LogResult(NamedTuple):
+    """The initial velocity of the geodesic from f1 to (the registered) f2.
+
+    Attributes:
+        velocity: ``(3, m, n)`` T (f_1 - f_0) of the geodesic's path: shooting it from f1
+            with the same degree, N and scheme gives that path back.
+        target: ``(3, m, n)`` the surface the velocity reaches: f2 for modulo="none",
+            R^T (f2 o gamma) otherwise: f2 reparametrized and turned onto f1.
+        distance: ``()`` the geodesic distance.
+        path: ``(N, 3, m, n)`` the geodesic from f1 to ``target``.
+        converged: ``()`` the geodesic solve's own convergence.
+    """
+
+    velocity: Float[Array, "3 m n"]
+    target: Float[Array, "3 m n"]
+    distance: Float[Array, ""]
+    path: Float[Array, "N 3 m n"]
+    converged: Array
+
+
+def log(
+    f1: Float[ArrayLike, "3 m n"],
+    f2: Float[ArrayLike, "3 m n"],
+    metric: SplitMetric,
+    *,
+    modulo: str = "none",
+    options: ShapeOptions | None = None,
+    **changes,
+) -> LogResult:
+    """The initial velocity at f1 of the geodesic to f2 (the discrete log map).
+
+    modulo="none": :func:`geodesic` f1 -> f2 and v = T (f_1 - f_0) of its path, so that
+    ``shoot(f1, v, ...)`` with the same degree, N and scheme reproduces the path.
+    modulo="diff" / "rigid": :func:`shape_geodesic` from f2 to f1 (it reparametrizes its
+    first surface and turns its second), the path reversed and turned back by R^T so that
+    it starts at f1 as given: v is a tangent vector at f1 itself (as for a Karcher mean's
+    tangent space) and ``target`` the registered f2. The midpoint energy is symmetric
+    under reversal, so the reversed path is again a discrete geodesic.
+
+    Args:
+        f1, f2: ``(3, m, n)`` immersions on one grid.
+        metric: the split metric coefficients.
+        modulo: ``"none"``, ``"diff"`` or ``"rigid"``.
+        options: :class:`ShapeOptions` (degree, n_times, scheme, ... and the registration);
+            keyword changes apply on top (``degree=5``).
+
+    Returns:
+        :class:`LogResult`.
+    """
+
+    check_choice("modulo", modulo, ("none", "diff", "rigid"))
+    options = (ShapeOptions() if options is None else options).replace(**changes)
+    check_scheme(options.scheme)
+    f1, f2 = check_pair(f1, f2)
+    if modulo == "none":
+        res: GeodesicResult = geodesic(f1, f2, metric, **options.geodesic_kwargs())
+        path = res.path
+    else:
+        if options.scheme != "midpoint":
+            raise InputError(
+                f'log modulo "{modulo}" needs scheme="midpoint": the registered geodesic runs '
+                "from f2 to f1 and is reversed, and only the midpoint energy is symmetric"
+            )
+        res = shape_geodesic(f2, f1, metric, modulo=modulo, options=options)
+        path = turned_back(res, f1)[::-1].at[0].set(f1)
+    t = options.n_times - 1
+    return LogResult(
+        velocity=t * (path[1] - path[0]),
+        target=path[-1],
+        distance=res.distance,
+        path=path,
+        converged=res.converged,
+    )

@@ -1,0 +1,131 @@
+"""The ``elastic-jax`` command line: geodesics, shape geodesics, Karcher means, distances.
+
+Every command reads surfaces (``.npz`` with array ``f``, the authors' ``.mat``, or any mesh
+trimesh reads, resampled by :func:`elastic_jax.io.mesh_to_grid`), computes, and writes into
+``--out DIR``: the arrays (``.npz``), meshes (``.ply``), figures (``.png``) and
+``summary.json``. The summary is also printed on stdout. All files are written atomically,
+so Ctrl-C never leaves half a file; ``karcher`` and ``distances`` checkpoint every finished
+step or chunk and continue with ``--resume``. A directory among the inputs stands for the
+surface files in it. The statistics run in two commands: ``karcher`` writes ``mean.npz``
+(the mean, the velocities at it, the settings) and ``pca`` on that file computes the modes
+and their figure without solving again.
+
+Exit codes: 0 done and converged; 2 bad input (unreadable file, invalid surface or mesh,
+bad option, an --out that is not a writable directory or that another run holds, a
+checkpoint there without --resume or --overwrite), reported in one line before any work;
+3 finished but the solver did not converge (results are still written); 130 interrupted
+(Ctrl-C), 143 terminated (SIGTERM), both leaving only complete files; 1 anything else
+(a bug: please report it).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import sys
+import warnings
+from collections.abc import Sequence
+
+from .._errors import InputError
+from .bench import run_bench
+from .common import BadInput, Progress, one_line, write_summary
+from .demo import run_demo
+from .distances import run_distances
+from .geodesic import run_geodesic
+from .karcher import run_karcher
+from .parser import build_parser
+from .pca import run_pca
+from .process import (
+    EXIT_BAD_INPUT,
+    EXIT_FAILURE,
+    EXIT_INTERRUPTED,
+    EXIT_NOT_CONVERGED,
+    EXIT_OK,
+    EXIT_TERMINATED,
+    LOCK_NAME,
+    Terminated,
+    claim_out,
+    dask_client,
+    preflight,
+    raise_terminated,
+)
+from .shape_geodesic import run_shape_geodesic
+from .shoot import run_shoot
+
+__all__ = [
+    "COMMANDS",
+    "EXIT_BAD_INPUT",
+    "EXIT_FAILURE",
+    "EXIT_INTERRUPTED",
+    "EXIT_NOT_CONVERGED",
+    "EXIT_OK",
+    "EXIT_TERMINATED",
+    "LOCK_NAME",
+    "BadInput",
+    "build_parser",
+    "main",
+]
+
+COMMANDS = {
+    "geodesic": run_geodesic,
+    "shape-geodesic": run_shape_geodesic,
+    "karcher": run_karcher,
+    "distances": run_distances,
+    "pca": run_pca,
+    "shoot": run_shoot,
+    "demo": run_demo,
+    "bench": run_bench,
+}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``elastic-jax`` (and ``python -m elastic_jax``); returns the exit code."""
+    args = build_parser().parse_args(argv)
+    import jax
+
+    if args.dtype == "float64":
+        # The program chooses its precision (the library never changes JAX's global config);
+        # float32 runs cast their inputs instead, so an in-process call changes nothing else.
+        jax.config.update("jax_enable_x64", True)
+    if not args.no_cache and jax.config.jax_compilation_cache_dir is None:
+        # Solves compile for 5-60 s and a command runs once per process: keep the
+        # executables (and the exported shape solve) on disk; a program's choice, the
+        # library never sets this by itself. A caller that set a cache keeps its own.
+        from .._runtime.cache import enable_compilation_cache
+
+        try:
+            enable_compilation_cache(args.cache_dir, exported=not args.no_export)
+        except OSError as err:  # e.g. a read-only home: the run goes on, compiling
+            print(
+                f"elastic-jax: --cache-dir {args.cache_dir}: cannot be created ({err}); "
+                "compiling without a cache",
+                file=sys.stderr,
+            )
+    from .._errors import ConvergenceWarning
+
+    progress = Progress(args.quiet)
+    previous = signal.signal(signal.SIGTERM, raise_terminated)
+    try:
+        with warnings.catch_warnings(), contextlib.ExitStack() as stack:
+            # Non-convergence is reported in the summary and the exit code instead.
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            preflight(args)
+            claim_out(args, stack)
+            args.client = dask_client(args, stack, progress)
+            summary = COMMANDS[args.command](args, progress)
+            write_summary(args.out, summary)
+    except (BadInput, InputError) as err:
+        print(f"elastic-jax {args.command}: bad input: {one_line(err)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt as err:
+        how = "terminated" if isinstance(err, Terminated) else "interrupted"
+        print(
+            f"elastic-jax {args.command}: {how}; every file in {args.out} is complete "
+            "(karcher, pca and distances continue with --resume)",
+            file=sys.stderr,
+        )
+        return EXIT_TERMINATED if isinstance(err, Terminated) else EXIT_INTERRUPTED
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    progress(f"done; summary in {args.out / 'summary.json'}")
+    return EXIT_NOT_CONVERGED if summary.get("converged") is not True else EXIT_OK

@@ -1,0 +1,61 @@
+"""``elastic-jax bench``: time a shape geodesic on the built-in pair."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from .common import Progress, environment_record, geodesic_options_from, prepare
+from .demo import builtin_pair
+
+
+def run_bench(args, progress: Progress) -> dict:
+    import jax
+    import numpy as np
+
+    from .._geodesics.geodesic import geodesic
+    from .._geometry.energy import path_energy, straight_path
+
+    m, n = args.grid or (50, 99)
+    pair = builtin_pair(m, n, args.dtype)
+    (f1, f2), metric, options = prepare(args, progress, [], geodesic_options_from, pair)
+    path = straight_path(f1, f2, args.times)
+    grad = jax.jit(jax.value_and_grad(lambda p: path_energy(metric, p)))
+
+    def timed(call: Callable) -> tuple[dict, object]:
+        """Times of the first call and of ``repeat`` more; and the last call's output."""
+        runs = []
+        for _ in range(args.repeat + 1):
+            start = time.perf_counter()
+            out = jax.block_until_ready(call())
+            runs.append(time.perf_counter() - start)
+        stats = {
+            "first_call_s": runs[0],
+            "median_s": float(np.median(runs[1:])),
+            "runs_s": runs[1:],
+        }
+        return stats, out
+
+    progress(f"energy value and gradient, {m} x {n}, N = {args.times}")
+    energy, _ = timed(lambda: grad(path))
+    progress(f"geodesic solve, degree {args.degree}")
+    solve, res = timed(lambda: geodesic(f1, f2, metric, **options))
+    return {
+        "command": "bench",
+        "settings": {
+            "grid": [m, n],
+            "metric": list(args.metric),
+            **options,
+            "dtype": args.dtype,
+            "repeat": args.repeat,
+            "shapes": "straight -> bent cylinder (built-in)",
+        },
+        "energy_value_and_grad": energy,
+        "geodesic_solve": {
+            **solve,
+            "num_steps": int(res.num_steps),
+            "distance": float(res.distance),
+        },
+        "converged": bool(res.converged),
+        "environment": environment_record(),
+    }

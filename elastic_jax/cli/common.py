@@ -1,0 +1,266 @@
+"""What the commands share: the bad-input error, progress lines, loading the surfaces,
+the options from the flags, and the atomic writes of arrays, meshes, figures and the
+summary.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+import platform
+import sys
+import time
+from collections.abc import Callable, Sequence
+
+from .._errors import InputError
+from .._options import ShapeOptions
+
+CHECKPOINTS = {
+    "karcher": "karcher_checkpoint.npz",
+    "pca": "karcher_checkpoint.npz",
+    "distances": "distances_checkpoint.npz",
+}
+
+
+DEFAULT_METRIC = (1.0, 1.0, 0.1, 0.0)
+
+
+SURFACE_FILE = "a surface: .npz (array f), .mat (the authors'), or a mesh trimesh reads"
+
+
+SURFACE_FILES = SURFACE_FILE.replace("a surface", "surfaces") + ", or a directory of them"
+
+
+# What pca reads from a karcher run's mean.npz instead of solving the mean again.
+KARCHER_OUTPUT_KEYS = ("f", "velocities", "distances", "settings", "inputs", "result", "converged")
+
+
+SHAPE_COMMANDS = ("shape-geodesic", "karcher", "pca", "distances")
+
+
+SHAPE_DEFAULTS = ShapeOptions()
+
+
+# ShapeOptions field -> (argparse destination, flag): one record is built from these.
+SHAPE_FLAGS = {
+    "degree": ("degree", "--degree"),
+    "n_times": ("times", "--times"),
+    "solver": ("solver", "--solver"),
+    "max_steps": ("max_steps", "--max-steps"),
+    "scheme": ("scheme", "--scheme"),
+    "method": ("method", "--method"),
+    "vf_degree": ("vf_degree", "--vf-degree"),
+    "outer_steps": ("outer_steps", "--outer-steps"),
+    "init": ("init", "--init"),
+    "refinement": ("refinement", "--no-refinement"),
+}
+
+
+# Flags that pca on a karcher output takes from that run: giving them is refused.
+KARCHER_OWN_FLAGS = {
+    **{dest: flag for dest, flag in SHAPE_FLAGS.values()},
+    **{
+        dest: "--" + dest.replace("_", "-")
+        for dest in ("metric", "grid", "dtype", "modulo", "strategy", "batch_size", "workers")
+        + ("scheduler", "resume", "karcher_steps", "tol", "step_size", "warm_start")
+    },
+}
+
+
+class BadInput(InputError):
+    """An input the command cannot use; reported in one line with exit code 2."""
+
+
+class Progress:
+    """One line per stage on stderr, with the time since the command started."""
+
+    def __init__(self, quiet: bool):
+        self.quiet = quiet
+        self.start = time.perf_counter()
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
+
+    def __call__(self, message: str) -> None:
+        if not self.quiet:
+            print(f"[{self.elapsed():7.1f} s] {message}", file=sys.stderr, flush=True)
+
+
+def environment_record() -> dict:
+    import jax
+
+    return {
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "backend": jax.default_backend(),
+        "devices": [str(d) for d in jax.devices()],
+    }
+
+
+def _load_all(files: Sequence[str], grid, dtype, progress: Progress):
+    """Surfaces as one (K, 3, m, n) array on a common grid; BadInput names the file."""
+    import numpy as np
+
+    from .. import io
+
+    out = []
+    m, n = (None, None) if grid is None else grid
+    for name in files:
+        progress(f"reading {name}")
+        try:
+            f = io.load_surface(name, m=m, n=n, progress=progress)
+        except (InputError, KeyError) as err:  # their messages name the file
+            raise BadInput(err.args[0] if err.args else str(err)) from err
+        except (OSError, ValueError) as err:
+            raise BadInput(f"{name}: {err}") from err
+        except Exception as err:  # a file trimesh or scipy cannot parse is still bad input
+            raise BadInput(f"{name}: cannot be read ({type(err).__name__}: {err})") from err
+        if m is None:
+            m, n = f.shape[1:]
+        out.append(f)
+    return np.stack(out).astype(dtype)
+
+
+def metric_from(args):
+    from .._geometry.metric import SplitMetric
+
+    try:
+        return SplitMetric(*args.metric)
+    except ValueError as err:
+        raise BadInput(str(err)) from err
+
+
+def _check_degrees(args, m: int, n: int) -> None:
+    from .._geometry.harmonics import check_degree
+
+    for name in ("degree", "vf_degree"):
+        value = getattr(args, name, None)
+        if value is not None:
+            try:
+                check_degree(value, m, n, name)
+            except ValueError as err:
+                raise BadInput(f"--{name.replace('_', '-')} {value}: {err}") from err
+
+
+def geodesic_options_from(args) -> dict:
+    options = {"degree": args.degree, "n_times": args.times, "solver": args.solver}
+    if args.max_steps is not None:
+        options["max_steps"] = args.max_steps
+    return options
+
+
+def shape_options_from(args) -> ShapeOptions:
+    """One validated ShapeOptions from the shape commands' arguments.
+
+    A bad value is BadInput naming the flag, e.g. ``--times 2: n_times must be ...``.
+    """
+    values = {field: getattr(args, dest) for field, (dest, _) in SHAPE_FLAGS.items()}
+    try:
+        return ShapeOptions(**values)
+    except ValueError as err:
+        field = str(err).split()[0]
+        flag = SHAPE_FLAGS.get(field, (field, f"--{field}"))[1]
+        raise BadInput(f"{flag} {values.get(field)}: {err}") from err
+
+
+def shape_geodesic_options(args) -> ShapeOptions:
+    return args.shape_options
+
+
+def json_safe(value):
+    """``value`` with every non-finite float (not JSON) replaced by None, recursively."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    return value
+
+
+def write_summary(out: pathlib.Path, summary: dict) -> None:
+    from .._runtime.atomic import write_text_atomic
+
+    target = out / "summary.json"
+    summary["files"] = sorted({*summary.get("files", []), str(target)})
+    # A failed solve's NaN becomes null: the file stays valid JSON (allow_nan=False).
+    text = json.dumps(json_safe(summary), indent=2, allow_nan=False)
+    write_text_atomic(target, text + "\n")
+    print(text)
+
+
+def write_figure(target: pathlib.Path, make: Callable, progress: Progress) -> list[str]:
+    """``[target]`` after drawing ``make()`` into it; ``[]`` (and a progress line) when
+    the data cannot be drawn: a failed solve's NaN is reported in the summary, not as
+    bad input."""
+    from .. import plot
+
+    try:
+        fig = make()
+    except InputError as err:
+        progress(f"{target.name} not drawn: {one_line(err)}")
+        return []
+    return [str(plot.save_figure(fig, target))]
+
+
+def write_path(out: pathlib.Path, path, settings: dict, progress: Progress) -> list[str]:
+    import numpy as np
+
+    from .. import io, plot
+
+    if not np.isfinite(path).all():
+        progress("the path is not finite: no meshes and no figure written")
+        return []
+    progress(f"writing the path's {path.shape[0]} meshes and its figure to {out}")
+    written = [str(p) for p in io.save_path(path, out / "path", settings=settings)]
+    return written + write_figure(out / "path.png", lambda: plot.plot_path(path), progress)
+
+
+def prepare(args, progress: Progress, files, options_of: Callable, surfaces=None):
+    """The surfaces ``(K, 3, m, n)`` (read unless given), checked degrees, metric, options."""
+    if surfaces is None:
+        surfaces = _load_all(files, args.grid, args.dtype, progress)
+    _check_degrees(args, *surfaces.shape[-2:])
+    return surfaces, metric_from(args), options_of(args)
+
+
+def json_float(x) -> float | None:
+    """A float for JSON; NaN and inf (not JSON) become null."""
+
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def json_floats(values) -> list:
+    """Nested lists of floats for JSON, NaN and inf as null."""
+    import numpy as np
+
+    values = np.asarray(values)
+    if values.ndim == 0:
+        return json_float(values)
+    return [json_floats(v) for v in values]
+
+
+def collection_settings(args, m: int, n: int, options: ShapeOptions) -> dict:
+    return {
+        "metric": list(args.metric),
+        "grid": [m, n],
+        "modulo": args.modulo,
+        "strategy": args.strategy,
+        "batch_size": args.batch_size,
+        **options.as_dict(),
+        "dtype": args.dtype,
+    }
+
+
+def checked_flag(flag: str, check: Callable, *args):
+    """``check(flag, value, ...)`` from the validation layer, its InputError as BadInput."""
+    try:
+        return check(flag, *args)
+    except InputError as err:
+        raise BadInput(str(err)) from err
+
+
+def one_line(err: Exception) -> str:
+    return " ".join(str(err).split())

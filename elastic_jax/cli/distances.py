@@ -1,0 +1,95 @@
+"""``elastic-jax distances``: the matrix of pairwise shape distances, chunk by chunk."""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import time
+
+from .common import (
+    Progress,
+    collection_settings,
+    environment_record,
+    json_floats,
+    prepare,
+    shape_geodesic_options,
+    write_figure,
+)
+
+
+def run_distances(args, progress: Progress) -> dict:
+    import numpy as np
+
+    from .. import plot
+    from .._runtime.atomic import save_npz_atomic, write_text_atomic
+    from .._statistics.karcher import distance_matrix
+
+    shapes, metric, options = prepare(args, progress, args.files, shape_geodesic_options)
+    k, m, n = shapes.shape[0], *shapes.shape[2:]
+    settings = collection_settings(args, m, n, options)
+    checkpoint = args.out / "distances_checkpoint.npz"
+
+    def report(info):
+        eta = "" if info["eta_s"] is None else f", about {info['eta_s']:.0f} s left"
+        progress(
+            f"pairs done {info['pairs_done']}/{info['pairs']}{eta} (checkpoint {checkpoint.name})"
+        )
+
+    progress(
+        f"{k * (k - 1) // 2} shape geodesics modulo {args.modulo} on {m} x {n} (the first compiles)"
+    )
+    start = time.perf_counter()
+    res = distance_matrix(
+        shapes,
+        metric,
+        modulo=args.modulo,
+        options=options,
+        batch_size=args.batch_size,
+        strategy=args.strategy,
+        checkpoint=checkpoint,
+        resume=args.resume,
+        progress=report,
+        client=args.client,
+    )
+    seconds = time.perf_counter() - start
+    matrix = np.asarray(res.distances)
+    converged = np.asarray(res.converged)
+    if not converged.all():
+        progress(f"{int((~converged).sum()) // 2} pairs did not converge (summary: converged)")
+    names = [pathlib.Path(f).stem for f in args.files]
+    files = [
+        str(
+            save_npz_atomic(
+                args.out / "distances.npz",
+                distances=matrix,
+                converged=converged,
+                refinement_change=np.asarray(res.refinement_change),
+                files=np.asarray(args.files),
+                settings=json.dumps(settings),
+            )
+        )
+    ]
+    rows = [",".join(["", *names])]
+    rows += [
+        ",".join([name, *(f"{v:.10g}" for v in row)])
+        for name, row in zip(names, matrix, strict=True)
+    ]
+    files.append(str(write_text_atomic(args.out / "distances.csv", "\n".join(rows) + "\n")))
+    files += write_figure(
+        args.out / "distances.png",
+        lambda: plot.plot_distance_matrix(matrix, labels=names),
+        progress,
+    )
+    return {
+        "command": args.command,
+        "inputs": list(args.files),
+        "settings": settings,
+        "distances": matrix.tolist(),
+        "converged": bool(converged.all()),
+        "pairs_converged": converged.tolist(),
+        # Each pair's relative change under refinement (null: not computed).
+        "refinement_change": json_floats(res.refinement_change),
+        "seconds": seconds,
+        "files": files,
+        "environment": environment_record(),
+    }

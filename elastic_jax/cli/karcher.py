@@ -1,0 +1,124 @@
+"""``elastic-jax karcher``: the Karcher mean of a collection, checkpointed and resumable."""
+
+from __future__ import annotations
+
+import json
+import time
+
+from .common import (
+    CHECKPOINTS,
+    Progress,
+    collection_settings,
+    environment_record,
+    json_floats,
+    prepare,
+    shape_geodesic_options,
+    write_figure,
+)
+
+
+def solve_karcher(args, progress: Progress):
+    """The Karcher mean of ``args.files`` with its files and summary: (result, metric,
+    options, summary), the summary holding ``files`` already written."""
+    import numpy as np
+
+    from .. import io, plot
+    from .._runtime.atomic import save_npz_atomic
+    from .._statistics.karcher import karcher_mean
+
+    shapes, metric, options = prepare(args, progress, args.files, shape_geodesic_options)
+    m, n = shapes.shape[2:]
+    settings = collection_settings(args, m, n, options)
+    settings.update(
+        karcher_steps=args.karcher_steps,
+        tol=args.tol,
+        step_size=args.step_size,
+        warm_start=args.warm_start,
+    )
+    checkpoint = args.out / CHECKPOINTS["karcher"]
+
+    def report(info):
+        # The pace so far (step 0: the first solves, compilation included) times the
+        # steps left: the most the run can still take at that pace; it stops earlier
+        # when it converges.
+        pace = info["seconds"] / max(info["step"], 1)
+        left = args.karcher_steps - info["step"]
+        eta = f"; at most ~{left * pace:.0f} s left ({left} steps at {pace:.0f} s)" if left else ""
+        progress(
+            f"Karcher step {info['step']}/{args.karcher_steps}: sum of squared distances "
+            f"{info['sum_sq_distances']:.6g}, mean velocity {info['mean_velocity_norm']:.3g}, "
+            f"step {info['step_size']:g}{eta} (checkpoint {checkpoint.name})"
+        )
+
+    progress(
+        f"Karcher mean of {len(args.files)} shapes modulo {args.modulo} on {m} x {n} "
+        f"(each step solves {len(args.files)} geodesics; the first compiles)"
+    )
+    start = time.perf_counter()
+    res = karcher_mean(
+        shapes,
+        metric,
+        modulo=args.modulo,
+        options=options,
+        max_steps=args.karcher_steps,
+        tol=args.tol,
+        step_size=args.step_size,
+        batch_size=args.batch_size,
+        strategy=args.strategy,
+        checkpoint=checkpoint,
+        resume=args.resume,
+        progress=report,
+        client=args.client,
+        warm_start=args.warm_start,
+    )
+    seconds = time.perf_counter() - start
+    mean = np.asarray(res.mean)
+    files = [
+        str(
+            save_npz_atomic(
+                args.out / "mean.npz",
+                f=mean,
+                distances=np.asarray(res.distances),
+                registered=np.asarray(res.registered),
+                velocities=np.asarray(res.velocities),
+                geodesics_converged=np.asarray(res.geodesics_converged),
+                history=np.asarray(res.history),
+                result=res.result,
+                converged=bool(res.converged),
+                inputs=json.dumps(list(args.files)),
+                settings=json.dumps(settings),
+            )
+        )
+    ]
+    if np.isfinite(mean).all():
+        files.append(str(io.save_surface(mean, args.out / "mean.ply")))
+    files += write_figure(args.out / "mean.png", lambda: plot.plot_path(mean), progress)
+    history = np.asarray(res.history)
+    columns = {"sum of squared distances": history[:, 0], "mean velocity norm": history[:, 1]}
+    files += write_figure(args.out / "history.png", lambda: plot.plot_energy(columns), progress)
+    summary = {
+        "command": args.command,
+        "inputs": list(args.files),
+        "settings": settings,
+        "distances": [float(d) for d in np.asarray(res.distances)],
+        "sum_sq_distances": float(np.sum(np.asarray(res.distances) ** 2)),
+        "history": {
+            "sum_sq_distances": json_floats(history[:, 0]),
+            "mean_velocity_norm": json_floats(history[:, 1]),
+            "step_size": json_floats(history[:, 2]),
+        },
+        "num_steps": int(res.num_steps),
+        "num_solves": int(res.num_solves),
+        "converged": bool(res.converged),
+        "result": res.result,
+        "message": res.message,
+        "geodesics_converged": [bool(c) for c in np.asarray(res.geodesics_converged)],
+        "seconds": seconds,
+        "files": files,
+        "environment": environment_record(),
+    }
+    return res, metric, options, summary
+
+
+def run_karcher(args, progress: Progress) -> dict:
+    return solve_karcher(args, progress)[-1]

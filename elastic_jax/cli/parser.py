@@ -1,0 +1,323 @@
+"""The argument parser: one subcommand per command, each with its documented defaults."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pathlib
+
+from .._options import INITS, METHODS, SCHEMES, SHOOTING_SCHEMES, SOLVERS
+from .common import DEFAULT_METRIC, SHAPE_DEFAULTS, SURFACE_FILE, SURFACE_FILES
+
+
+def _metric(text: str) -> tuple[float, float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--metric wants four numbers a,b,c,d; got {text!r}"
+        ) from None
+    if len(values) != 4:
+        raise argparse.ArgumentTypeError(
+            f"--metric wants four numbers a,b,c,d; got {len(values)} in {text!r}"
+        )
+    return values  # type: ignore[return-value]
+
+
+def _default_cache_dir() -> pathlib.Path:
+    if os.environ.get("ELASTIC_JAX_CACHE"):
+        return pathlib.Path(os.environ["ELASTIC_JAX_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache"
+    return pathlib.Path(base) / "elastic-jax"
+
+
+def _io_options(parser: argparse.ArgumentParser) -> None:
+    """The options every command has: metric, grid, precision, output, progress, cache."""
+    parser.add_argument(
+        "--metric",
+        type=_metric,
+        default=",".join(f"{x:g}" for x in DEFAULT_METRIC),
+        metavar="A,B,C,D",
+        help="split metric coefficients: shear, stretch, bending, rotation",
+    )
+    parser.add_argument(
+        "--grid",
+        type=int,
+        nargs=2,
+        metavar=("M", "N"),
+        default=None,
+        help="resample every input onto this grid (default: the first input's grid, "
+        "50 99 for meshes)",
+    )
+    parser.add_argument(
+        "--dtype",
+        choices=("float64", "float32"),
+        default="float64",
+        help="precision (float64, the reference, is the default; float32 is faster on GPUs)",
+    )
+    parser.add_argument(
+        "--out",
+        type=pathlib.Path,
+        default=pathlib.Path("elastic-jax-out"),
+        help="output directory (created)",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    parser.add_argument(
+        "--cache-dir",
+        type=pathlib.Path,
+        default=_default_cache_dir(),
+        help="JAX's persistent compilation cache, so that a second run skips compiling "
+        "(ELASTIC_JAX_CACHE or XDG_CACHE_HOME move it)",
+    )
+    parser.add_argument("--no-cache", action="store_true", help="compile from scratch")
+    parser.add_argument(
+        "--no-export",
+        action="store_true",
+        help="keep compiled programs only, not the traced shape solve (jax.export): a new "
+        "process then traces it again",
+    )
+
+
+def _common(
+    parser: argparse.ArgumentParser,
+    *,
+    degree: int,
+    times: int,
+    max_steps: int | None = None,
+    max_steps_help: str = "solver step limit (library default)",
+) -> None:
+    _io_options(parser)
+    parser.add_argument(
+        "--degree", type=int, default=degree, help="spherical-harmonic degree of the path"
+    )
+    parser.add_argument("--times", type=int, default=times, help="time points N, ends included")
+    parser.add_argument(
+        "--solver",
+        choices=SOLVERS,
+        default="bfgs",
+        help="optimistix BFGS or jaxopt L-BFGS",
+    )
+    parser.add_argument("--max-steps", type=int, default=max_steps, help=max_steps_help)
+
+
+def _shape_options(parser: argparse.ArgumentParser, *, modulo: str, inner: str = "") -> None:
+    """The options of shape geodesics (one ShapeOptions record; the library's defaults)."""
+    d = SHAPE_DEFAULTS
+    _common(
+        parser,
+        degree=d.degree,
+        times=d.n_times,
+        max_steps=d.max_steps,
+        max_steps_help=f"step limit of each inner solve (solver steps){inner}",
+    )
+    parser.add_argument(
+        "--modulo",
+        choices=("diff", "rigid"),
+        default=modulo,
+        help="reparametrizations, or reparametrizations and rigid motions",
+    )
+    parser.add_argument(
+        "--scheme",
+        choices=SCHEMES,
+        default=d.scheme,
+        help="time discretization of the path energy (see ShapeOptions)",
+    )
+    parser.add_argument(
+        "--method",
+        choices=METHODS,
+        default=d.method,
+        help="registration: paper Algorithm 2 (joint) or alternating (coordinate)",
+    )
+    parser.add_argument("--vf-degree", type=int, default=d.vf_degree, help="Diff(S^2) basis degree")
+    parser.add_argument(
+        "--outer-steps", type=int, default=d.outer_steps, help="most registration rounds"
+    )
+    parser.add_argument("--init", choices=INITS, default=d.init, help="initial registration search")
+    parser.add_argument(
+        "--no-refinement",
+        dest="refinement",
+        action="store_false",
+        help="skip re-evaluating each distance at halved time steps and on a finer grid",
+    )
+
+
+def _batch_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--strategy",
+        choices=("auto", "vmap", "map", "loop"),
+        default="auto",
+        help="batching: auto is lax.map on CPU, vmap on accelerators",
+    )
+    parser.add_argument(
+        "--batch-size", type=int, default=None, help="geodesics per batched call (bounds memory)"
+    )
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="solve on a local Dask cluster of this many worker processes (the dask extra)",
+    )
+    where.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="solve on the Dask cluster whose scheduler is at ADDRESS (tcp://host:8786); "
+        "--cache-dir must then be a path every worker can reach",
+    )
+    parser.add_argument(
+        "--resume", action="store_true", help="continue from the checkpoint in --out"
+    )
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="discard a checkpoint in --out and start over (without it or --resume, a "
+        "checkpoint there is refused)",
+    )
+
+
+def _karcher_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--karcher-steps",
+        type=int,
+        default=10,
+        help="most Karcher steps (accepted updates of the mean)",
+    )
+    parser.add_argument(
+        "--tol",
+        type=float,
+        default=1e-3,
+        help="Karcher convergence: |mean velocity| <= tol x RMS distance, or a full step "
+        "lowers the sum of squared distances by less than tol (relative)",
+    )
+    parser.add_argument(
+        "--step-size",
+        type=float,
+        default=1.0,
+        help="first trial step along the mean velocity (halved while it raises the sum "
+        "of squared distances)",
+    )
+    parser.add_argument(
+        "--warm-start",
+        action="store_true",
+        help="also solve each shape from its registration at the previous mean and keep "
+        "the lower distance (twice the solves; karcher_mean's warm_start)",
+    )
+
+
+class _DefaultsShown(argparse.ArgumentDefaultsHelpFormatter):
+    """Show defaults, except None and those of flags, whose help says what happens."""
+
+    def _get_help_string(self, action):
+        if action.default is None or action.nargs == 0:  # flags: their help says it
+            return action.help
+        return super()._get_help_string(action)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="elastic-jax",
+        description="Elastic shape analysis of spherical surfaces (split metrics, Su et al. 2020).",
+        epilog="Exit codes: 0 ok, 2 bad input, 3 not converged, 130 interrupted, 143 terminated.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    add = sub.add_parser
+
+    def command(name: str, **kwargs) -> argparse.ArgumentParser:
+        return add(name, formatter_class=_DefaultsShown, **kwargs)
+
+    p = command("geodesic", help="geodesic between two parametrized surfaces")
+    p.add_argument("source", help=SURFACE_FILE)
+    p.add_argument("target", help=SURFACE_FILE)
+    _common(p, degree=7, times=13)
+
+    p = command("shape-geodesic", help="geodesic between shapes (registration)")
+    p.add_argument("source", help=SURFACE_FILE)
+    p.add_argument("target", help=SURFACE_FILE)
+    _shape_options(p, modulo="diff")
+
+    p = command(
+        "karcher",
+        help="Karcher mean of a collection of shapes",
+        description="The Karcher mean of the shapes modulo rigid motions (or "
+        "reparametrizations only), checkpointed after every step (--resume continues). "
+        "Writes mean.npz (the mean, its distances, the velocities at the mean and the "
+        "settings: the pca command's input), mean.ply, mean.png and history.png.",
+    )
+    p.add_argument("files", nargs="+", help=SURFACE_FILES)
+    _shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
+    _batch_options(p)
+    _karcher_options(p)
+
+    p = command("distances", help="matrix of pairwise shape distances")
+    p.add_argument("files", nargs="+", help=SURFACE_FILES)
+    _shape_options(p, modulo="rigid")
+    _batch_options(p)
+
+    p = command(
+        "pca",
+        help="Karcher mean, tangent PCA and mode paths of a collection of shapes",
+        description="The Karcher mean of the shapes (as the karcher command), the metric "
+        "PCA of their velocities at the mean (tangent_pca) and the geodesics through the "
+        "mean along the first modes (mode_path). Writes the mean and each mode's +-sigma "
+        "shapes as meshes, each mode's one-sigma velocity (modeK_velocity.npz, for the "
+        "shoot command), pca.npz, scores.json and a figure (modes.png). Given a karcher "
+        "run's mean.npz as its only input, it starts from that mean and its velocities, "
+        "with that run's metric and options, and solves no geodesic.",
+    )
+    p.add_argument("files", nargs="+", help=SURFACE_FILES + "; or one karcher run's mean.npz")
+    _shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
+    _batch_options(p)
+    _karcher_options(p)
+    p.add_argument("--modes", type=int, default=3, help="modes to keep (at most shapes - 1)")
+    p.add_argument(
+        "--sigmas", type=float, default=2.0, help="mode paths reach +-sigmas standard deviations"
+    )
+    p.add_argument(
+        "--mode-times",
+        type=int,
+        default=7,
+        help="time points of each half of a mode path (mean to +-sigmas)",
+    )
+
+    p = command(
+        "shoot",
+        help="geodesic from a surface with an initial velocity (exponential map)",
+        description="Shoot the discrete geodesic from the source surface with initial "
+        "velocity --scale times the velocity file's (elastic_jax.shoot). Writes the path "
+        "(path/: a mesh per time point and path.npz), shoot.npz (endpoint, final "
+        "velocity, speeds, residuals) and a figure.",
+    )
+    p.add_argument("source", help=SURFACE_FILE)
+    p.add_argument(
+        "velocity",
+        help="the initial velocity: .npz with array v (or velocity) of the surface's shape "
+        "(3, m, n), e.g. the pca command's modeK_velocity.npz",
+    )
+    _io_options(p)
+    p.add_argument(
+        "--degree", type=int, default=7, help="spherical-harmonic degree of each step's solve"
+    )
+    p.add_argument("--times", type=int, default=13, help="time points N, ends included")
+    p.add_argument("--scale", type=float, default=1.0, help="multiplies the velocity")
+    p.add_argument(
+        "--scheme",
+        choices=SHOOTING_SCHEMES,
+        default="midpoint",
+        help="time discretization of the path energy (central cannot be shot)",
+    )
+    p.add_argument(
+        "--tol",
+        type=float,
+        default=None,
+        help="each step's Newton tolerance (default: 1e-10 in float64, 1e-4 in float32)",
+    )
+    p.add_argument("--max-newton", type=int, default=20, help="Newton iterations per step")
+
+    p = command("demo", help="a geodesic between two built-in surfaces, with figures")
+    _common(p, degree=7, times=10)
+
+    p = command("bench", help="time the energy gradient and a geodesic solve (JSON)")
+    _common(p, degree=7, times=13)
+    p.add_argument("--repeat", type=int, default=3, help="timed calls after the first")
+    return parser

@@ -1,0 +1,158 @@
+"""``elastic-jax pca``: tangent PCA at a Karcher mean written by ``karcher``."""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import warnings
+
+from .common import Progress, environment_record, json_floats, json_safe, metric_from, write_figure
+from .karcher import solve_karcher
+
+
+def run_pca(args, progress: Progress) -> dict:
+    import numpy as np
+
+    from .. import io, plot
+    from .._errors import ConvergenceWarning
+    from .._runtime.atomic import save_npz_atomic, write_text_atomic
+    from .._statistics.pca import mode_path, tangent_pca
+
+    if args.karcher_output is None:
+        karcher, metric, options, summary = solve_karcher(args, progress)
+        mean, velocities = np.asarray(karcher.mean), np.asarray(karcher.velocities)
+        distances, karcher_converged = np.asarray(karcher.distances), bool(karcher.converged)
+        inputs = list(args.files)
+    else:
+        saved = args.karcher_output
+        metric, options = metric_from(args), args.shape_options
+        mean, velocities = saved["f"].astype(args.dtype), saved["velocities"].astype(args.dtype)
+        distances, inputs = saved["distances"], saved["inputs"]
+        karcher_converged = bool(saved["converged"])
+        progress(
+            f"the Karcher mean of {len(inputs)} shapes from {args.files[0]} "
+            f"({saved['result']}); its metric and options"
+        )
+        summary = {
+            "command": args.command,
+            "inputs": list(args.files),
+            "karcher_inputs": inputs,
+            "settings": dict(saved["settings"]),
+            "karcher_result": str(saved["result"]),
+            "converged": karcher_converged,
+            "files": [],
+            "environment": environment_record(),
+        }
+    files = summary["files"]
+    if not np.isfinite(velocities).all():
+        # Nothing to analyse; the Karcher part of the summary says what failed.
+        progress("the velocities at the mean are not finite: no PCA")
+        summary.update(converged=False, pca=None)
+        return summary
+    k = len(inputs)
+    n_modes = min(args.modes, k - 1)
+    if n_modes < args.modes:
+        progress(f"{k} shapes span at most {k - 1} modes: keeping {n_modes}")
+    # Modes whose variance is at round-off (tangent_pca's rtol) are not modes: fewer kept.
+    # The kept ones are the leading ones of the full decomposition (explained is already
+    # relative to the total variance).
+    full = tangent_pca((mean, velocities), metric)
+    n_modes = min(n_modes, int(full.modes.shape[0]))
+    pca = full._replace(
+        modes=full.modes[:n_modes],
+        variances=full.variances[:n_modes],
+        explained=full.explained[:n_modes],
+        scores=full.scores[:, :n_modes],
+    )
+    explained = np.asarray(pca.explained)
+    progress("explained variance by mode: " + ", ".join(f"{100 * e:.1f} %" for e in explained))
+    # Shot with the scheme of the mean's geodesics (central is refused by preflight).
+    shoot_options = {"n_times": args.mode_times, "degree": options.degree, "scheme": options.scheme}
+    paths, unconverged = [], []
+    for mode in range(n_modes):
+        progress(f"mode {mode + 1}: shooting +-{args.sigmas:g} sigma from the mean")
+        # mode_path returns the path only; a failed Newton step shows as its warning.
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", ConvergenceWarning)
+            path = mode_path(pca, mode, metric, sigmas=args.sigmas, **shoot_options)
+        paths.append(np.asarray(path))
+        if any(issubclass(w.category, ConvergenceWarning) for w in caught):
+            progress(f"mode {mode + 1}: a shooting step did not converge")
+            unconverged.append(mode + 1)
+    paths = np.stack(paths)
+    sigma = np.sqrt(np.asarray(pca.variances))
+    reached = []
+    for mode, path in enumerate(paths, start=1):
+        files.append(
+            str(
+                save_npz_atomic(
+                    args.out / f"mode{mode}_velocity.npz",
+                    v=sigma[mode - 1] * np.asarray(pca.modes[mode - 1]),
+                    f=mean,
+                )
+            )
+        )
+        # Each half is a shot from the mean (frame c): a failed step leaves the frames
+        # beyond it NaN, so the solved ones are a run of frames around the centre.
+        solved = np.isfinite(path).all(axis=(1, 2, 3))
+        c = (len(path) - 1) // 2
+        down = int(np.argmin([*solved[c::-1], False]))  # solved frames from c down
+        up = int(np.argmin([*solved[c:], False]))
+        first, last = c - down + 1, c + up - 1
+        reached.append([args.sigmas * (first - c) / c, args.sigmas * (last - c) / c])
+        if solved.all():
+            for end, name in ((path[0], "minus"), (path[-1], "plus")):
+                files.append(str(io.save_surface(end, args.out / f"mode{mode}_{name}.ply")))
+        else:
+            progress(
+                f"mode {mode}: the shots reached {reached[-1][0]:+.3g} and {reached[-1][1]:+.3g} "
+                "sigma (a Newton step failed beyond); no meshes written for it"
+            )
+    files.append(
+        str(
+            save_npz_atomic(
+                args.out / "pca.npz",
+                mean=mean,
+                modes=np.asarray(pca.modes),
+                variances=np.asarray(pca.variances),
+                explained=explained,
+                scores=np.asarray(pca.scores),
+                mean_velocity=np.asarray(pca.mean_velocity),
+                mode_paths=paths,
+                settings=json.dumps(summary["settings"]),
+            )
+        )
+    )
+    names = [pathlib.Path(f).stem for f in inputs]
+    scores = {
+        "files": inputs,
+        "modes": n_modes,
+        "sigmas": args.sigmas,
+        "variances": json_floats(pca.variances),
+        "explained": json_floats(explained),
+        "scores": {
+            name: json_floats(row) for name, row in zip(names, np.asarray(pca.scores), strict=True)
+        },
+    }
+    text = json.dumps(json_safe(scores), indent=2, allow_nan=False)
+    files.append(str(write_text_atomic(args.out / "scores.json", text + "\n")))
+    files += write_figure(
+        args.out / "modes.png",
+        lambda: plot.plot_modes(paths, modes=len(paths), explained=explained, sigmas=args.sigmas),
+        progress,
+    )
+    summary["settings"].update(modes=n_modes, sigmas=args.sigmas, mode_times=args.mode_times)
+    summary["pca"] = {
+        "variances": json_floats(pca.variances),
+        "explained": json_floats(explained),
+        # All modes' variance against the mean squared distance: equal when every
+        # velocity's G-norm is its distance and the mean velocity vanishes.
+        "total_variance": float(np.sum(np.asarray(full.variances))),
+        "mean_sq_distance": float(np.mean(np.asarray(distances) ** 2)),
+        "mode_paths_unconverged": unconverged,
+        # Per mode, the sigmas the solved nodes span: [-sigmas, +sigmas] when converged.
+        "mode_paths_reached_sigmas": reached,
+        "scores": scores["scores"],
+    }
+    summary["converged"] = karcher_converged and not unconverged
+    return summary

@@ -1,0 +1,87 @@
+"""``elastic-jax shape-geodesic``: the geodesic modulo reparametrization (and rotation)."""
+
+from __future__ import annotations
+
+import time
+
+from .common import (
+    Progress,
+    environment_record,
+    json_float,
+    json_floats,
+    prepare,
+    shape_geodesic_options,
+    write_figure,
+    write_path,
+)
+
+
+def run_shape_geodesic(args, progress: Progress) -> dict:
+    import jax
+    import numpy as np
+
+    from .. import plot
+    from .._registration.shape import shape_geodesic
+    from .._runtime.atomic import save_npz_atomic
+
+    files = [args.source, args.target]
+    (f1, f2), metric, options = prepare(args, progress, files, shape_geodesic_options)
+    m, n = f1.shape[1:]
+    progress(
+        f"registering and solving modulo {args.modulo} on {m} x {n}, "
+        f"at most {options.outer_steps} registration rounds (the first call compiles)"
+    )
+    start = time.perf_counter()
+    res = jax.block_until_ready(shape_geodesic(f1, f2, metric, modulo=args.modulo, options=options))
+    seconds = time.perf_counter() - start
+    progress(
+        f"shape distance {float(res.distance):.6g} "
+        f"(parametrized {float(res.parametrized_distance):.6g}) "
+        f"after {int(res.rounds)} rounds"
+    )
+    settings = {
+        "metric": list(args.metric),
+        "grid": [m, n],
+        "modulo": args.modulo,
+        **options.as_dict(),
+        "dtype": args.dtype,
+    }
+    files = write_path(args.out, np.asarray(res.path), settings, progress)
+    files.append(
+        str(
+            save_npz_atomic(
+                args.out / "registration.npz",
+                gamma=np.asarray(res.gamma),
+                rotation=np.asarray(res.rotation),
+                f1_registered=np.asarray(res.f1_registered),
+                energy_history=np.asarray(res.energy_history),
+            )
+        )
+    )
+    history = np.asarray(res.energy_history)
+    # Rounds not taken are NaN in the record; the figure shows the rounds taken.
+    energies = {"path energy": history[np.isfinite(history)]}
+    files += write_figure(args.out / "energy.png", lambda: plot.plot_energy(energies), progress)
+    return {
+        "command": args.command,
+        "inputs": [args.source, args.target],
+        "settings": settings,
+        "distance": float(res.distance),
+        "parametrized_distance": float(res.parametrized_distance),
+        "energy": float(res.energy),
+        "energy_history": json_floats(res.energy_history),
+        "rounds": int(res.rounds),
+        "num_steps": int(res.num_steps),
+        "converged": bool(res.converged),
+        "result": "converged" if bool(res.converged) else res.message,
+        "message": res.message,
+        "grad_norm": float(res.grad_norm),
+        "refinement": {
+            "distance_time": json_float(res.refinement.distance_time),
+            "distance_grid": json_float(res.refinement.distance_grid),
+            "relative_change": json_float(res.refinement.relative_change),
+        },
+        "seconds": seconds,
+        "files": files,
+        "environment": environment_record(),
+    }

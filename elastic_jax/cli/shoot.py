@@ -1,0 +1,109 @@
+"""``elastic-jax shoot``: the geodesic from a surface along an initial velocity."""
+
+from __future__ import annotations
+
+import json
+import time
+
+from .common import (
+    BadInput,
+    Progress,
+    environment_record,
+    json_float,
+    json_floats,
+    prepare,
+    write_path,
+)
+
+
+def _load_velocity(name: str, shape: tuple, dtype: str):
+    """The array ``v`` (or ``velocity``) of an .npz, checked against the surface's shape."""
+    import numpy as np
+
+    try:
+        with np.load(name) as data:
+            arrays = {k: np.asarray(data[k]) for k in ("v", "velocity") if k in data.files}
+            found = ", ".join(data.files) or "none"
+    except (OSError, ValueError) as err:
+        raise BadInput(f"{name}: not a readable .npz ({err})") from err
+    if not arrays:
+        raise BadInput(f"{name}: no array v or velocity in it (it has {found})")
+    v = arrays.get("v", arrays.get("velocity"))
+    if v.shape != shape:
+        raise BadInput(
+            f"{name}: the velocity has shape {v.shape}, the surface {shape}; a velocity "
+            "lives on its surface's grid (resampling one would change what it means)"
+        )
+    if not np.issubdtype(v.dtype, np.floating) or not np.isfinite(v).all():
+        raise BadInput(f"{name}: the velocity must be finite real numbers")
+    return v.astype(dtype)
+
+
+def run_shoot(args, progress: Progress) -> dict:
+    import jax
+    import numpy as np
+
+    from .._geodesics.shooting import shoot
+    from .._runtime.atomic import save_npz_atomic
+
+    (f,), metric, _ = prepare(args, progress, [args.source], lambda a: None)
+    m, n = f.shape[1:]
+    v = args.scale * _load_velocity(args.velocity, f.shape, args.dtype)
+    options = {"n_times": args.times, "degree": args.degree, "scheme": args.scheme}
+    options.update(tol=args.tol, max_newton=args.max_newton)
+    progress(
+        f"shooting on {m} x {n}, degree {args.degree}, N = {args.times} "
+        "(one Newton solve per step; the first call compiles)"
+    )
+    start = time.perf_counter()
+    res = jax.block_until_ready(shoot(f, v, metric, **options))
+    seconds = time.perf_counter() - start
+    speeds = np.asarray(res.speeds)
+    residuals = np.asarray(res.residuals)
+    n_valid = int(res.n_valid)
+    progress(
+        f"speed {speeds[0]:.6g} -> {speeds[-1]:.6g}, largest step residual "
+        f"{np.nanmax(residuals):.3g}, converged {bool(res.converged)}"
+    )
+    settings = {
+        "metric": list(args.metric),
+        "grid": [m, n],
+        "scale": args.scale,
+        **options,
+        "dtype": args.dtype,
+    }
+    path = np.asarray(res.path)
+    if n_valid < path.shape[0]:
+        last = path.shape[0] - 1
+        progress(f"nodes {n_valid}..{last} did not solve: writing nodes 0..{n_valid - 1}")
+    files = write_path(args.out, path[:n_valid], settings, progress)
+    files.append(
+        str(
+            save_npz_atomic(
+                args.out / "shoot.npz",
+                n_valid=n_valid,
+                endpoint=path[-1],
+                velocity=np.asarray(res.velocity),
+                speeds=speeds,
+                residuals=residuals,
+                newton_steps=np.asarray(res.newton_steps),
+                settings=json.dumps(settings),
+            )
+        )
+    )
+    return {
+        "command": args.command,
+        "inputs": [args.source, args.velocity],
+        "settings": settings,
+        # The path's length: the sum of its steps' speeds over T (constant on a geodesic).
+        "length": json_float(np.mean(speeds)),
+        "n_valid": n_valid,
+        "speeds": json_floats(speeds),
+        "speed_drift": json_float(speeds[-1] / speeds[0] - 1) if speeds[0] > 0 else None,
+        "residuals": json_floats(residuals),
+        "newton_steps": [int(x) for x in np.asarray(res.newton_steps)],
+        "converged": bool(res.converged),
+        "seconds": seconds,
+        "files": files,
+        "environment": environment_record(),
+    }
