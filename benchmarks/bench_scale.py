@@ -212,7 +212,7 @@ res = ej.distance_matrix(coll, metric, client=client, **kwargs)
 seconds = time.perf_counter() - t0
 np.save({out!r}, np.asarray(res.distances))
 print(json.dumps({{"seconds": seconds, "pairs": k * (k - 1) // 2,
-                  "converged": int(np.asarray(res.converged).sum() - k) // 2,
+                  "converged": int(np.asarray(res.pairs_converged).sum() - k) // 2,
                   "rss_mb": rss_mb()}}))
 if client is not None:
     client.close(); cluster.close()

@@ -434,9 +434,9 @@ def table_record(pair: str, m: int, n: int, max_steps: int, env: dict) -> dict:
         },
         "srnf_geodesic": {
             "solve_s_first_call": srnf_s,
-            "converged": [bool(x) for x in inv.converged],
+            "converged": [bool(x) for x in inv.nodes_converged],
             "relative_residuals": [float(x) for x in inv.relative_residuals],
-            "num_steps": [int(x) for x in inv.num_steps],
+            "num_steps": [int(x) for x in inv.node_steps],
             "srnf_distance": float(inv.srnf_distance),
             "step_lengths": [length(inv.path[k : k + 2]) for k in range(SRNF_N_TIMES - 1)],
             "step_lengths_forward": [

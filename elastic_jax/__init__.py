@@ -37,7 +37,6 @@ from ._geodesics.geodesic import upsample_coefficients as upsample_coefficients
 from ._geodesics.shooting import ShootingResult as ShootingResult
 from ._geodesics.shooting import exp as exp
 from ._geodesics.shooting import shoot as shoot
-from ._geodesics.solvers import RESULTS as RESULTS
 from ._geometry.harmonics import SphericalHarmonics as SphericalHarmonics
 from ._geometry.harmonics import max_degree as max_degree
 from ._geometry.harmonics import real_sph_harm as real_sph_harm
@@ -59,6 +58,8 @@ from ._options import ShapeOptions as ShapeOptions
 from ._registration.records import Refinement as Refinement
 from ._registration.records import ShapeGeodesicResult as ShapeGeodesicResult
 from ._registration.shape import shape_geodesic as shape_geodesic
+from ._results import RESULTS as RESULTS
+from ._runtime.cache import clear_caches as clear_caches
 from ._runtime.cache import enable_compilation_cache as enable_compilation_cache
 from ._statistics.karcher import DistanceMatrixResult as DistanceMatrixResult
 from ._statistics.karcher import KarcherResult as KarcherResult

@@ -57,7 +57,8 @@ def _solve(target, scale, *, max_steps):
 
 
 def test_an_exported_program_is_the_jitted_one_and_is_not_traced_again(tmp_path, monkeypatch):
-    from elastic_jax._geodesics.solvers import RESULTS, Minimum
+    from elastic_jax._geodesics.solvers import Minimum
+    from elastic_jax._results import RESULTS
     from elastic_jax._runtime import cache as _cache
 
     jitted = _cache.solver_jit(_solve, static_argnames=("max_steps",))
@@ -316,3 +317,20 @@ def test_solver_options_apply_at_the_top_and_give_way_inside_a_callers_trace():
         assert float(jnp.max(jnp.abs(x - plain))) <= 1e-12 * float(jnp.max(jnp.abs(plain)))
     # The minimizer: 2 s (y - t) + 4 y^3 = 0 per coordinate, at s = 0.5.
     assert float(jnp.max(jnp.abs(top - target + 4 * top**3))) < 1e-7
+
+
+def test_clear_caches_empties_every_cache_and_changes_no_result():
+    import numpy as np
+
+    import elastic_jax as ej
+    from elastic_jax._runtime import cache as _cache
+
+    basis = ej.surface_basis(9, 17, 3)
+    weights = ej.quadrature_weights(9, 17)
+    assert sum(w.cache_info().currsize for w in _cache._CACHED) > 0
+    ej.clear_caches()
+    assert sum(w.cache_info().currsize for w in _cache._CACHED) == 0
+    assert _cache._EXPORTED == {}
+    # Rebuilt from the arguments alone: the same numbers, bit for bit.
+    np.testing.assert_array_equal(ej.surface_basis(9, 17, 3), basis)
+    np.testing.assert_array_equal(ej.quadrature_weights(9, 17), weights)

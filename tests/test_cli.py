@@ -302,7 +302,7 @@ def _fake_karcher(calls):
             converged=True,
             num_steps=1,
             num_solves=3,
-            result="mean_velocity_small",
+            result=ej.RESULTS.mean_velocity_small,
         )
 
     return karcher_mean
@@ -338,7 +338,14 @@ def test_distances_reports_each_pair_and_exits_3_when_one_did_not_converge(
         change = np.full((3, 3), 0.01)
         np.fill_diagonal(change, 0.0)
         change[1, 2] = change[2, 1] = np.nan
-        return ej.DistanceMatrixResult(np.ones((3, 3)) - np.eye(3), converged, change)
+        return ej.DistanceMatrixResult(
+            np.ones((3, 3)) - np.eye(3),
+            converged,
+            change,
+            converged=np.asarray(False),
+            result=ej.RESULTS.max_steps_reached,
+            num_steps=np.asarray(30),
+        )
 
     monkeypatch.setattr(_karcher, "distance_matrix", distance_matrix)
     files = [_save(tmp_path, f"s{i}.npz", shapes.sample(shapes.sphere, M, N)) for i in range(3)]
@@ -377,7 +384,7 @@ def test_ctrl_c_then_resume_equals_the_library(tmp_path, capsys):
     expected = ej.distance_matrix(
         np.stack(fs), METRIC, modulo="rigid", strategy="loop", options=SHAPE_OPTIONS
     )
-    converged = np.asarray(expected.converged)
+    converged = np.asarray(expected.pairs_converged)
     assert code == (0 if converged.all() else cli.EXIT_NOT_CONVERGED)
     assert summary["converged"] is bool(converged.all())
     assert summary["pairs_converged"] == converged.tolist()
@@ -415,7 +422,9 @@ def test_karcher_and_shape_geodesic_equal_the_library(tmp_path, capsys):
         np.stack(fs), METRIC, modulo="rigid", max_steps=2, options=SHAPE_OPTIONS, strategy="loop"
     )
     assert code == (0 if res.converged else cli.EXIT_NOT_CONVERGED)
-    assert summary["converged"] is res.converged and summary["result"] == res.result
+    assert summary["converged"] is res.converged and summary["result"] == ej.RESULTS.name(
+        res.result
+    )
     assert summary["history"]["sum_sq_distances"] == res.history[:, 0].tolist()
     assert summary["settings"]["max_steps"] == 500 and summary["settings"]["karcher_steps"] == 2
     np.testing.assert_allclose(summary["distances"], res.distances, rtol=1e-9)
@@ -451,7 +460,7 @@ def test_karcher_and_shape_geodesic_equal_the_library(tmp_path, capsys):
     assert summary["distance"] == pytest.approx(float(res.distance), rel=1e-9)
     assert summary["distance"] < summary["parametrized_distance"]
     assert summary["rounds"] == int(res.rounds) and summary["grad_norm"] == float(res.grad_norm)
-    assert summary["result"] == ("converged" if bool(res.converged) else res.message)
+    assert summary["result"] == ej.RESULTS.name(res.result) and summary["message"] == res.message
     assert summary["message"] == res.message
     refinement = summary["refinement"]
     assert refinement["relative_change"] == float(res.refinement.relative_change)
@@ -498,7 +507,7 @@ def test_pca_and_shoot_equal_the_library_and_compose(tmp_path, capsys, monkeypat
             converged=True,
             num_steps=0,
             num_solves=1,
-            result="mean_velocity_small",
+            result=ej.RESULTS.mean_velocity_small,
         )
 
     monkeypatch.setattr(_karcher, "karcher_mean", karcher_mean)

@@ -312,7 +312,7 @@ def test_options_are_validated(field, value, message):
 
 def test_results_print_their_name():
     # equinox printed RESULTS.successful as "RESULTS<>" (its message is empty).
-    from elastic_jax._geodesics.solvers import result_message
+    from elastic_jax._results import result_message
 
     assert repr(ej.RESULTS.successful).endswith("RESULTS<successful>")
     assert repr(ej.RESULTS.stalled).endswith(

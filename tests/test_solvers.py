@@ -7,7 +7,8 @@ import numpy as np
 import optimistix as optx
 import pytest
 
-from elastic_jax._geodesics.solvers import RESULTS, lanczos_smallest, minimize
+from elastic_jax._geodesics.solvers import lanczos_smallest, minimize
+from elastic_jax._results import RESULTS
 
 
 def _rosenbrock(x):

@@ -1,3 +1,4 @@
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -61,6 +62,11 @@ def test_ellipsoid_from_the_area_matched_sphere():
     assert int(small.num_steps) == int(res.num_steps)
     assert relerr(small.surface, 1e-3 * res.surface) < 1e-9  # measured 1.0e-13
     assert float(small.relative_residual) < 1e-8
+    # Traced (under jit) the solve runs in the same units: the same steps, the same
+    # surface (before issue 31 a traced q was solved at scale 1, 1000 times too large).
+    traced = jax.jit(lambda q: srnf_invert(q))(1e-3 * q)
+    assert int(traced.num_steps) == int(small.num_steps)
+    assert relerr(traced.surface, small.surface) < 1e-9
 
 
 def test_float32():
@@ -93,7 +99,7 @@ def test_geodesic_relations():
     res = srnf_geodesic(f1, f2, 5, **GEODESIC)
     assert res.path.shape == (5, 3, M, N)
     assert bool(jnp.all(res.path[0] == f1)) and bool(jnp.all(res.path[-1] == f2))
-    assert bool(np.all(res.converged))
+    assert bool(res.converged) and bool(np.all(res.nodes_converged))
     assert float(res.srnf_distance) == pytest.approx(float(ej.srnf_distance(f1, f2)), rel=1e-12)
     assert float(res.srnf_length) == pytest.approx(float(ej.srnf_path_length(res.path)), rel=1e-12)
     # Measured: d = 2.1121 <= L = 2.1519 <= d + 2 sum r = 2.8486 (degree 4 truncates the
@@ -191,4 +197,7 @@ def test_two_time_points_are_the_ends():
     res = srnf_geodesic(f1, f2, 2)
     assert bool(jnp.all(res.path == jnp.stack([f1, f2])))
     assert float(res.srnf_length) == pytest.approx(float(res.srnf_distance), rel=1e-12)
-    assert res.residuals.shape == res.num_steps.shape == res.converged.shape == (2,)
+    assert res.residuals.shape == res.node_steps.shape == res.nodes_converged.shape == (2,)
+    # Nothing was solved: converged, successful, no steps.
+    assert bool(res.converged) and bool(res.result == ej.RESULTS.successful)
+    assert int(res.num_steps) == 0 and res.message == ""

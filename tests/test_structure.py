@@ -13,9 +13,9 @@ import re
 PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "elastic_jax"
 # Each module's layer is its subpackage (or, for a top-level module, its own name). A
 # layer imports only layers of a lower rank and itself: the tree shows the architecture.
-LEAVES = {"_errors", "_checks", "_options"}
+LEAVES = {"_errors", "_checks", "_options", "_results"}
 RANKS = {
-    "leaves": 0,  # errors, argument checks, options: they import at most each other
+    "leaves": 0,  # errors, argument checks, options, result codes: at most each other
     "_runtime": 1,  # atomic writes, compilation caches, the Dask pool: below every solver
     "_geometry": 2,
     "_geodesics": 3,
@@ -164,14 +164,32 @@ def test_leaf_modules_import_only_errors():
         assert graph[module] <= {"_errors"}, module
 
 
+def test_every_cache_is_registered_for_clear_caches():
+    # functools.cache / lru_cache only through _runtime.cache.cached, which registers the
+    # cache with elastic_jax.clear_caches (issue 31: state behind one public call).
+    direct = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Attribute) and node.attr in ("cache", "lru_cache"):
+                if isinstance(node.value, ast.Name) and node.value.id == "functools":
+                    direct.append(f"{_module_name(path)}:{node.lineno}")
+    assert direct == ["_runtime.cache:" + str(_cached_line())]
+
+
+def _cached_line() -> int:
+    """The one direct use: inside cached() itself."""
+    source = (PACKAGE / "_runtime" / "cache.py").read_text().splitlines()
+    return next(i for i, line in enumerate(source, 1) if "= functools.cache(function)" in line)
+
+
 # The public API as users import it; a rename or a removal is a decision, not an accident
 # of moving code (issue 31: the tree may change, these names may not).
 PUBLIC = {
     "elastic_jax": """ConvergenceWarning DistanceMatrixResult GeodesicResult InputError
         KarcherResult LogResult RESULTS Refinement ShapeGeodesicResult ShapeOptions
         ShootingResult SphericalHarmonics SplitMetric SrnfGeodesic SrnfInversion TangentPCA
-        TransportResult base_inner center diffeomorphism diffeomorphism_bound differential
-        distance_matrix elastic_metric_inner enable_compilation_cache exp geodesic
+        TransportResult base_inner center clear_caches diffeomorphism diffeomorphism_bound
+        differential distance_matrix elastic_metric_inner enable_compilation_cache exp geodesic
         grid_angles hat icosahedral_group integrate jacobian_determinant karcher_mean log
         max_degree metric_inner mode_path moebius parallel_transport path_energy path_length
         quadrature_weights real_sph_harm reparametrize resample rotate_parametrization

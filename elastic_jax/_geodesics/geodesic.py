@@ -39,7 +39,9 @@ from .._geometry.metric import SplitMetric, split_bilinear
 from .._geometry.units import in_units
 from .._geometry.validation import as_surface
 from .._options import SCHEMES, SOLVERS
-from .solvers import RESULTS, Minimum, lanczos_smallest, minimize, result_message
+from .._results import RESULTS, result_message
+from .._runtime.cache import cached
+from .solvers import Minimum, lanczos_smallest, minimize
 
 
 class GeodesicResult(NamedTuple):
@@ -55,9 +57,11 @@ class GeodesicResult(NamedTuple):
             those after each saddle escape).
         converged: ``()`` whether the solver met its tolerance within max_steps and, when
             saddle escapes were asked for (``saddle_checks >= 1``), the end point is not a
-            saddle (``min_curvature >= saddle_threshold(dtype)``).
+            saddle (``min_curvature >= saddle_threshold(dtype)``); ``result ==
+            RESULTS.successful`` says the same.
         result: the solver's result code, an ``elastic_jax.RESULTS`` (optimistix's codes
-            and ``stalled``; jaxopt's outcome mapped to them).
+            and ``stalled``; jaxopt's outcome mapped to them), or ``saddle_point`` when
+            the solver met its tolerance at a saddle that the escapes did not leave.
         grad_norm: ``()`` 2-norm of the gradient of the scaled objective at the end
             (energy / straight_energy in whitened coefficients, where its Hessian is ~2 I).
         min_curvature: ``()`` Lanczos estimate of the smallest eigenvalue of that scaled
@@ -81,15 +85,12 @@ class GeodesicResult(NamedTuple):
     def message(self) -> str:
         """Why the solver stopped, in its own words ('' when it converged)."""
         message = result_message(self.result)
-        if not message and not self.converged:
-            message = (
-                f"ended at a saddle point (smallest Hessian eigenvalue "
-                f"{float(self.min_curvature):.3g}); raise saddle_checks"
-            )
+        if bool(self.result == RESULTS.saddle_point):
+            message += f" (smallest Hessian eigenvalue {float(self.min_curvature):.3g})"
         return message
 
 
-@functools.cache
+@cached
 def basis_np(m: int, n: int, degree: int) -> tuple[np.ndarray, np.ndarray]:
     """Harmonics of degree 1..deg as ``(K, m n)`` and their differentials as ``(K, 2 P)``.
 
@@ -327,7 +328,9 @@ def solve_path(
     converged = result == RESULTS.successful
     if saddle_checks:
         # Escapes were asked for: a saddle still at the end is a failed solve.
-        converged = converged & (curvature >= threshold)
+        at_saddle = converged & (curvature < threshold)
+        converged = converged & ~at_saddle
+        result = RESULTS.where(at_saddle, RESULTS.saddle_point, result)
     coefficients = scaling.coefficients(x)
     energy = found.value * scaling.energy_scale
     return GeodesicResult(

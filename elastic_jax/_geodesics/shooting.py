@@ -37,6 +37,7 @@ from .._geometry.metric import SplitMetric
 from .._geometry.units import in_units
 from .._geometry.validation import as_surface
 from .._options import SHOOTING_SCHEMES
+from .._results import RESULTS, first_failure, result_message
 from .geodesic import basis_np, safe_sqrt
 
 
@@ -58,6 +59,9 @@ class ShootingResult(NamedTuple):
         newton_steps: ``(N - 2,)`` Newton iterations per step (0: not attempted).
         n_valid: ``()`` how many leading nodes of ``path`` are solutions: N when converged.
         converged: ``()`` every step's Newton solve met its tolerance.
+        result: ``successful``, or the first failed step's Newton result
+            (``elastic_jax.RESULTS``, optimistix's code).
+        num_steps: ``()`` Newton iterations over all steps.
     """
 
     path: Float[Array, "N 3 m n"]
@@ -69,6 +73,16 @@ class ShootingResult(NamedTuple):
     newton_steps: Int[Array, " K"]
     n_valid: Int[Array, ""]
     converged: Array
+    result: RESULTS
+    num_steps: Int[Array, ""]
+
+    @property
+    def message(self) -> str:
+        """Which node did not solve and why ('' when every node did)."""
+        if bool(self.converged):
+            return ""
+        k, last = int(self.n_valid), self.path.shape[-4] - 1
+        return f"node {k} of {last} did not solve: {result_message(self.result)}"
 
 
 def default_newton_tol(dtype) -> float:
@@ -110,7 +124,7 @@ def node_solve(metric, scheme, f_a, f_b, c_guess, values, dframe, *, unknown, to
     2 f_b - f_a + sum_j c_j S_j (a shooting step). unknown="middle": the ends are known and
     the unknown is the middle, (f_a + f_b) / 2 + sum_j c_j S_j (the discrete midpoint).
     Returns (the unknown node, c, the residual as a Newton step's size, Newton steps,
-    success).
+    the result code).
     """
     import optimistix as optx
 
@@ -147,8 +161,8 @@ def node_solve(metric, scheme, f_a, f_b, c_guess, values, dframe, *, unknown, to
     sol = optx.root_find(residual, solver, c_guess, max_steps=max_newton, throw=False)
     c = sol.value
     node = base + (c.reshape(3, -1) @ values).reshape(3, m, n)
-    ok = sol.result == optx.RESULTS.successful
-    return node, c, jnp.linalg.norm(residual(c, None)), sol.stats["num_steps"], ok
+    result = RESULTS.promote(sol.result)
+    return node, c, jnp.linalg.norm(residual(c, None)), sol.stats["num_steps"], result
 
 
 def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
@@ -168,7 +182,7 @@ def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
         f_prev, f_here, c_guess, alive = carry
 
         def solve(_):
-            f_next, c, residual, steps, ok = node_solve(
+            f_next, c, residual, steps, result = node_solve(
                 metric,
                 scheme,
                 f_prev,
@@ -180,30 +194,33 @@ def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
                 tol=tol,
                 max_newton=max_newton,
             )
-            return f_next, c, residual, jnp.asarray(steps, jnp.int32), ok
+            return f_next, c, residual, jnp.asarray(steps, jnp.int32), result
 
         def skip(_):
             nan = jnp.asarray(jnp.nan, dtype)
-            return jnp.full_like(f_here, nan), c_guess, nan, jnp.zeros((), jnp.int32), alive
+            zero = jnp.zeros((), jnp.int32)
+            return jnp.full_like(f_here, nan), c_guess, nan, zero, RESULTS.successful
 
-        f_next, c, residual, steps, ok = jax.lax.cond(alive, solve, skip, None)
+        f_next, c, residual, steps, result = jax.lax.cond(alive, solve, skip, None)
+        ok = alive & (result == RESULTS.successful)
         f_next = jnp.where(ok, f_next, jnp.nan)
         # After a failure the known pair stays the last solved one (the later steps skip).
         kept = jax.tree_util.tree_map(
             functools.partial(jnp.where, ok), (f_here, f_next, c), (f_prev, f_here, c_guess)
         )
-        return (*kept, ok), (f_next, (c, residual, steps, ok))
+        return (*kept, ok), (f_next, (c, residual, steps, ok, result))
 
     f_first = f + v / t
     carry = (f, f_first, jnp.zeros(size, dtype), jnp.asarray(True))
-    _, (nodes, (coefficients, residuals, newton_steps, ok)) = jax.lax.scan(
+    _, (nodes, (coefficients, residuals, newton_steps, ok, results)) = jax.lax.scan(
         step, carry, None, length=n_times - 2
     )
     path = jnp.concatenate([f[None], f_first[None], nodes])
     speeds2, _ = frame_speeds2(metric, *interior_frame(path), scheme)
     speeds = jnp.where(jnp.isnan(speeds2), jnp.nan, safe_sqrt(speeds2))
     n_valid = 2 + jnp.sum(ok.astype(jnp.int32))
-    return path, speeds, residuals, coefficients, newton_steps, n_valid
+    result = first_failure(results, ok)
+    return path, speeds, residuals, coefficients, newton_steps, n_valid, result
 
 
 _shoot_jit = jax.jit(_shoot, static_argnames=("n_times", "scheme", "tol", "max_newton"))
@@ -269,7 +286,7 @@ def shoot(
     # In units of f's size (see _geometry/units.py): the energy is homogeneous, the path scales.
     units, (g,) = in_units(f)
     s = units.scale
-    path, speeds, residuals, coefficients, newton_steps, n_valid = _shoot_jit(
+    path, speeds, residuals, coefficients, newton_steps, n_valid, code = _shoot_jit(
         metric,
         g,
         v / s,
@@ -293,6 +310,8 @@ def shoot(
         newton_steps=newton_steps,
         n_valid=n_valid,
         converged=converged,
+        result=code,
+        num_steps=jnp.sum(newton_steps),
     )
     if is_concrete(converged) and not bool(converged):
         warnings.warn(_failure_message(result, tol, max_newton), ConvergenceWarning, stacklevel=2)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import warnings
 from collections.abc import Callable
 from typing import NamedTuple
@@ -14,55 +13,8 @@ from jaxtyping import Array
 
 from .._checks import check_choice
 from .._options import SOLVERS
-
-
-class _NamedEnumeration(type(optx.RESULTS)):
-    """The metaclass of optimistix's RESULTS, whose items then print their name.
-
-    equinox prints an item as ``RESULTS<message>``, and the message of ``successful`` is
-    empty (``RESULTS<>``); with the name in front a result reads ``RESULTS<successful>``
-    or ``RESULTS<stalled: The solver stopped ...>``. Only the text changes: items, codes
-    and ``where`` / ``promote`` are equinox's own.
-    """
-
-    def __getitem__(cls, item) -> str:
-        message = cls.message(item)
-        name = cls.name(item)
-        return f"{name}: {message}" if message else name
-
-    def message(cls, item) -> str:
-        """The item's message alone ('' for ``successful``)."""
-        return super().__getitem__(item)
-
-    def name(cls, item) -> str:
-        """The item's name, e.g. ``"successful"`` (its code must be concrete)."""
-        code = int(item._value)
-        # equinox keeps the items by name in _name_to_item (its own table of the class).
-        for name, candidate in getattr(cls, "_name_to_item", {}).items():
-            if int(candidate._value) == code:
-                return name
-        return f"code {code}"
-
-
-class RESULTS(optx.RESULTS, metaclass=_NamedEnumeration):  # pyright: ignore
-    """optimistix's result codes and two more: a solve that stopped making progress, and
-    registration rounds that the grid's resolution stopped."""
-
-    stalled = (
-        "The solver stopped making progress (steps and value changes at rounding level) "
-        "before the gradient norm reached tol: the precision cannot resolve tol; raise tol "
-        "or use float64."
-    )
-    resolution_limited = (
-        "The registration rounds stopped at the edge of the reparametrizations the solver "
-        "accepts: the last round's Diff step towards a lower energy folded gamma or "
-        "stretched it past the area floor (5 times the grid's own area error, so about the "
-        "stretch of a Moebius map with |a| = 0.64 on any grid), and shrunk until accepted, "
-        "it lowered the energy little or not at all. The distance is the lowest energy the "
-        "rounds reached within that edge, not a converged minimum. The edge bounds the "
-        "stretch alike on every grid; another grid, init or init_candidates may still end "
-        "elsewhere."
-    )
+from .._results import RESULTS
+from .._runtime.cache import cached
 
 
 class Minimum(NamedTuple):
@@ -140,7 +92,7 @@ class _Capped(optx.AbstractMinimiser):
         return self.inner.postprocess(fn, y, aux, args, options, state[0], tags, result)
 
 
-@functools.cache
+@cached
 def _capped_lbfgs():
     """jaxopt's LBFGS whose loop also stops at the ``step_cap`` given to ``run`` (made on
     first use: jaxopt is imported lazily, see _jaxopt)."""
@@ -287,8 +239,3 @@ def lanczos_smallest(
     theta, y = jnp.linalg.eigh(tridiagonal)
     vector = basis[:k].T @ y[:, 0]
     return theta[0], (vector / jnp.linalg.norm(vector)).reshape(shape)
-
-
-def result_message(result: RESULTS) -> str:
-    """The solver's words for a (concrete, unbatched) result code; '' on success."""
-    return RESULTS.message(result)

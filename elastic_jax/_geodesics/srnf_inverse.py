@@ -39,8 +39,10 @@ from .._geometry.harmonics import check_degree
 from .._geometry.srnf import center_unchecked, sqrt_normal, srnf_unchecked, surface_area_unchecked
 from .._geometry.validation import as_surface
 from .._options import SOLVERS
+from .._results import RESULTS, first_failure, result_message
+from .._runtime.cache import cached
 from .geodesic import basis_np, check_pair, sqrt_inverse_pair
-from .solvers import RESULTS, minimize, result_message
+from .solvers import minimize
 
 __all__ = ["SrnfGeodesic", "SrnfInversion", "srnf_geodesic", "srnf_invert"]
 
@@ -91,9 +93,12 @@ class SrnfGeodesic(NamedTuple):
             path's SRNF image (= its (0, 1/2, 1, 0) split-metric length, MATH.md 3).
         srnf_distance: ``()`` ||q1 - q2||, the length of the straight line being inverted;
             srnf_distance <= srnf_length <= srnf_distance + 2 sum(residuals).
-        num_steps: ``(N,)`` solver steps of each node's inversion (0 at the ends).
-        converged: ``(N,)`` whether each node's last level met its tolerance (True at
-            the ends).
+        node_steps: ``(N,)`` solver steps of each node's inversion (0 at the ends).
+        nodes_converged: ``(N,)`` whether each node's last level met its tolerance (True
+            at the ends).
+        converged: ``()`` every node's inversion converged.
+        result: ``successful``, or the first unconverged node's result code.
+        num_steps: ``()`` solver steps over all nodes.
     """
 
     path: Float[Array, "N 3 m n"]
@@ -101,11 +106,22 @@ class SrnfGeodesic(NamedTuple):
     relative_residuals: Float[Array, " N"]
     srnf_length: Float[Array, ""]
     srnf_distance: Float[Array, ""]
-    num_steps: Int[Array, " N"]
-    converged: Bool[Array, " N"]
+    node_steps: Int[Array, " N"]
+    nodes_converged: Bool[Array, " N"]
+    converged: Bool[Array, ""]
+    result: RESULTS
+    num_steps: Int[Array, ""]
+
+    @property
+    def message(self) -> str:
+        """Which nodes did not converge and why ('' when all did)."""
+        if bool(self.converged):
+            return ""
+        failed = np.flatnonzero(~np.asarray(self.nodes_converged)).tolist()
+        return f"nodes {failed} did not converge: {result_message(self.result)}"
 
 
-@functools.cache
+@cached
 def _unit_sphere_area(m: int, n: int) -> float:
     # The grid's own area of the unit sphere (4 pi to O(h^2)), so that the start's discrete
     # area matches the area q encodes exactly.
@@ -230,12 +246,14 @@ def _srnf_line(q1, q2, f1, values, dframe, *, n_times, degrees, solver, max_step
     return nodes
 
 
-def _srnf_units(*qs: Array) -> float:
+def _srnf_units(*qs: Array) -> Array:
     """The power of two nearest the radius of the sphere with the largest area the qs
     encode (exact to divide by and restore). Q is homogeneous of degree 1, Q(f / s) =
-    Q(f) / s, so the solve runs on surfaces of size ~1 in any dtype."""
-    area = max(float(_srnf_norm2(q[:, 1:-1, :-1])) for q in qs)
-    return 2.0 ** round(0.5 * np.log2(area / (4.0 * np.pi)))
+    Q(f) / s, so the solve runs on surfaces of size ~1 in any dtype. Traceable: a call
+    under jit or vmap solves in the same units as one outside (the same numbers)."""
+    area = jnp.max(jnp.stack([_srnf_norm2(q[:, 1:-1, :-1]) for q in qs]))
+    exponent = jnp.round(0.5 * jnp.log2(jnp.where(area > 0, area, 4.0 * jnp.pi) / (4.0 * jnp.pi)))
+    return 2.0**exponent
 
 
 def _check_degrees(degrees, m: int, n: int) -> tuple[int, ...]:
@@ -349,7 +367,7 @@ def srnf_invert(
     q = _check_srnf(q)
     m, n = q.shape[-2:]
     degrees, max_steps, tol = _check_options(degrees, solver, max_steps, tol, m, n, q.dtype)
-    scale = _srnf_units(q) if is_concrete(q) else 1.0
+    scale = _srnf_units(q)
     if f0 is None:
         radius = jnp.sqrt(_srnf_norm2(q[:, 1:-1, :-1]) / _unit_sphere_area(m, n))
         start = (radius / scale) * jnp.asarray(sphere_points_np(m, n), q.dtype)
@@ -417,7 +435,7 @@ def srnf_geodesic(
     n_times = check_int("n_times", n_times, 2)
     degrees, max_steps, tol = _check_options(degrees, solver, max_steps, tol, m, n, f1.dtype)
     q1, q2 = srnf_unchecked(f1), srnf_unchecked(f2)
-    scale = _srnf_units(q1, q2) if is_concrete(q1, q2) else 1.0
+    scale = _srnf_units(q1, q2)
     centred1 = center_unchecked(f1)
     shift1, shift2 = f1 - centred1, f2 - center_unchecked(f2)
     t = jnp.linspace(0.0, 1.0, n_times, dtype=f1.dtype)
@@ -441,11 +459,12 @@ def srnf_geodesic(
         interior = nodes.surface * scale + (1.0 - ti) * shift1[None] + ti * shift2[None]
         residual = nodes.residual * scale
         relative = nodes.relative_residual
-        steps, converged = nodes.num_steps, nodes.converged
+        steps, converged, results = nodes.num_steps, nodes.converged, nodes.result
     else:
         interior = jnp.zeros((0, 3, m, n), f1.dtype)
         residual = relative = jnp.zeros(0, f1.dtype)
         steps, converged = jnp.zeros(0, jnp.int32), jnp.zeros(0, bool)
+        results = None
     zero = jnp.zeros(1, f1.dtype)
     path = jnp.concatenate([f1[None], interior, f2[None]])
     q_path = srnf_unchecked(path)[:, :, 1:-1, :-1]
@@ -456,14 +475,11 @@ def srnf_geodesic(
         relative_residuals=jnp.concatenate([zero, relative, zero]),
         srnf_length=jnp.sum(jnp.sqrt(_srnf_norm2(steps_q))),
         srnf_distance=jnp.sqrt(_srnf_norm2((q1 - q2)[:, 1:-1, :-1])),
-        num_steps=jnp.concatenate([zero_i, steps, zero_i]),
-        converged=jnp.concatenate([true, converged, true]),
+        node_steps=jnp.concatenate([zero_i, steps, zero_i]),
+        nodes_converged=jnp.concatenate([true, converged, true]),
+        converged=jnp.all(converged),
+        result=first_failure(results, converged),
+        num_steps=jnp.sum(steps),
     )
-    _warn_unconverged(
-        "srnf_geodesic",
-        solver,
-        tol,
-        result.converged,
-        lambda: f"nodes {np.flatnonzero(~np.asarray(result.converged)).tolist()} did not converge",
-    )
+    _warn_unconverged("srnf_geodesic", solver, tol, result.converged, lambda: result.message)
     return result

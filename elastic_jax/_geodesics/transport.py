@@ -32,6 +32,7 @@ from .._geometry.energy import as_path
 from .._geometry.harmonics import check_degree
 from .._geometry.metric import SplitMetric, metric_inner
 from .._geometry.units import units_of
+from .._results import RESULTS, first_failure, result_message
 from .geodesic import basis_np
 from .shooting import as_velocity, check_scheme, default_newton_tol, node_solve
 
@@ -49,6 +50,9 @@ class TransportResult(NamedTuple):
         n_valid: ``()`` how many leading vectors are transports: N when converged; the
             rung that failed and the later ones give NaN vectors and norms.
         converged: ``()`` every Newton solve met its tolerance.
+        result: ``successful``, or the failed rung's Newton result (its midpoint solve's
+            if that failed, else its reflection's; ``elastic_jax.RESULTS``).
+        num_steps: ``()`` Newton iterations over all rungs.
     """
 
     vector: Float[Array, "3 m n"]
@@ -58,6 +62,16 @@ class TransportResult(NamedTuple):
     residuals: Float[Array, "K 2"]
     n_valid: Int[Array, ""]
     converged: Array
+    result: RESULTS
+    num_steps: Int[Array, ""]
+
+    @property
+    def message(self) -> str:
+        """Which rung did not solve and why ('' when every rung did)."""
+        if bool(self.converged):
+            return ""
+        k, last = int(self.n_valid), self.vectors.shape[-4] - 1
+        return f"rung {k} of {last} did not solve: {result_message(self.result)}"
 
 
 def _ladder(metric, w, path, values, dframe, *, scheme, midpoint, tol, max_newton):
@@ -73,34 +87,48 @@ def _ladder(metric, w, path, values, dframe, *, scheme, midpoint, tol, max_newto
         def solve(_):
             p = f_k + h * w_k
             if midpoint == "exact":
-                m, c_m, r_mid, _, ok_mid = node_solve(
+                m, c_m, r_mid, steps_mid, result_mid = node_solve(
                     metric, scheme, p, f_next, c_mid, values, dframe, unknown="middle", **options
                 )
             else:
                 m, c_m = 0.5 * (p + f_next), c_mid
-                r_mid, ok_mid = jnp.zeros((), w.dtype), jnp.array(True)
-            q, c_r, r_ref, _, ok_ref = node_solve(
+                r_mid, steps_mid = jnp.zeros((), w.dtype), 0
+                result_mid = RESULTS.successful
+            q, c_r, r_ref, steps_ref, result_ref = node_solve(
                 metric, scheme, f_k, m, c_ref, values, dframe, unknown="next", **options
             )
-            return (q - f_next) / h, c_m, c_r, jnp.stack([r_mid, r_ref]), ok_mid & ok_ref
+            mid_ok = result_mid == RESULTS.successful
+            result = RESULTS.where(mid_ok, result_ref, result_mid)
+            steps = jnp.asarray(steps_mid + steps_ref, jnp.int32)
+            return (q - f_next) / h, c_m, c_r, jnp.stack([r_mid, r_ref]), steps, result
 
         def skip(_):
             nan = jnp.asarray(jnp.nan, w.dtype)
-            return jnp.full_like(w_k, nan), c_mid, c_ref, jnp.full((2,), nan), alive
+            zero = jnp.zeros((), jnp.int32)
+            return (
+                jnp.full_like(w_k, nan),
+                c_mid,
+                c_ref,
+                jnp.full((2,), nan),
+                zero,
+                RESULTS.successful,
+            )
 
         # As in shooting, a rung whose solve failed ends the ladder: its vector and every
         # later one are NaN rather than built on a vector that is not a transport.
-        w_next, c_m, c_r, residuals, ok = jax.lax.cond(alive, solve, skip, None)
+        w_next, c_m, c_r, residuals, steps, result = jax.lax.cond(alive, solve, skip, None)
+        ok = alive & (result == RESULTS.successful)
         w_next = jnp.where(ok, w_next, jnp.nan)
         c_m, c_r = jnp.where(ok, c_m, c_mid), jnp.where(ok, c_r, c_ref)
-        return (w_next, c_m, c_r, ok), (w_next, residuals, ok)
+        return (w_next, c_m, c_r, ok), (w_next, residuals, ok, steps, result)
 
     zeros = jnp.zeros(size, w.dtype)
     start = (w, zeros, zeros, jnp.asarray(True))
-    _, (vectors, residuals, ok) = jax.lax.scan(rung, start, (path[:-1], path[1:]))
+    _, (vectors, residuals, ok, steps, results) = jax.lax.scan(rung, start, (path[:-1], path[1:]))
     vectors = jnp.concatenate([w[None], vectors])
     norms = jnp.sqrt(jnp.clip(metric_inner(metric, path, vectors, vectors), 0.0))
-    return vectors, norms, residuals, 1 + jnp.sum(ok.astype(jnp.int32))
+    n_valid = 1 + jnp.sum(ok.astype(jnp.int32))
+    return vectors, norms, residuals, n_valid, jnp.sum(steps), first_failure(results, ok)
 
 
 _ladder_jit = jax.jit(_ladder, static_argnames=("scheme", "midpoint", "tol", "max_newton"))
@@ -147,7 +175,7 @@ def parallel_transport(
     # In units of the path's size: vectors scale like the surfaces, norms with them.
     units = units_of(path[0], path[-1])
     s = units.scale
-    vectors, norms, residuals, n_valid = _ladder_jit(
+    vectors, norms, residuals, n_valid, num_steps, result = _ladder_jit(
         metric,
         w / s,
         units.remove(path),
@@ -176,4 +204,6 @@ def parallel_transport(
         residuals=residuals,
         n_valid=n_valid,
         converged=converged,
+        result=result,
+        num_steps=num_steps,
     )

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import functools
-
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_grid_shape, check_int
+from .._runtime.cache import cached
 
 
-@functools.cache
+@cached
 def angles_np(m: int, n: int) -> tuple[np.ndarray, np.ndarray]:
     phi = np.arange(m) * (np.pi / (m - 1))
     theta = np.arange(n) * (2.0 * np.pi / (n - 1))
@@ -35,7 +34,7 @@ def grid_angles(m: int, n: int, dtype=None) -> tuple[Float[Array, " m"], Float[A
     return jnp.asarray(phi, dtype=dtype), jnp.asarray(theta, dtype=dtype)
 
 
-@functools.cache
+@cached
 def interior_weights_np(m: int, n: int) -> np.ndarray:
     # Trapezoid rule in phi and theta times sin(phi). The pole rows have weight zero
     # (sin phi = 0) and the periodic trapezoid in theta gives every distinct column the

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -12,6 +11,7 @@ from jaxtyping import Array, Float, Int
 
 from .._checks import check_int
 from .._errors import InputError
+from .._runtime.cache import cached
 from .grid import angles_np
 
 
@@ -49,7 +49,7 @@ def check_degree(degree: int, m: int, n: int, name: str = "degree") -> int:
     return degree
 
 
-@functools.cache
+@cached
 def harmonics_np(m: int, n: int, degree: int):
     """Y, dY/dphi, dY/dtheta, Y/sin(phi) (pole limits included), degree, order; float64."""
     phi, theta = angles_np(m, n)
@@ -137,7 +137,7 @@ def surface_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, "L 3 
     return jnp.asarray(basis.reshape(3 * k, 3, m, n), dtype=dtype)
 
 
-@functools.cache
+@cached
 def vector_fields_np(m: int, n: int, degree: int) -> np.ndarray:
     """grad Y / sqrt(l(l+1)) and e1 x grad Y / sqrt(l(l+1)), ``(Lbar, 3, m, n)`` float64."""
     _, y_phi, _, grad_theta, ls, _ = harmonics_np(m, n, degree)

@@ -11,6 +11,7 @@ import scipy.special
 from jaxtyping import Array, ArrayLike, Float
 
 from .._errors import InputError
+from .._runtime.cache import cached
 from .differential import cross, dot, interior_frame, pole_fourier1, pole_phi_derivative
 from .grid import angles_np, sphere_points
 from .harmonics import check_degree, vector_fields_np
@@ -61,7 +62,7 @@ def diffeomorphism(
     return _diffeomorphism(x, fields, e1.reshape(lead + e1.shape))
 
 
-@functools.cache
+@cached
 def _field_derivatives_np(m: int, n: int, degree: int) -> np.ndarray:
     """u, v, u_phi, u_theta, v_phi, v_theta of each basis field, U = u e_phi + v e_theta.
 

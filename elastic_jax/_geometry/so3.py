@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._errors import InputError
+from .._runtime.cache import cached
 
 
 def hat(w: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
@@ -116,7 +115,7 @@ def so3_log(r: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     return _so3_log(r)
 
 
-@functools.cache
+@cached
 def icosahedral_np() -> np.ndarray:
     golden = (1.0 + np.sqrt(5.0)) / 2.0
     axis = np.array([0.0, 1.0, golden]) / np.hypot(1.0, golden)  # through a vertex

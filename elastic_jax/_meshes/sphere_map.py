@@ -29,7 +29,6 @@ a rigidly moved or uniformly scaled mesh up to that rotation.
 
 from __future__ import annotations
 
-import functools
 import itertools
 import threading
 import time
@@ -49,6 +48,8 @@ import scipy.spatial
 from .._checks import check_grid_shape, check_int, check_positive
 from .._errors import ConvergenceWarning, InputError
 from .._geometry.grid import from_distinct, grid_directions
+from .._results import RESULTS, result_message
+from .._runtime.cache import cached
 
 # Faces whose area is below this fraction of the mean face area count as zero-area.
 _ZERO_AREA = 1e-12
@@ -139,6 +140,22 @@ class SphericalParametrization(NamedTuple):
     iterations: int
     converged: bool
     seconds: float
+
+    # The result protocol (elastic_jax.RESULTS), from the fields above.
+    @property
+    def num_steps(self) -> int:
+        """L-BFGS iterations in all (``iterations``)."""
+        return self.iterations
+
+    @property
+    def result(self) -> RESULTS:
+        """``successful``, or ``max_steps_reached`` (the energy still fell at max_iter)."""
+        return RESULTS.successful if self.converged else RESULTS.max_steps_reached
+
+    @property
+    def message(self) -> str:
+        """Why the map's optimization stopped early ('' when it converged)."""
+        return result_message(self.result)
 
     def spherical_areas(self) -> np.ndarray:
         """``(F,)`` signed areas of the faces' spherical triangles; they sum to 4 pi for a
@@ -515,7 +532,7 @@ def _to_x_bwd(token, g):
 _to_x.defvjp(_to_x_fwd, _to_x_bwd)
 
 
-@functools.cache
+@cached
 def _solver(maxiter: int, preconditioned: bool):
     """The compiled L-BFGS round of ``maxiter`` steps, in the variable y (x = to_x(y))."""
     import optimistix as optx

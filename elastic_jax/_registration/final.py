@@ -18,10 +18,10 @@ from .._geodesics.geodesic import (
     solve_path,
     upsample_coefficients,
 )
-from .._geodesics.solvers import RESULTS
 from .._geometry.energy import frame_energy
 from .._geometry.grid import sphere_points
 from .._geometry.srnf import center_unchecked
+from .._results import RESULTS
 from .problem import (
     Problem,
     State,

@@ -7,7 +7,6 @@ and evaluate the matching criteria and the path energy (MATH.md 4) the phases mi
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
@@ -35,12 +34,13 @@ from .._geometry.reparam import (
 from .._geometry.so3 import icosahedral_np, so3_exp_unchecked
 from .._geometry.srnf import center_unchecked
 from .._options import ShapeOptions
+from .._runtime.cache import cached
 
 # Shrink factors tried for a reparametrization step, largest first; 0 keeps gamma.
 _STEP_SCALES = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.0)
 
 
-@functools.cache
+@cached
 def _field_scale_np(m: int, n: int, degree: int) -> np.ndarray:
     """1 / sqrt(l(l+1)) per vector field: differentials grow like l; this evens the Hessian."""
     ls = harmonics_np(m, n, degree)[4][1:]
@@ -89,7 +89,7 @@ def _grid_area_np(gamma: np.ndarray) -> float:
     return float(np.sum(signed * interior_weights_np(m, n)))
 
 
-@functools.cache
+@cached
 def _resolution_np(m: int, n: int) -> tuple[float, float]:
     """(area floor, largest resolved Moebius |a|) of the m x n grid.
 
@@ -218,7 +218,7 @@ def stepped_gamma(prob, cfg, gamma, x):
     return compose(gamma, step, cfg.interpolation)
 
 
-@functools.cache
+@cached
 def _chord_correction_np(m: int, n: int) -> tuple[float, float]:
     """h / sin(h) per grid direction: central differences of the identity (and of any
     rotation) are chords of great circles, shorter than its tangents by sin(h) / h."""

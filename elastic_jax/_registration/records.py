@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._geodesics.solvers import RESULTS, result_message
+from .._results import RESULTS, result_message
 
 MODULI = ("diff", "rigid")
 
@@ -96,11 +96,8 @@ class ShapeGeodesicResult(NamedTuple):
         than the step gained) says so.
         """
         message = result_message(self.result)
-        if not message and not bool(self.converged):
-            message = (
-                "the final geodesic ended at a saddle point (smallest Hessian eigenvalue "
-                f"{float(self.min_curvature):.3g}); raise saddle_checks"
-            )
+        if bool(self.result == RESULTS.saddle_point):
+            message += f" (smallest Hessian eigenvalue {float(self.min_curvature):.3g})"
         history, k = np.asarray(self.energy_history), int(self.rounds)
         # After at least one accepted round: a first round refused at once is a match at
         # interpolation noise (identical inputs), not a registration held back.

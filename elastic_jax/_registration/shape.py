@@ -33,7 +33,6 @@ from .._geodesics.geodesic import (
     constant,
     default_tol,
 )
-from .._geodesics.solvers import RESULTS
 from .._geometry.harmonics import check_degree
 from .._geometry.metric import SplitMetric
 from .._geometry.reparam import (
@@ -41,6 +40,7 @@ from .._geometry.reparam import (
 )
 from .._geometry.units import in_units
 from .._options import ShapeOptions, check_choice
+from .._results import RESULTS
 from .._runtime.cache import exported_call, solver_jit
 from .coarse import coarse_phase
 from .final import end_phase, geodesics_phase, shape_finish

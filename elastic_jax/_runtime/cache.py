@@ -44,9 +44,36 @@ _QUICK_CPU_OPTIONS = {"xla_backend_optimization_level": 0}
 _EXPORT_DIR: pathlib.Path | None = None
 # Exported programs of this process (jitted), by key: a second call deserializes nothing.
 _EXPORTED: dict[str, object] = {}
+# Every functools.cache of the package (cached() registers them), for clear_caches().
+_CACHED: list = []
 
 
-@functools.cache
+def cached(function):
+    """``functools.cache(function)``, emptied by :func:`clear_caches` with the others.
+
+    Every cache of the package is one of these: bases and quadratures per grid, compiled
+    variants per option set, exported programs; nothing else keeps state between calls.
+    """
+    wrapped = functools.cache(function)
+    _CACHED.append(wrapped)
+    return wrapped
+
+
+def clear_caches() -> None:
+    """Empty every cache the package keeps, and JAX's own (``jax.clear_caches``).
+
+    What is cached is derived from arguments alone (a grid's harmonics, a compiled
+    program), so clearing changes no result; it frees memory in a long session, and the
+    next call rebuilds what it needs (compiling again). The persistent compilation cache
+    on disk (:func:`enable_compilation_cache`) is kept: remove its directory to empty it.
+    """
+    for wrapped in _CACHED:
+        wrapped.cache_clear()
+    _EXPORTED.clear()
+    jax.clear_caches()
+
+
+@cached
 def _compiler_options(backend: str, quick: bool = False) -> tuple:
     """_CPU_COMPILER_OPTIONS (and _QUICK_CPU_OPTIONS when quick) on the CPU backend,
     less any this jaxlib does not know."""
@@ -73,7 +100,7 @@ def solver_jit(function, static_argnames=(), quick: bool = False):
     only on the outermost jit): there this is the plain jitted function.
     """
 
-    @functools.cache
+    @cached
     def variant(options: tuple):
         return jax.jit(
             function, static_argnames=static_argnames, compiler_options=dict(options) or None
@@ -175,7 +202,7 @@ def enable_compilation_cache(
     return path
 
 
-@functools.cache
+@cached
 def _source_digest() -> str:
     """A digest of this package's source files (an exported program is only as new as
     the code it was traced from)."""
@@ -303,7 +330,7 @@ def _storable(program) -> bool:
     return all(t.startswith("lapack_") for t in targets)
 
 
-@functools.cache
+@cached
 def _lapack_ready() -> None:
     """Set up JAX's LAPACK kernels in this process.
 
@@ -317,7 +344,7 @@ def _lapack_ready() -> None:
     jax.jit(jax.numpy.linalg.svd).lower(np.eye(2, dtype=np.float32))
 
 
-@functools.cache
+@cached
 def _host_key(backend: str, quick: bool) -> str:
     """What a compiled executable depends on beyond its program: the backend and its
     version, the compiler options and XLA_FLAGS, the default device, and the processor

@@ -25,12 +25,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._checks import check_bool
 from .._errors import ConvergenceWarning, InputError
 from .._geodesics.geodesic import default_tol, geodesic
-from .._geodesics.solvers import RESULTS
 from .._geometry.grid import sphere_points
 from .._geometry.harmonics import vector_fields_np
 from .._geometry.metric import SplitMetric, metric_inner_unchecked
@@ -40,6 +39,7 @@ from .._geometry.validation import as_surface
 from .._options import ShapeOptions, check_choice, check_int, check_positive
 from .._registration.records import turned_back
 from .._registration.shape import check_grid_options, resolve_options, shape_geodesic
+from .._results import RESULTS, result_message
 from .._runtime.atomic import save_npz_atomic
 from .._runtime.cache import solver_jit
 
@@ -63,7 +63,7 @@ _MESSAGES = {
     "stopped at the stretch the grid resolves; geodesics_converged is False for them): the "
     "sum has kinks there that no step resolves; a finer grid may go further",
     "max_steps_reached": "stopped: max_steps Karcher steps taken",
-    "not_finite": "stopped: the distances at the mean are not finite",
+    "nonfinite": "stopped: the distances at the mean are not finite",
 }
 _CONVERGED = ("distances_at_rounding", "mean_velocity_small", "sum_sq_stalled")
 
@@ -81,15 +81,15 @@ class KarcherResult(NamedTuple):
         history: ``(steps + 1, 3)`` per mean visited (the start first): sum of squared
             distances (non-increasing), norm of the mean velocity sqrt(G_mean(v, v)), and
             the step size that led there (0 for the start; step_size / 2^j after j halvings).
-        converged: ``result`` is "distances_at_rounding", "mean_velocity_small" or
-            "sum_sq_stalled".
+        converged: ``result`` is ``distances_at_rounding``, ``mean_velocity_small`` or
+            ``sum_sq_stalled``.
         num_steps: Karcher steps taken (accepted updates of the mean).
         num_solves: batches of K geodesics solved, rejected line-search trials included.
-        result: why the iteration stopped: ``"distances_at_rounding"``,
-            ``"mean_velocity_small"``, ``"sum_sq_stalled"`` (all three converged),
-            ``"line_search_failed"``, ``"resolution_limited"`` (the line search failed
-            while some geodesics at the mean are resolution_limited),
-            ``"max_steps_reached"`` or ``"not_finite"``.
+        result: why the iteration stopped, an ``elastic_jax.RESULTS``:
+            ``distances_at_rounding``, ``mean_velocity_small``, ``sum_sq_stalled`` (all three
+            converged), ``line_search_failed``, ``resolution_limited`` (the line search
+            failed while some geodesics at the mean are resolution_limited),
+            ``max_steps_reached`` or ``nonfinite``; ``RESULTS.name(result)`` is its name.
     """
 
     mean: Array
@@ -101,12 +101,12 @@ class KarcherResult(NamedTuple):
     converged: bool
     num_steps: int
     num_solves: int
-    result: str
+    result: RESULTS
 
     @property
     def message(self) -> str:
-        """Why the iteration stopped, in words."""
-        return _MESSAGES[self.result]
+        """Why the iteration stopped, in words (also when it converged: which criterion)."""
+        return _MESSAGES[RESULTS.name(self.result)]
 
 
 class DistanceMatrixResult(NamedTuple):
@@ -114,16 +114,36 @@ class DistanceMatrixResult(NamedTuple):
 
     Attributes:
         distances: ``(K, K)`` symmetric, zero diagonal.
-        converged: ``(K, K)`` bool: whether the pair's solve converged (diagonal True).
+        pairs_converged: ``(K, K)`` bool: whether the pair's solve converged (diagonal
+            True).
         refinement_change: ``(K, K)`` each pair's
             ``ShapeGeodesicResult.refinement.relative_change`` (how far the distance moves
             with halved time steps or on the finer grid); 0 on the diagonal, NaN for
             modulo="none" or ``options.refinement=False``.
+        converged: ``()`` every pair converged.
+        result: ``successful``, or the result code of the first pair (in row-major order
+            of the upper triangle) that did not converge (``elastic_jax.RESULTS``).
+        num_steps: ``()`` solver steps over all pairs.
     """
 
     distances: Float[Array, "K K"]
-    converged: Bool[Array, "K K"]
+    pairs_converged: Bool[Array, "K K"]
     refinement_change: Float[Array, "K K"]
+    converged: Bool[Array, ""]
+    result: RESULTS
+    num_steps: Int[Array, ""]
+
+    @property
+    def message(self) -> str:
+        """How many pairs did not converge, the first of them and why ('' when all did)."""
+        if bool(self.converged):
+            return ""
+        upper = np.triu(~np.asarray(self.pairs_converged), 1)
+        first = tuple(int(i) for i in np.argwhere(upper)[0])
+        return (
+            f"{int(upper.sum())} of {upper.shape[0] * (upper.shape[0] - 1) // 2} pairs did not "
+            f"converge; the first, {first}: {result_message(self.result)}"
+        )
 
 
 def default_strategy() -> str:
@@ -192,12 +212,16 @@ def _one_item(mean, item, metric, modulo, options):
 
 
 def _pair_distance(a, b, metric, modulo, options):
-    """Distance, status and refinement change of one pair."""
+    """Distance, status, refinement change, result code and solver steps of one pair."""
     if modulo == "none":
         res = geodesic(a, b, metric, **options.geodesic_kwargs())
-        return res.distance, res.converged, jnp.full_like(res.distance, jnp.nan)
-    res = shape_geodesic(a, b, metric, modulo=modulo, options=options)
-    return res.distance, res.converged, res.refinement.relative_change
+        change = jnp.full_like(res.distance, jnp.nan)
+    else:
+        res = shape_geodesic(a, b, metric, modulo=modulo, options=options)
+        change = res.refinement.relative_change
+    # The code as an integer: the chunk's outputs are plain arrays (checkpoints, Dask).
+    code = jnp.asarray(res.result._value, jnp.int32)
+    return res.distance, res.converged, change, code, jnp.asarray(res.num_steps, jnp.int32)
 
 
 # Module-level jitted batch solves: the mean and the metric are arguments and the options
@@ -272,7 +296,8 @@ def velocity_chunk(mean, chunk, metric, modulo, options, strategy, size, starts=
 
 
 def distance_chunk(first, second, metric, modulo, options, strategy, size) -> tuple:
-    """Distance, status and refinement change of the pairs (first[i], second[i])."""
+    """Distance, status, refinement change, result code and solver steps of the pairs
+    (first[i], second[i])."""
 
     def batch_call(batch, mode):
         return _distances_batch(batch, metric, modulo=modulo, options=options, mode=mode)
@@ -652,7 +677,7 @@ def karcher_mean(
             sum_sq, norm = direction.sum_sq, direction.norm
             rms = np.sqrt(sum_sq / shapes.shape[0])
             if not np.isfinite(sum_sq):
-                result = "not_finite"
+                result = "nonfinite"
                 break
             if rms <= np.sqrt(np.finfo(np.dtype(mean.dtype)).eps) * direction.size:
                 result = "distances_at_rounding"
@@ -707,7 +732,7 @@ def karcher_mean(
         converged=result in _CONVERGED,
         num_steps=step,
         num_solves=num_solves,
-        result=result,
+        result=getattr(RESULTS, result),
     )
     if not res.converged:
         warnings.warn(
@@ -765,11 +790,27 @@ def distance_matrix(
     values = np.full(rows.size, np.nan)
     converged = np.zeros(rows.size, bool)
     change = np.full(rows.size, np.nan)
+    codes = np.zeros(rows.size, np.int32)
+    steps = np.zeros(rows.size, np.int64)
     done = np.zeros(rows.size, bool)
     saved = _load_checkpoint(path, fingerprint) if path is not None and resume else None
     if saved is not None:
-        values, converged, change, done = (
-            saved[key] for key in ("values", "converged", "refinement_change", "done")
+        missing = {"result_codes", "num_steps"} - set(saved)
+        if missing:
+            raise InputError(
+                f"checkpoint {str(path)!r} has no {sorted(missing)}: an earlier release wrote "
+                "it; start over without resuming"
+            )
+        values, converged, change, codes, steps, done = (
+            saved[key]
+            for key in (
+                "values",
+                "converged",
+                "refinement_change",
+                "result_codes",
+                "num_steps",
+                "done",
+            )
         )
 
     chunk_size = _default_chunk(strategy) if batch_size is None else batch_size
@@ -779,7 +820,9 @@ def distance_matrix(
 
     def finished(chunk, out):
         a, b = chunk
-        values[a:b], converged[a:b], change[a:b] = (np.asarray(c)[: b - a] for c in out)
+        values[a:b], converged[a:b], change[a:b], codes[a:b], steps[a:b] = (
+            np.asarray(c)[: b - a] for c in out
+        )
         done[a:b] = True
         if path is not None:
             save_npz_atomic(
@@ -787,6 +830,8 @@ def distance_matrix(
                 values=values,
                 converged=converged,
                 refinement_change=change,
+                result_codes=codes,
+                num_steps=steps,
                 done=done,
                 fingerprint=fingerprint,
             )
@@ -821,10 +866,14 @@ def distance_matrix(
         np.fill_diagonal(matrix, diagonal)
         return matrix
 
+    unconverged = np.flatnonzero(~converged)
     result = DistanceMatrixResult(
         distances=jnp.asarray(symmetric(values, 0.0, np.float64), dtype=shapes.dtype),
-        converged=jnp.asarray(symmetric(converged, True, bool)),
+        pairs_converged=jnp.asarray(symmetric(converged, True, bool)),
         refinement_change=jnp.asarray(symmetric(change, 0.0, np.float64), dtype=shapes.dtype),
+        converged=jnp.asarray(converged.all()),
+        result=RESULTS.from_code(codes[unconverged[0]]) if unconverged.size else RESULTS.successful,
+        num_steps=jnp.asarray(steps.sum()),
     )
     if not converged.all():
         failed = [

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_choice
 from .._errors import InputError
@@ -18,6 +18,7 @@ from .._geometry.metric import SplitMetric
 from .._options import ShapeOptions
 from .._registration.records import turned_back
 from .._registration.shape import shape_geodesic
+from .._results import RESULTS, result_message
 
 
 class LogResult(NamedTuple):
@@ -31,6 +32,8 @@ class LogResult(NamedTuple):
         distance: ``()`` the geodesic distance.
         path: ``(N, 3, m, n)`` the geodesic from f1 to ``target``.
         converged: ``()`` the geodesic solve's own convergence.
+        result: that solve's result code (``elastic_jax.RESULTS``).
+        num_steps: ``()`` that solve's steps.
     """
 
     velocity: Float[Array, "3 m n"]
@@ -38,6 +41,13 @@ class LogResult(NamedTuple):
     distance: Float[Array, ""]
     path: Float[Array, "N 3 m n"]
     converged: Array
+    result: RESULTS
+    num_steps: Int[Array, ""]
+
+    @property
+    def message(self) -> str:
+        """Why the geodesic solve stopped, in its own words ('' when it converged)."""
+        return result_message(self.result)
 
 
 def log(
@@ -92,4 +102,6 @@ def log(
         distance=res.distance,
         path=path,
         converged=res.converged,
+        result=res.result,
+        num_steps=res.num_steps,
     )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from .common import Progress, environment_record, geodesic_options_from, prepare
+from .common import Progress, environment_record, geodesic_options_from, prepare, result_fields
 from .demo import builtin_pair
 
 
@@ -56,6 +56,6 @@ def run_bench(args, progress: Progress) -> dict:
             "num_steps": int(res.num_steps),
             "distance": float(res.distance),
         },
-        "converged": bool(res.converged),
+        **result_fields(res),
         "environment": environment_record(),
     }

@@ -264,3 +264,15 @@ def checked_flag(flag: str, check: Callable, *args):
 
 def one_line(err: Exception) -> str:
     return " ".join(str(err).split())
+
+
+def result_fields(res) -> dict:
+    """The result protocol in a summary: converged, result (by name), message, num_steps."""
+    from .._results import RESULTS
+
+    return {
+        "converged": bool(res.converged),
+        "result": RESULTS.name(res.result),
+        "message": res.message,
+        "num_steps": int(res.num_steps),
+    }

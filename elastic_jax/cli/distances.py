@@ -12,6 +12,7 @@ from .common import (
     environment_record,
     json_floats,
     prepare,
+    result_fields,
     shape_geodesic_options,
     write_figure,
 )
@@ -53,7 +54,7 @@ def run_distances(args, progress: Progress) -> dict:
     )
     seconds = time.perf_counter() - start
     matrix = np.asarray(res.distances)
-    converged = np.asarray(res.converged)
+    converged = np.asarray(res.pairs_converged)
     if not converged.all():
         progress(f"{int((~converged).sum()) // 2} pairs did not converge (summary: converged)")
     names = [pathlib.Path(f).stem for f in args.files]
@@ -85,7 +86,7 @@ def run_distances(args, progress: Progress) -> dict:
         "inputs": list(args.files),
         "settings": settings,
         "distances": matrix.tolist(),
-        "converged": bool(converged.all()),
+        **result_fields(res),
         "pairs_converged": converged.tolist(),
         # Each pair's relative change under refinement (null: not computed).
         "refinement_change": json_floats(res.refinement_change),

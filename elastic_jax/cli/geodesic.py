@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import time
 
-from .common import Progress, environment_record, geodesic_options_from, prepare, write_path
+from .common import (
+    Progress,
+    environment_record,
+    geodesic_options_from,
+    prepare,
+    result_fields,
+    write_path,
+)
 
 
 def run_geodesic(args, progress: Progress, surfaces=None, label=None) -> dict:
@@ -32,9 +39,7 @@ def run_geodesic(args, progress: Progress, surfaces=None, label=None) -> dict:
         "distance": float(res.distance),
         "energy": float(res.energy),
         "straight_energy": float(res.straight_energy),
-        "num_steps": int(res.num_steps),
-        "converged": bool(res.converged),
-        "message": res.message,
+        **result_fields(res),
         "grad_norm": float(res.grad_norm),
         "seconds": seconds,
         "environment": environment_record(),

@@ -12,6 +12,7 @@ from .common import (
     environment_record,
     json_floats,
     prepare,
+    result_fields,
     shape_geodesic_options,
     write_figure,
 )
@@ -23,6 +24,7 @@ def solve_karcher(args, progress: Progress):
     import numpy as np
 
     from .. import io, plot
+    from .._results import RESULTS
     from .._runtime.atomic import save_npz_atomic
     from .._statistics.karcher import karcher_mean
 
@@ -73,6 +75,7 @@ def solve_karcher(args, progress: Progress):
     )
     seconds = time.perf_counter() - start
     mean = np.asarray(res.mean)
+    result = RESULTS.name(res.result)  # by name in the files: a code is this release's
     files = [
         str(
             save_npz_atomic(
@@ -83,7 +86,7 @@ def solve_karcher(args, progress: Progress):
                 velocities=np.asarray(res.velocities),
                 geodesics_converged=np.asarray(res.geodesics_converged),
                 history=np.asarray(res.history),
-                result=res.result,
+                result=result,
                 converged=bool(res.converged),
                 inputs=json.dumps(list(args.files)),
                 settings=json.dumps(settings),
@@ -107,11 +110,8 @@ def solve_karcher(args, progress: Progress):
             "mean_velocity_norm": json_floats(history[:, 1]),
             "step_size": json_floats(history[:, 2]),
         },
-        "num_steps": int(res.num_steps),
+        **result_fields(res),
         "num_solves": int(res.num_solves),
-        "converged": bool(res.converged),
-        "result": res.result,
-        "message": res.message,
         "geodesics_converged": [bool(c) for c in np.asarray(res.geodesics_converged)],
         "seconds": seconds,
         "files": files,

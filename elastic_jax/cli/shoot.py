@@ -12,6 +12,7 @@ from .common import (
     json_float,
     json_floats,
     prepare,
+    result_fields,
     write_path,
 )
 
@@ -102,7 +103,7 @@ def run_shoot(args, progress: Progress) -> dict:
         "speed_drift": json_float(speeds[-1] / speeds[0] - 1) if speeds[0] > 0 else None,
         "residuals": json_floats(residuals),
         "newton_steps": [int(x) for x in np.asarray(res.newton_steps)],
-        "converged": bool(res.converged),
+        **result_fields(res),
         "seconds": seconds,
         "files": files,
         "environment": environment_record(),
