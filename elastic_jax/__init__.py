@@ -61,9 +61,9 @@ from ._registration.shape import shape_geodesic as shape_geodesic
 from ._results import RESULTS as RESULTS
 from ._runtime.cache import clear_caches as clear_caches
 from ._runtime.cache import enable_compilation_cache as enable_compilation_cache
-from ._statistics.karcher import DistanceMatrixResult as DistanceMatrixResult
+from ._statistics.distances import DistanceMatrixResult as DistanceMatrixResult
+from ._statistics.distances import distance_matrix as distance_matrix
 from ._statistics.karcher import KarcherResult as KarcherResult
-from ._statistics.karcher import distance_matrix as distance_matrix
 from ._statistics.karcher import karcher_mean as karcher_mean
 from ._statistics.log import LogResult as LogResult
 from ._statistics.log import log as log

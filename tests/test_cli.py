@@ -330,7 +330,7 @@ def test_karcher_builds_one_options_record_and_keeps_its_own_steps(tmp_path, cap
 def test_distances_reports_each_pair_and_exits_3_when_one_did_not_converge(
     tmp_path, capsys, monkeypatch
 ):
-    from elastic_jax._statistics import karcher as _karcher
+    from elastic_jax._statistics import distances as _distances
 
     def distance_matrix(shapes, metric, **kwargs):
         converged = np.ones((3, 3), bool)
@@ -347,7 +347,7 @@ def test_distances_reports_each_pair_and_exits_3_when_one_did_not_converge(
             num_steps=np.asarray(30),
         )
 
-    monkeypatch.setattr(_karcher, "distance_matrix", distance_matrix)
+    monkeypatch.setattr(_distances, "distance_matrix", distance_matrix)
     files = [_save(tmp_path, f"s{i}.npz", shapes.sample(shapes.sphere, M, N)) for i in range(3)]
     out = tmp_path / "out"
     assert cli.main(["distances", *files, *SHAPE, "--out", str(out)]) == cli.EXIT_NOT_CONVERGED

@@ -10,7 +10,7 @@ import pytest
 
 import elastic_jax as ej
 from elastic_jax import io, shapes
-from elastic_jax._statistics import karcher as _karcher
+from elastic_jax._statistics import batching as _batching
 
 M, N = 13, 25
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
@@ -175,12 +175,12 @@ def test_the_last_chunk_is_padded_to_the_compiled_batch():
     shapes3 = np.stack([F1, F2, 1.5 * F1])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
-        before = _karcher._distances_batch.jitted()._cache_size()
+        before = _batching._distances_batch.jitted()._cache_size()
         res = ej.distance_matrix(
             shapes3, METRIC, modulo="none", options=options, strategy="map", batch_size=2
         )
         # Three pairs in chunks of 2 and 1: one compilation, not two.
-        assert _karcher._distances_batch.jitted()._cache_size() - before == 1
+        assert _batching._distances_batch.jitted()._cache_size() - before == 1
     single = ej.geodesic(F2, 1.5 * F1, METRIC, degree=3, n_times=5)
     assert float(res.distances[1, 2]) == pytest.approx(float(single.distance), rel=1e-9)
 

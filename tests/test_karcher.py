@@ -310,9 +310,9 @@ def test_line_search_rejects_steps_that_raise_the_sum_or_are_not_finite(monkeypa
     assert res.history[1, 2] in (1.5, 0.75) and res.num_solves in (5, 6)
     assert res.history[1, 0] <= res.history[0, 0]
 
-    from elastic_jax._statistics import karcher as _karcher
+    from elastic_jax._statistics import batching as _batching
 
-    real = _karcher._one_geodesic
+    real = _batching._one_geodesic
     calls = []
 
     def nan_after_first(mean, shape, *args):
@@ -320,7 +320,7 @@ def test_line_search_rejects_steps_that_raise_the_sum_or_are_not_finite(monkeypa
         calls.append(1)
         return (jnp.nan * out[0], *out[1:]) if len(calls) > 3 else out
 
-    monkeypatch.setattr(_karcher, "_one_geodesic", nan_after_first)
+    monkeypatch.setattr(_batching, "_one_geodesic", nan_after_first)
     with pytest.warns(ej.ConvergenceWarning, match="line search"):
         res = ej.karcher_mean(coll, METRIC, modulo="none", options=FAST, strategy="loop")
     assert ej.RESULTS.name(res.result) == "line_search_failed" and not res.converged
@@ -335,7 +335,7 @@ def test_line_search_rejects_steps_that_raise_the_sum_or_are_not_finite(monkeypa
         out = nan_after_first(mean, shape, *args)
         return (*out[:-1], jnp.asarray(len(calls) == 2))
 
-    monkeypatch.setattr(_karcher, "_one_geodesic", limited_then_nan)
+    monkeypatch.setattr(_batching, "_one_geodesic", limited_then_nan)
     with pytest.warns(ej.ConvergenceWarning, match="resolution_limited"):
         res = ej.karcher_mean(coll, METRIC, modulo="none", options=FAST, strategy="loop")
     assert ej.RESULTS.name(res.result) == "resolution_limited" and not res.converged

@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import hashlib
-import json
 import os
 import pathlib
 import time
@@ -24,29 +22,32 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_bool
 from .._errors import ConvergenceWarning, InputError
-from .._geodesics.geodesic import default_tol, geodesic
 from .._geometry.grid import sphere_points
 from .._geometry.harmonics import vector_fields_np
 from .._geometry.metric import SplitMetric, metric_inner_unchecked
 from .._geometry.reparam import reparametrize_unchecked
 from .._geometry.srnf import center_unchecked
 from .._geometry.validation import as_surface
-from .._options import ShapeOptions, check_choice, check_int, check_positive
-from .._registration.records import turned_back
-from .._registration.shape import check_grid_options, resolve_options, shape_geodesic
-from .._results import RESULTS, result_message
+from .._options import ShapeOptions, check_int, check_positive
+from .._results import RESULTS
 from .._runtime.atomic import save_npz_atomic
-from .._runtime.cache import solver_jit
+from .batching import (
+    check_batch,
+    check_collection,
+    chunk_bounds,
+    default_chunk,
+    job_settings,
+    velocity_chunk,
+)
+from .checkpoints import fingerprint_of, load_checkpoint
 
-MODULI = ("rigid", "diff", "none")
-STRATEGIES = ("auto", "vmap", "map", "loop")
 # Halvings of a Karcher step that raised the sum of squared distances before giving up.
 _HALVINGS = 4
+
 
 # Why a Karcher iteration stopped: result code -> words (KarcherResult.message).
 _MESSAGES = {
@@ -65,6 +66,8 @@ _MESSAGES = {
     "max_steps_reached": "stopped: max_steps Karcher steps taken",
     "nonfinite": "stopped: the distances at the mean are not finite",
 }
+
+
 _CONVERGED = ("distances_at_rounding", "mean_velocity_small", "sum_sq_stalled")
 
 
@@ -107,294 +110,6 @@ class KarcherResult(NamedTuple):
     def message(self) -> str:
         """Why the iteration stopped, in words (also when it converged: which criterion)."""
         return _MESSAGES[RESULTS.name(self.result)]
-
-
-class DistanceMatrixResult(NamedTuple):
-    """Pairwise shape distances and the status of each pair's solve.
-
-    Attributes:
-        distances: ``(K, K)`` symmetric, zero diagonal.
-        pairs_converged: ``(K, K)`` bool: whether the pair's solve converged (diagonal
-            True).
-        refinement_change: ``(K, K)`` each pair's
-            ``ShapeGeodesicResult.refinement.relative_change`` (how far the distance moves
-            with halved time steps or on the finer grid); 0 on the diagonal, NaN for
-            modulo="none" or ``options.refinement=False``.
-        converged: ``()`` every pair converged.
-        result: ``successful``, or the result code of the first pair (in row-major order
-            of the upper triangle) that did not converge (``elastic_jax.RESULTS``).
-        num_steps: ``()`` solver steps over all pairs.
-    """
-
-    distances: Float[Array, "K K"]
-    pairs_converged: Bool[Array, "K K"]
-    refinement_change: Float[Array, "K K"]
-    converged: Bool[Array, ""]
-    result: RESULTS
-    num_steps: Int[Array, ""]
-
-    @property
-    def message(self) -> str:
-        """How many pairs did not converge, the first of them and why ('' when all did)."""
-        if bool(self.converged):
-            return ""
-        upper = np.triu(~np.asarray(self.pairs_converged), 1)
-        first = tuple(int(i) for i in np.argwhere(upper)[0])
-        return (
-            f"{int(upper.sum())} of {upper.shape[0] * (upper.shape[0] - 1) // 2} pairs did not "
-            f"converge; the first, {first}: {result_message(self.result)}"
-        )
-
-
-def default_strategy() -> str:
-    """The batching strategy "auto" resolves to on this backend.
-
-    CPU: "map" (lax.map in one jit). Measured by benchmarks/bench_karcher.py on 2 cores
-    (8 surfaces at 25 x 49, rigid, one Karcher step after compilation): map 17.7 s, a
-    Python loop 19.8 s, vmap 52.8 s; a vmapped BFGS runs in lockstep until its slowest
-    member converges and its dense per-item updates do not vectorize on a CPU.
-    Accelerators: "vmap", where batching is what pays.
-    """
-    return "map" if jax.default_backend() == "cpu" else "vmap"
-
-
-def initial_velocity(path: Float[ArrayLike, "N 3 m n"]) -> Float[Array, "3 m n"]:
-    """Initial velocity of a discrete path: T (-3 f_0 + 4 f_1 - f_2) / 2, T = N - 1.
-
-    The second-order one-sided difference. The forward difference T (f_1 - f_0) is the
-    velocity at t = 1 / (2T), off by f''(0) / (2T); the Karcher iteration's fixed point
-    moves with it, away from the minimum of the (second-order, midpoint) discrete sum of
-    squared distances, and the line search stalls there (README, "Karcher means").
-    """
-    t = path.shape[0] - 1
-    return t * (-3.0 * path[0] + 4.0 * path[1] - path[2]) / 2.0
-
-
-def _one_geodesic(mean, shape, metric, modulo, options, start=None):
-    """Distance, registered shape, initial velocity at the mean, status and registration
-    (gamma, R) for one shape.
-
-    Every geodesic runs from the shape to the mean, as shape_geodesic must (it
-    reparametrizes its first surface and rotates its second), also for modulo="none", so
-    that a one-sided scheme ("forward") treats the mean alike for every modulo.
-
-    ``start`` (gamma, R): a second solve whose registration rounds start there (the
-    shape's registration at the previous mean) instead of the start search; the lower of
-    the two distances is kept. The search alone may land in another basin at a mean
-    moved a little and make the sum of squared distances jump; the warm solve follows its
-    basin continuously, so the sum is continuous in the mean, while the search still
-    finds a lower basin when there is one.
-    """
-    if modulo == "none":
-        res = geodesic(shape, mean, metric, **options.geodesic_kwargs())
-        m, n = mean.shape[-2:]
-        gamma, rotation = sphere_points(m, n, mean.dtype), jnp.eye(3, dtype=mean.dtype)
-        back = res.path
-        limited = jnp.zeros((), bool)
-    else:
-        res = shape_geodesic(shape, mean, metric, modulo=modulo, options=options)
-        if start is not None:
-            warm = shape_geodesic(shape, mean, metric, modulo=modulo, options=options, start=start)
-            lower = warm.distance < res.distance
-            res = jax.tree_util.tree_map(lambda a, b: jnp.where(lower, a, b), warm, res)
-        gamma, rotation = res.gamma, res.rotation
-        back = turned_back(res, mean)
-        limited = res.result == RESULTS.resolution_limited
-    velocity = initial_velocity(back[::-1])
-    return res.distance, back[0], velocity, res.converged, gamma, rotation, limited
-
-
-def _one_item(mean, item, metric, modulo, options):
-    """:func:`_one_geodesic` for a batch item: a shape, or (shape, gamma, R) to warm-start."""
-    if isinstance(item, tuple):
-        return _one_geodesic(mean, item[0], metric, modulo, options, item[1:])
-    return _one_geodesic(mean, item, metric, modulo, options)
-
-
-def _pair_distance(a, b, metric, modulo, options):
-    """Distance, status, refinement change, result code and solver steps of one pair."""
-    if modulo == "none":
-        res = geodesic(a, b, metric, **options.geodesic_kwargs())
-        change = jnp.full_like(res.distance, jnp.nan)
-    else:
-        res = shape_geodesic(a, b, metric, modulo=modulo, options=options)
-        change = res.refinement.relative_change
-    # The code as an integer: the chunk's outputs are plain arrays (checkpoints, Dask).
-    code = jnp.asarray(res.result._value, jnp.int32)
-    return res.distance, res.converged, change, code, jnp.asarray(res.num_steps, jnp.int32)
-
-
-# Module-level jitted batch solves: the mean and the metric are arguments and the options
-# (a frozen ShapeOptions) a static key, so consecutive Karcher steps reuse one compilation.
-@functools.partial(solver_jit, static_argnames=("modulo", "options", "mode"))
-def _velocities_batch(mean, batch, metric, *, modulo, options, mode):
-    """batch: shapes ``(b, 3, m, n)``, or (shapes, gammas, rotations) for warm starts."""
-
-    def one(item):
-        return _one_item(mean, item, metric, modulo, options)
-
-    return jax.lax.map(one, batch) if mode == "map" else jax.vmap(one)(batch)
-
-
-@functools.partial(solver_jit, static_argnames=("modulo", "options", "mode"))
-def _distances_batch(pairs, metric, *, modulo, options, mode):
-    def one(pair):
-        return _pair_distance(pair[0], pair[1], metric, modulo, options)
-
-    return jax.lax.map(one, pairs) if mode == "map" else jax.vmap(one)(pairs)
-
-
-def _batched(batch_call: Callable, single_call: Callable, batch, strategy: str) -> tuple:
-    """Run ``single_call`` over the leading axis of ``batch`` (a pytree) by ``strategy``.
-
-    ``batch_call(batch, mode)`` is the jitted lax.map / vmap form. With several devices
-    the vmap batch is sharded over a one-axis mesh (optimistix solves break under
-    shard_map; jit partitions a NamedSharding-placed input instead).
-    """
-    size = jax.tree_util.tree_leaves(batch)[0].shape[0]
-    if strategy == "loop":
-        items = [jax.tree_util.tree_map(lambda x, i=i: x[i], batch) for i in range(size)]
-        outs = [single_call(item) for item in items]
-        return tuple(jnp.stack(parts) for parts in zip(*outs, strict=True))
-    devices = jax.devices()
-    if strategy == "vmap" and len(devices) > 1:
-        padded = _padded(batch, size + (-size) % len(devices))
-        sharding = NamedSharding(Mesh(np.asarray(devices), ("batch",)), PartitionSpec("batch"))
-        batch = jax.tree_util.tree_map(lambda x: jax.device_put(x, sharding), padded)
-        return tuple(o[:size] for o in batch_call(batch, strategy))
-    return batch_call(batch, strategy)
-
-
-def _solve_chunk(batch_call: Callable, single_call: Callable, batch, strategy: str, size: int):
-    """``_batched`` over a chunk (a pytree, leading axis b) padded to ``size`` items, the
-    compiled batch shape (the padding is dropped): every chunk of a job runs one compiled
-    program, here or on a Dask worker. The loop strategy solves one item at a time and is
-    not padded. The solves' ConvergenceWarnings are silenced: callers report each item's
-    status."""
-    b = jax.tree_util.tree_leaves(batch)[0].shape[0]
-    padded = batch if strategy == "loop" else _padded(batch, size)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        return tuple(out[:b] for out in _batched(batch_call, single_call, padded, strategy))
-
-
-def velocity_chunk(mean, chunk, metric, modulo, options, strategy, size, starts=None) -> tuple:
-    """The geodesics from ``chunk`` (b, 3, m, n) to ``mean``: the _Solved fields.
-
-    starts: None, or (gammas (b, 3, m, n), rotations (b, 3, 3)), each shape's registration
-    at the previous mean: every shape is then solved twice and the lower kept
-    (:func:`_one_geodesic`)."""
-    batch = chunk if starts is None or modulo == "none" else (chunk, *starts)
-
-    def batch_call(batch, mode):
-        return _velocities_batch(mean, batch, metric, modulo=modulo, options=options, mode=mode)
-
-    def single_call(item):
-        return _one_item(mean, item, metric, modulo, options)
-
-    return _solve_chunk(batch_call, single_call, batch, strategy, size)
-
-
-def distance_chunk(first, second, metric, modulo, options, strategy, size) -> tuple:
-    """Distance, status, refinement change, result code and solver steps of the pairs
-    (first[i], second[i])."""
-
-    def batch_call(batch, mode):
-        return _distances_batch(batch, metric, modulo=modulo, options=options, mode=mode)
-
-    def single_call(pair):
-        return _pair_distance(pair[0], pair[1], metric, modulo, options)
-
-    return _solve_chunk(batch_call, single_call, (first, second), strategy, size)
-
-
-def _chunks(n: int, size: int | None):
-    size = n if size is None else size
-    return [(start, min(start + size, n)) for start in range(0, n, size)]
-
-
-def _default_chunk(strategy: str) -> int | None:
-    """Pairs per chunk when batch_size is None: the sequential strategies gain nothing from
-    big chunks, so they checkpoint every pair (loop) or every 8 pairs (map); vmap takes all."""
-    return {"loop": 1, "map": 8}.get(strategy)
-
-
-def _fingerprint(*arrays, **settings) -> str:
-    digest = hashlib.sha256()
-    for a in arrays:
-        a = np.ascontiguousarray(np.asarray(a))
-        digest.update(str((a.shape, a.dtype.str)).encode())
-        digest.update(a.tobytes())
-    digest.update(json.dumps(settings, sort_keys=True, default=str).encode())
-    return digest.hexdigest()
-
-
-def _load_checkpoint(path: pathlib.Path, fingerprint: str) -> dict | None:
-    """The arrays of the checkpoint at ``path`` (None if there is none); an InputError
-    naming the file if it cannot be read or was written for other inputs."""
-    if not path.exists():
-        return None
-    try:
-        # Our own handle: np.load leaves the file open when the archive is truncated.
-        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as data:
-            saved = {k: data[k] for k in data.files}
-        saved_fingerprint = str(saved["fingerprint"])
-    except Exception as err:  # a truncated or foreign file: zipfile, numpy or KeyError
-        raise InputError(
-            f"checkpoint {str(path)!r} cannot be read ({type(err).__name__}: {err}); "
-            "remove it to start over"
-        ) from err
-    if saved_fingerprint != fingerprint:
-        raise InputError(
-            f"checkpoint {str(path)!r} was written for other shapes or settings "
-            f"(fingerprint {saved_fingerprint[:12]} != {fingerprint[:12]}); resume it with "
-            "the inputs that wrote it, or start over without resuming"
-        )
-    return saved
-
-
-def _padded(batch, size: int):
-    """``batch`` (a pytree, leading axis b <= size) padded to ``size`` by repeating its last
-    item, so that every chunk has the compiled batch shape (a smaller last chunk would
-    compile the whole solve again)."""
-
-    def pad(x):
-        extra = max(size - x.shape[0], 0)
-        return jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)]) if extra else x
-
-    return jax.tree_util.tree_map(pad, batch)
-
-
-def _check_batch(modulo: str, strategy: str, batch_size) -> str:
-    """Validate modulo, strategy and batch_size; resolve "auto" to this backend's strategy."""
-    check_choice("modulo", modulo, MODULI)
-    check_choice("strategy", strategy, STRATEGIES)
-    if batch_size is not None:
-        check_int("batch_size", batch_size, 1)
-    return default_strategy() if strategy == "auto" else strategy
-
-
-def _check_collection(shapes, options: ShapeOptions | None, name="shapes"):
-    """The collection ``(K, 3, m, n)`` and its options, checked on its grid, tol resolved."""
-    shapes = as_surface(shapes, name)
-    if shapes.ndim != 4 or shapes.shape[0] < 2:
-        raise InputError(f"{name} must have shape (K, 3, m, n) with K >= 2; got {shapes.shape}")
-    options = resolve_options(options, {})
-    check_grid_options(options, *shapes.shape[-2:])
-    if options.tol is None:
-        # Resolved here, as the solves would: one static key for every call, and a
-        # fingerprint that names the tolerance used.
-        options = options.replace(tol=default_tol(shapes.dtype))
-    return shapes, options
-
-
-def _settings(metric, modulo, options: ShapeOptions, **more) -> dict:
-    return {
-        "metric": [float(x) for x in jax.tree_util.tree_leaves(metric)],
-        "modulo": modulo,
-        "options": options.as_dict(),
-        **more,
-    }
 
 
 class _Solved(NamedTuple):
@@ -477,6 +192,104 @@ def _direction(metric, mean, solved: _Solved, modulo: str, options: ShapeOptions
     return _Direction(average, norm, float(jnp.sum(solved.distances**2)), size)
 
 
+class _KarcherState(NamedTuple):
+    """Where a Karcher iteration stands: the mean, its K geodesics and step direction, the
+    steps taken, the batches solved, the history rows (sum_sq, norm, step size) and, once
+    a step has decided it, why the iteration stops (else None)."""
+
+    mean: Array
+    solved: _Solved
+    direction: _Direction
+    step: int
+    num_solves: int
+    history: tuple
+    stop: str | None = None
+
+
+class _KarcherIteration(NamedTuple):
+    """The Karcher iteration as init / step / terminate over a :class:`_KarcherState`
+    (the shape of an optimistix solver; :func:`karcher_mean` is the driver that adds the
+    checkpoints, the progress reports and the pool).
+
+    ``solve(mean, previous_solved)`` gives the K geodesics at a mean (a batch of solves),
+    ``direction(mean, solved)`` the step direction there.
+    """
+
+    solve: Callable
+    direction: Callable
+    count: int  # K, the shapes
+    tol: float
+    step_size: float
+    max_steps: int
+
+    def init(self, mean) -> _KarcherState:
+        """Step 0: the geodesics at the starting mean."""
+        solved = self.solve(mean, None)
+        direction = self.direction(mean, solved)
+        history = ((direction.sum_sq, direction.norm, 0.0),)
+        return _KarcherState(mean, solved, direction, 0, 1, history)
+
+    def restore(self, saved: dict) -> _KarcherState:
+        """The state a checkpoint holds (its direction evaluated again, no solve)."""
+        mean = jnp.asarray(saved["mean"])
+        solved = _Solved(*(jnp.asarray(saved[f"solved_{k}"]) for k in _Solved._fields))
+        history = tuple(tuple(row) for row in saved["history"].tolist())
+        step, num_solves = int(saved["step"]), int(saved["num_solves"])
+        return _KarcherState(mean, solved, self.direction(mean, solved), step, num_solves, history)
+
+    def terminate(self, state: _KarcherState) -> str | None:
+        """Why the iteration stops at ``state`` (a RESULTS name), or None to step on."""
+        if state.stop is not None:
+            return state.stop
+        sum_sq, norm = state.direction.sum_sq, state.direction.norm
+        rms = np.sqrt(sum_sq / self.count)
+        if not np.isfinite(sum_sq):
+            return "nonfinite"
+        if rms <= np.sqrt(np.finfo(np.dtype(state.mean.dtype)).eps) * state.direction.size:
+            return "distances_at_rounding"
+        if norm <= self.tol * max(rms, np.finfo(np.float64).tiny):
+            return "mean_velocity_small"
+        if state.step >= self.max_steps:
+            return "max_steps_reached"
+        return None
+
+    def step(self, state: _KarcherState) -> _KarcherState:
+        """One line search along the mean velocity: the accepted trial as the new state,
+        or the same mean with ``stop`` set (every trial solved is counted either way)."""
+        sum_sq, num_solves = state.direction.sum_sq, state.num_solves
+        s = self.step_size
+        for _ in range(_HALVINGS + 1):
+            trial_mean = state.mean + s * state.direction.velocity
+            trial = self.solve(trial_mean, state.solved)
+            num_solves += 1
+            trial_sum_sq = float(jnp.sum(trial.distances**2))
+            # NaN compares False: a non-finite trial is never accepted.
+            if trial_sum_sq <= sum_sq:
+                break
+            # A full step that raises the SSD by less than tol changed it as little as
+            # one that lowers it by less than tol: the mean is stationary to within the
+            # registrations' own scatter (each is a nonconvex search), and halving a
+            # step the SSD cannot resolve only looks for a lower draw of that scatter.
+            if s == self.step_size and trial_sum_sq - sum_sq <= self.tol * sum_sq:
+                return state._replace(num_solves=num_solves, stop="sum_sq_stalled")
+            s *= 0.5
+        else:
+            limited = bool(np.any(np.asarray(state.solved.limited)))
+            stop = "resolution_limited" if limited else "line_search_failed"
+            return state._replace(num_solves=num_solves, stop=stop)
+        direction = self.direction(trial_mean, trial)
+        stalled = s == self.step_size and sum_sq - trial_sum_sq <= self.tol * sum_sq
+        return _KarcherState(
+            mean=trial_mean,
+            solved=trial,
+            direction=direction,
+            step=state.step + 1,
+            num_solves=num_solves,
+            history=(*state.history, (direction.sum_sq, direction.norm, s)),
+            stop="sum_sq_stalled" if stalled else None,
+        )
+
+
 def karcher_mean(
     shapes: Float[ArrayLike, "K 3 m n"],
     metric: SplitMetric,
@@ -531,7 +344,7 @@ def karcher_mean(
     when some of the geodesics at the mean ended resolution_limited, their registration
     held at the stretch the grid resolves, so that the SSD has kinks there), after
     max_steps steps ("max_steps_reached"), or when the distances at the mean are not
-    finite ("not_finite"). ``result`` and ``message`` say which.
+    finite ("nonfinite"). ``result`` (an ``elastic_jax.RESULTS``) and ``message`` say which.
 
     Args:
         shapes: ``(K, 3, m, n)`` surfaces on one grid.
@@ -574,8 +387,8 @@ def karcher_mean(
         >>> res.converged, round(float(res.mean[2, 0, 0]), 6)  # the sphere of radius 1.5
         (True, 1.5)
     """
-    strategy = _check_batch(modulo, strategy, batch_size)
-    shapes, options = _check_collection(shapes, options)
+    strategy = check_batch(modulo, strategy, batch_size)
+    shapes, options = check_collection(shapes, options)
     max_steps = check_int("max_steps", max_steps, 0)
     tol = check_positive("tol", tol)
     step_size = check_positive("step_size", step_size)
@@ -588,13 +401,13 @@ def karcher_mean(
     if modulo == "rigid":
         mean = center_unchecked(mean)
     warm_start = check_bool("warm_start", warm_start) and modulo != "none"
-    settings = _settings(metric, modulo, options, step_size=step_size, tol=tol, warm=warm_start)
-    fingerprint = _fingerprint(shapes, mean, **settings)
+    settings = job_settings(metric, modulo, options, step_size=step_size, tol=tol, warm=warm_start)
+    fingerprint = fingerprint_of(shapes, mean, **settings)
     path = None if checkpoint is None else pathlib.Path(checkpoint)
 
     if batch_size is None and client is not None:
-        batch_size = _default_chunk(strategy)
-    chunks = _chunks(shapes.shape[0], batch_size)
+        batch_size = default_chunk(strategy)
+    chunks = chunk_bounds(shapes.shape[0], batch_size)
     size = chunks[0][1] - chunks[0][0]
 
     def solve_at(at, previous: _Solved | None) -> _Solved:
@@ -626,27 +439,28 @@ def karcher_mean(
         ]
         return _Solved(*(jnp.concatenate(p) for p in zip(*parts, strict=True)))
 
-    def save(step):
+    def save(state: _KarcherState):
         if path is not None:
             save_npz_atomic(
                 path,
-                mean=np.asarray(mean),
-                step=step,
-                history=np.asarray(history),
-                num_solves=num_solves,
+                mean=np.asarray(state.mean),
+                step=state.step,
+                history=np.asarray(state.history),
+                num_solves=state.num_solves,
                 fingerprint=fingerprint,
-                **{f"solved_{k}": np.asarray(v) for k, v in solved._asdict().items()},
+                **{f"solved_{k}": np.asarray(v) for k, v in state.solved._asdict().items()},
             )
 
-    def report(step):
+    def report(state: _KarcherState):
         if progress is not None:
+            sum_sq, norm, step_size = state.history[-1]
             progress(
                 {
-                    "step": step,
-                    "sum_sq_distances": history[-1][0],
-                    "mean_velocity_norm": history[-1][1],
-                    "step_size": history[-1][2],
-                    "num_solves": num_solves,
+                    "step": state.step,
+                    "sum_sq_distances": sum_sq,
+                    "mean_velocity_norm": norm,
+                    "step_size": step_size,
+                    "num_solves": state.num_solves,
                     "seconds": time.perf_counter() - started,
                 }
             )
@@ -658,80 +472,39 @@ def karcher_mean(
             from .._runtime.distributed import Pool
 
             pool = stack.enter_context(Pool(client, shapes, metric, modulo, options, strategy))
-        saved = _load_checkpoint(path, fingerprint) if path is not None and resume else None
+        iteration = _KarcherIteration(
+            solve=solve_at,
+            direction=lambda at, solved: _direction(metric, at, solved, modulo, options),
+            count=shapes.shape[0],
+            tol=tol,
+            step_size=step_size,
+            max_steps=max_steps,
+        )
+        saved = load_checkpoint(path, fingerprint) if path is not None and resume else None
         if saved is not None:
-            mean, step = jnp.asarray(saved["mean"]), int(saved["step"])
-            history = [tuple(row) for row in saved["history"].tolist()]
-            num_solves = int(saved["num_solves"])
-            solved = _Solved(*(jnp.asarray(saved[f"solved_{k}"]) for k in _Solved._fields))
-            direction = _direction(metric, mean, solved, modulo, options)
+            state = iteration.restore(saved)
         else:
-            step, num_solves = 0, 1
-            solved = solve_at(mean, None)
-            direction = _direction(metric, mean, solved, modulo, options)
-            history = [(direction.sum_sq, direction.norm, 0.0)]
-            save(step)
-            report(step)
+            state = iteration.init(mean)
+            save(state)
+            report(state)
+        while (result := iteration.terminate(state)) is None:
+            before = state.step
+            state = iteration.step(state)
+            if state.step > before:  # an accepted step: kept on disk, reported
+                save(state)
+                report(state)
 
-        while True:
-            sum_sq, norm = direction.sum_sq, direction.norm
-            rms = np.sqrt(sum_sq / shapes.shape[0])
-            if not np.isfinite(sum_sq):
-                result = "nonfinite"
-                break
-            if rms <= np.sqrt(np.finfo(np.dtype(mean.dtype)).eps) * direction.size:
-                result = "distances_at_rounding"
-                break
-            if norm <= tol * max(rms, np.finfo(np.float64).tiny):
-                result = "mean_velocity_small"
-                break
-            if step >= max_steps:
-                result = "max_steps_reached"
-                break
-            s = step_size
-            risen_little = False
-            for _ in range(_HALVINGS + 1):
-                trial_mean = mean + s * direction.velocity
-                trial = solve_at(trial_mean, solved)
-                num_solves += 1
-                trial_sum_sq = float(jnp.sum(trial.distances**2))
-                # NaN compares False: a non-finite trial is never accepted.
-                if trial_sum_sq <= sum_sq:
-                    break
-                # A full step that raises the SSD by less than tol changed it as little as
-                # one that lowers it by less than tol: the mean is stationary to within the
-                # registrations' own scatter (each is a nonconvex search), and halving a
-                # step the SSD cannot resolve only looks for a lower draw of that scatter.
-                if s == step_size and trial_sum_sq - sum_sq <= tol * sum_sq:
-                    risen_little = True
-                    break
-                s *= 0.5
-            else:
-                limited = bool(np.any(np.asarray(solved.limited)))
-                result = "resolution_limited" if limited else "line_search_failed"
-                break
-            if risen_little:  # the mean stays where it is
-                result = "sum_sq_stalled"
-                break
-            mean, solved, step = trial_mean, trial, step + 1
-            direction = _direction(metric, mean, solved, modulo, options)
-            history.append((direction.sum_sq, direction.norm, s))
-            save(step)
-            report(step)
-            if s == step_size and sum_sq - trial_sum_sq <= tol * sum_sq:
-                result = "sum_sq_stalled"
-                break
-
+    solved = state.solved
     res = KarcherResult(
-        mean=mean,
+        mean=state.mean,
         distances=solved.distances,
         registered=solved.registered,
         velocities=solved.velocities,
         geodesics_converged=solved.converged,
-        history=np.asarray(history),
+        history=np.asarray(state.history),
         converged=result in _CONVERGED,
-        num_steps=step,
-        num_solves=num_solves,
+        num_steps=state.step,
+        num_solves=state.num_solves,
         result=getattr(RESULTS, result),
     )
     if not res.converged:
@@ -742,146 +515,3 @@ def karcher_mean(
             stacklevel=2,
         )
     return res
-
-
-def distance_matrix(
-    shapes: Float[ArrayLike, "K 3 m n"],
-    metric: SplitMetric,
-    *,
-    modulo: str = "rigid",
-    options: ShapeOptions | None = None,
-    batch_size: int | None = None,
-    strategy: str = "auto",
-    checkpoint: str | os.PathLike | None = None,
-    resume: bool = False,
-    progress: Callable[[dict], None] | None = None,
-    client=None,
-) -> DistanceMatrixResult:
-    """Pairwise shape distances: K(K-1)/2 geodesics, batched (MATH.md 7).
-
-    Pair (i, j), i < j, uses shape_geodesic(shapes[i], shapes[j]) (or geodesic for
-    modulo="none"); the record is symmetrized from the upper triangle. With
-    ``checkpoint`` every finished chunk of pairs is saved atomically; ``resume=True``
-    skips the chunks already done.
-
-    Args:
-        shapes: ``(K, 3, m, n)`` surfaces on one grid; metric: split metric coefficients.
-        modulo, options, strategy, checkpoint, resume: as in :func:`karcher_mean`.
-        progress: called after each chunk with a dict: pairs_done, pairs (in all),
-            seconds (since the call began) and eta_s (the time left at this run's rate).
-        batch_size: pairs per chunk (one batched call, one checkpoint); default all pairs
-            for "vmap", 8 for "map" and 1 for "loop", which gain nothing from big chunks.
-        client: a ``dask.distributed.Client`` or a scheduler address: the chunks run as
-            tasks on its workers, checkpointed as they arrive (in any order); a worker
-            lost mid-task has its task rerun by Dask. The numbers equal the in-process
-            ones (each pair is solved on its own). None: this process.
-
-    Returns:
-        :class:`DistanceMatrixResult`. If some pair did not converge it also warns
-        (:class:`ConvergenceWarning`) once, naming the pairs.
-    """
-    strategy = _check_batch(modulo, strategy, batch_size)
-    shapes, options = _check_collection(shapes, options)
-    k = shapes.shape[0]
-    rows, cols = np.triu_indices(k, 1)
-    settings = _settings(metric, modulo, options, batch_size=batch_size)
-    fingerprint = _fingerprint(shapes, **settings)
-    path = None if checkpoint is None else pathlib.Path(checkpoint)
-    values = np.full(rows.size, np.nan)
-    converged = np.zeros(rows.size, bool)
-    change = np.full(rows.size, np.nan)
-    codes = np.zeros(rows.size, np.int32)
-    steps = np.zeros(rows.size, np.int64)
-    done = np.zeros(rows.size, bool)
-    saved = _load_checkpoint(path, fingerprint) if path is not None and resume else None
-    if saved is not None:
-        missing = {"result_codes", "num_steps"} - set(saved)
-        if missing:
-            raise InputError(
-                f"checkpoint {str(path)!r} has no {sorted(missing)}: an earlier release wrote "
-                "it; start over without resuming"
-            )
-        values, converged, change, codes, steps, done = (
-            saved[key]
-            for key in (
-                "values",
-                "converged",
-                "refinement_change",
-                "result_codes",
-                "num_steps",
-                "done",
-            )
-        )
-
-    chunk_size = _default_chunk(strategy) if batch_size is None else batch_size
-    size = min(chunk_size or rows.size, rows.size)
-    todo = [(a, b) for a, b in _chunks(rows.size, chunk_size) if not done[a:b].all()]
-    started, done_before = time.perf_counter(), int(done.sum())
-
-    def finished(chunk, out):
-        a, b = chunk
-        values[a:b], converged[a:b], change[a:b], codes[a:b], steps[a:b] = (
-            np.asarray(c)[: b - a] for c in out
-        )
-        done[a:b] = True
-        if path is not None:
-            save_npz_atomic(
-                path,
-                values=values,
-                converged=converged,
-                refinement_change=change,
-                result_codes=codes,
-                num_steps=steps,
-                done=done,
-                fingerprint=fingerprint,
-            )
-        if progress is not None:
-            seconds = time.perf_counter() - started
-            now, left = int(done.sum()), int((~done).sum())
-            rate = (now - done_before) / seconds if seconds > 0 else 0.0
-            progress(
-                {
-                    "pairs_done": now,
-                    "pairs": int(rows.size),
-                    "seconds": seconds,
-                    "eta_s": left / rate if rate > 0 else None,
-                }
-            )
-
-    if client is not None:
-        from .._runtime.distributed import Pool
-
-        with Pool(client, shapes, metric, modulo, options, strategy) as pool:
-            pool.distances(distance_chunk, rows, cols, todo, size, finished)
-    else:
-        for a, b in todo:
-            # Index per chunk: all K(K-1)/2 pairs at once would copy every surface K - 1 times.
-            first, second = shapes[rows[a:b]], shapes[cols[a:b]]
-            finished((a, b), distance_chunk(first, second, metric, modulo, options, strategy, size))
-
-    def symmetric(upper, diagonal, dtype):
-        matrix = np.zeros((k, k), dtype)
-        matrix[rows, cols] = upper
-        matrix = matrix + matrix.T if dtype is not bool else matrix | matrix.T
-        np.fill_diagonal(matrix, diagonal)
-        return matrix
-
-    unconverged = np.flatnonzero(~converged)
-    result = DistanceMatrixResult(
-        distances=jnp.asarray(symmetric(values, 0.0, np.float64), dtype=shapes.dtype),
-        pairs_converged=jnp.asarray(symmetric(converged, True, bool)),
-        refinement_change=jnp.asarray(symmetric(change, 0.0, np.float64), dtype=shapes.dtype),
-        converged=jnp.asarray(converged.all()),
-        result=RESULTS.from_code(codes[unconverged[0]]) if unconverged.size else RESULTS.successful,
-        num_steps=jnp.asarray(steps.sum()),
-    )
-    if not converged.all():
-        failed = [
-            (int(i), int(j)) for i, j, ok in zip(rows, cols, converged, strict=True) if not ok
-        ]
-        warnings.warn(
-            f"distance_matrix: {len(failed)} of {rows.size} pairs did not converge: {failed}",
-            ConvergenceWarning,
-            stacklevel=2,
-        )
-    return result

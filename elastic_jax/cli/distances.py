@@ -23,7 +23,7 @@ def run_distances(args, progress: Progress) -> dict:
 
     from .. import plot
     from .._runtime.atomic import save_npz_atomic, write_text_atomic
-    from .._statistics.karcher import distance_matrix
+    from .._statistics.distances import distance_matrix
 
     shapes, metric, options = prepare(args, progress, args.files, shape_geodesic_options)
     k, m, n = shapes.shape[0], *shapes.shape[2:]

@@ -1,0 +1,248 @@
+"""Batches of inner solves for Karcher means and distance matrices: one geodesic per
+shape or pair, run by lax.map, vmap (sharded over devices) or a loop, chunk by chunk,
+each chunk padded to the compiled batch shape (MATH.md 7).
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jaxtyping import Array, ArrayLike, Float
+
+from .._errors import ConvergenceWarning, InputError
+from .._geodesics.geodesic import default_tol, geodesic
+from .._geometry.grid import sphere_points
+from .._geometry.validation import as_surface
+from .._options import ShapeOptions, check_choice, check_int
+from .._registration.records import turned_back
+from .._registration.shape import check_grid_options, resolve_options, shape_geodesic
+from .._results import RESULTS
+from .._runtime.cache import solver_jit
+
+MODULI = ("rigid", "diff", "none")
+
+
+STRATEGIES = ("auto", "vmap", "map", "loop")
+
+
+def default_strategy() -> str:
+    """The batching strategy "auto" resolves to on this backend.
+
+    CPU: "map" (lax.map in one jit). Measured by benchmarks/bench_karcher.py on 2 cores
+    (8 surfaces at 25 x 49, rigid, one Karcher step after compilation): map 17.7 s, a
+    Python loop 19.8 s, vmap 52.8 s; a vmapped BFGS runs in lockstep until its slowest
+    member converges and its dense per-item updates do not vectorize on a CPU.
+    Accelerators: "vmap", where batching is what pays.
+    """
+    return "map" if jax.default_backend() == "cpu" else "vmap"
+
+
+def initial_velocity(path: Float[ArrayLike, "N 3 m n"]) -> Float[Array, "3 m n"]:
+    """Initial velocity of a discrete path: T (-3 f_0 + 4 f_1 - f_2) / 2, T = N - 1.
+
+    The second-order one-sided difference. The forward difference T (f_1 - f_0) is the
+    velocity at t = 1 / (2T), off by f''(0) / (2T); the Karcher iteration's fixed point
+    moves with it, away from the minimum of the (second-order, midpoint) discrete sum of
+    squared distances, and the line search stalls there (README, "Karcher means").
+    """
+    t = path.shape[0] - 1
+    return t * (-3.0 * path[0] + 4.0 * path[1] - path[2]) / 2.0
+
+
+def _one_geodesic(mean, shape, metric, modulo, options, start=None):
+    """Distance, registered shape, initial velocity at the mean, status and registration
+    (gamma, R) for one shape.
+
+    Every geodesic runs from the shape to the mean, as shape_geodesic must (it
+    reparametrizes its first surface and rotates its second), also for modulo="none", so
+    that a one-sided scheme ("forward") treats the mean alike for every modulo.
+
+    ``start`` (gamma, R): a second solve whose registration rounds start there (the
+    shape's registration at the previous mean) instead of the start search; the lower of
+    the two distances is kept. The search alone may land in another basin at a mean
+    moved a little and make the sum of squared distances jump; the warm solve follows its
+    basin continuously, so the sum is continuous in the mean, while the search still
+    finds a lower basin when there is one.
+    """
+    if modulo == "none":
+        res = geodesic(shape, mean, metric, **options.geodesic_kwargs())
+        m, n = mean.shape[-2:]
+        gamma, rotation = sphere_points(m, n, mean.dtype), jnp.eye(3, dtype=mean.dtype)
+        back = res.path
+        limited = jnp.zeros((), bool)
+    else:
+        res = shape_geodesic(shape, mean, metric, modulo=modulo, options=options)
+        if start is not None:
+            warm = shape_geodesic(shape, mean, metric, modulo=modulo, options=options, start=start)
+            lower = warm.distance < res.distance
+            res = jax.tree_util.tree_map(lambda a, b: jnp.where(lower, a, b), warm, res)
+        gamma, rotation = res.gamma, res.rotation
+        back = turned_back(res, mean)
+        limited = res.result == RESULTS.resolution_limited
+    velocity = initial_velocity(back[::-1])
+    return res.distance, back[0], velocity, res.converged, gamma, rotation, limited
+
+
+def _one_item(mean, item, metric, modulo, options):
+    """:func:`_one_geodesic` for a batch item: a shape, or (shape, gamma, R) to warm-start."""
+    if isinstance(item, tuple):
+        return _one_geodesic(mean, item[0], metric, modulo, options, item[1:])
+    return _one_geodesic(mean, item, metric, modulo, options)
+
+
+def _pair_distance(a, b, metric, modulo, options):
+    """Distance, status, refinement change, result code and solver steps of one pair."""
+    if modulo == "none":
+        res = geodesic(a, b, metric, **options.geodesic_kwargs())
+        change = jnp.full_like(res.distance, jnp.nan)
+    else:
+        res = shape_geodesic(a, b, metric, modulo=modulo, options=options)
+        change = res.refinement.relative_change
+    # The code as an integer: the chunk's outputs are plain arrays (checkpoints, Dask).
+    code = jnp.asarray(res.result._value, jnp.int32)
+    return res.distance, res.converged, change, code, jnp.asarray(res.num_steps, jnp.int32)
+
+
+# Module-level jitted batch solves: the mean and the metric are arguments and the options
+# (a frozen ShapeOptions) a static key, so consecutive Karcher steps reuse one compilation.
+@functools.partial(solver_jit, static_argnames=("modulo", "options", "mode"))
+def _velocities_batch(mean, batch, metric, *, modulo, options, mode):
+    """batch: shapes ``(b, 3, m, n)``, or (shapes, gammas, rotations) for warm starts."""
+
+    def one(item):
+        return _one_item(mean, item, metric, modulo, options)
+
+    return jax.lax.map(one, batch) if mode == "map" else jax.vmap(one)(batch)
+
+
+@functools.partial(solver_jit, static_argnames=("modulo", "options", "mode"))
+def _distances_batch(pairs, metric, *, modulo, options, mode):
+    def one(pair):
+        return _pair_distance(pair[0], pair[1], metric, modulo, options)
+
+    return jax.lax.map(one, pairs) if mode == "map" else jax.vmap(one)(pairs)
+
+
+def _batched(batch_call: Callable, single_call: Callable, batch, strategy: str) -> tuple:
+    """Run ``single_call`` over the leading axis of ``batch`` (a pytree) by ``strategy``.
+
+    ``batch_call(batch, mode)`` is the jitted lax.map / vmap form. With several devices
+    the vmap batch is sharded over a one-axis mesh (optimistix solves break under
+    shard_map; jit partitions a NamedSharding-placed input instead).
+    """
+    size = jax.tree_util.tree_leaves(batch)[0].shape[0]
+    if strategy == "loop":
+        items = [jax.tree_util.tree_map(lambda x, i=i: x[i], batch) for i in range(size)]
+        outs = [single_call(item) for item in items]
+        return tuple(jnp.stack(parts) for parts in zip(*outs, strict=True))
+    devices = jax.devices()
+    if strategy == "vmap" and len(devices) > 1:
+        padded = _padded(batch, size + (-size) % len(devices))
+        sharding = NamedSharding(Mesh(np.asarray(devices), ("batch",)), PartitionSpec("batch"))
+        batch = jax.tree_util.tree_map(lambda x: jax.device_put(x, sharding), padded)
+        return tuple(o[:size] for o in batch_call(batch, strategy))
+    return batch_call(batch, strategy)
+
+
+def _solve_chunk(batch_call: Callable, single_call: Callable, batch, strategy: str, size: int):
+    """``_batched`` over a chunk (a pytree, leading axis b) padded to ``size`` items, the
+    compiled batch shape (the padding is dropped): every chunk of a job runs one compiled
+    program, here or on a Dask worker. The loop strategy solves one item at a time and is
+    not padded. The solves' ConvergenceWarnings are silenced: callers report each item's
+    status."""
+    b = jax.tree_util.tree_leaves(batch)[0].shape[0]
+    padded = batch if strategy == "loop" else _padded(batch, size)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        return tuple(out[:b] for out in _batched(batch_call, single_call, padded, strategy))
+
+
+def velocity_chunk(mean, chunk, metric, modulo, options, strategy, size, starts=None) -> tuple:
+    """The geodesics from ``chunk`` (b, 3, m, n) to ``mean``: the _Solved fields.
+
+    starts: None, or (gammas (b, 3, m, n), rotations (b, 3, 3)), each shape's registration
+    at the previous mean: every shape is then solved twice and the lower kept
+    (:func:`_one_geodesic`)."""
+    batch = chunk if starts is None or modulo == "none" else (chunk, *starts)
+
+    def batch_call(batch, mode):
+        return _velocities_batch(mean, batch, metric, modulo=modulo, options=options, mode=mode)
+
+    def single_call(item):
+        return _one_item(mean, item, metric, modulo, options)
+
+    return _solve_chunk(batch_call, single_call, batch, strategy, size)
+
+
+def distance_chunk(first, second, metric, modulo, options, strategy, size) -> tuple:
+    """Distance, status, refinement change, result code and solver steps of the pairs
+    (first[i], second[i])."""
+
+    def batch_call(batch, mode):
+        return _distances_batch(batch, metric, modulo=modulo, options=options, mode=mode)
+
+    def single_call(pair):
+        return _pair_distance(pair[0], pair[1], metric, modulo, options)
+
+    return _solve_chunk(batch_call, single_call, (first, second), strategy, size)
+
+
+def chunk_bounds(n: int, size: int | None):
+    size = n if size is None else size
+    return [(start, min(start + size, n)) for start in range(0, n, size)]
+
+
+def default_chunk(strategy: str) -> int | None:
+    """Pairs per chunk when batch_size is None: the sequential strategies gain nothing from
+    big chunks, so they checkpoint every pair (loop) or every 8 pairs (map); vmap takes all."""
+    return {"loop": 1, "map": 8}.get(strategy)
+
+
+def _padded(batch, size: int):
+    """``batch`` (a pytree, leading axis b <= size) padded to ``size`` by repeating its last
+    item, so that every chunk has the compiled batch shape (a smaller last chunk would
+    compile the whole solve again)."""
+
+    def pad(x):
+        extra = max(size - x.shape[0], 0)
+        return jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)]) if extra else x
+
+    return jax.tree_util.tree_map(pad, batch)
+
+
+def check_batch(modulo: str, strategy: str, batch_size) -> str:
+    """Validate modulo, strategy and batch_size; resolve "auto" to this backend's strategy."""
+    check_choice("modulo", modulo, MODULI)
+    check_choice("strategy", strategy, STRATEGIES)
+    if batch_size is not None:
+        check_int("batch_size", batch_size, 1)
+    return default_strategy() if strategy == "auto" else strategy
+
+
+def check_collection(shapes, options: ShapeOptions | None, name="shapes"):
+    """The collection ``(K, 3, m, n)`` and its options, checked on its grid, tol resolved."""
+    shapes = as_surface(shapes, name)
+    if shapes.ndim != 4 or shapes.shape[0] < 2:
+        raise InputError(f"{name} must have shape (K, 3, m, n) with K >= 2; got {shapes.shape}")
+    options = resolve_options(options, {})
+    check_grid_options(options, *shapes.shape[-2:])
+    if options.tol is None:
+        # Resolved here, as the solves would: one static key for every call, and a
+        # fingerprint that names the tolerance used.
+        options = options.replace(tol=default_tol(shapes.dtype))
+    return shapes, options
+
+
+def job_settings(metric, modulo, options: ShapeOptions, **more) -> dict:
+    return {
+        "metric": [float(x) for x in jax.tree_util.tree_leaves(metric)],
+        "modulo": modulo,
+        "options": options.as_dict(),
+        **more,
+    }
