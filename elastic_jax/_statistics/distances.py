@@ -68,6 +68,96 @@ class DistanceMatrixResult(NamedTuple):
         )
 
 
+class _PairsState(NamedTuple):
+    """The pairs (i, j), i < j, in row-major order of the upper triangle: what each
+    finished one gave, and which are done. Its fields are the checkpoint's arrays."""
+
+    values: np.ndarray
+    converged: np.ndarray
+    refinement_change: np.ndarray
+    result_codes: np.ndarray
+    num_steps: np.ndarray
+    done: np.ndarray
+
+
+class _PairsJob(NamedTuple):
+    """A distance matrix as init / step / terminate over a :class:`_PairsState`; a step is
+    one finished chunk of pairs (chunks may finish in any order on a cluster).
+    :func:`distance_matrix` is the driver: chunks, checkpoints, progress, the pool."""
+
+    count: int  # K, the shapes
+
+    @property
+    def rows(self) -> np.ndarray:
+        return np.triu_indices(self.count, 1)[0]
+
+    @property
+    def cols(self) -> np.ndarray:
+        return np.triu_indices(self.count, 1)[1]
+
+    @property
+    def pairs(self) -> int:
+        return self.count * (self.count - 1) // 2
+
+    def init(self) -> _PairsState:
+        p = self.pairs
+        nan = np.full(p, np.nan)
+        return _PairsState(
+            nan,
+            np.zeros(p, bool),
+            nan.copy(),
+            np.zeros(p, np.int32),
+            np.zeros(p, np.int64),
+            np.zeros(p, bool),
+        )
+
+    def restore(self, saved: dict, path) -> _PairsState:
+        missing = set(_PairsState._fields) - set(saved)
+        if missing:
+            raise InputError(
+                f"checkpoint {str(path)!r} has no {sorted(missing)}: an earlier release wrote "
+                "it; start over without resuming"
+            )
+        return _PairsState(*(np.array(saved[key]) for key in _PairsState._fields))
+
+    def step(self, state: _PairsState, chunk: tuple[int, int], out: tuple) -> _PairsState:
+        """The state with chunk (a, b)'s pairs done: ``out`` is distance_chunk's output."""
+        a, b = chunk
+        fields = [x.copy() for x in state[:-1]]
+        for field, part in zip(fields, out, strict=True):
+            field[a:b] = np.asarray(part)[: b - a]
+        done = state.done.copy()
+        done[a:b] = True
+        return _PairsState(*fields, done)
+
+    def terminate(self, state: _PairsState) -> bool:
+        return bool(state.done.all())
+
+    def result(self, state: _PairsState, dtype) -> DistanceMatrixResult:
+        """The symmetric record from the upper triangle."""
+        rows, cols, k = self.rows, self.cols, self.count
+
+        def symmetric(upper, diagonal, kind):
+            matrix = np.zeros((k, k), kind)
+            matrix[rows, cols] = upper
+            matrix = matrix + matrix.T if kind is not bool else matrix | matrix.T
+            np.fill_diagonal(matrix, diagonal)
+            return matrix
+
+        unconverged = np.flatnonzero(~state.converged)
+        first = state.result_codes[unconverged[0]] if unconverged.size else None
+        return DistanceMatrixResult(
+            distances=jnp.asarray(symmetric(state.values, 0.0, np.float64), dtype=dtype),
+            pairs_converged=jnp.asarray(symmetric(state.converged, True, bool)),
+            refinement_change=jnp.asarray(
+                symmetric(state.refinement_change, 0.0, np.float64), dtype=dtype
+            ),
+            converged=jnp.asarray(state.converged.all()),
+            result=RESULTS.successful if first is None else RESULTS.from_code(first),
+            num_steps=jnp.asarray(state.num_steps.sum()),
+        )
+
+
 def distance_matrix(
     shapes: Float[ArrayLike, "K 3 m n"],
     metric: SplitMetric,
@@ -107,71 +197,39 @@ def distance_matrix(
     strategy = check_batch(modulo, strategy, batch_size)
     shapes, options = check_collection(shapes, options)
     k = shapes.shape[0]
-    rows, cols = np.triu_indices(k, 1)
     settings = job_settings(metric, modulo, options, batch_size=batch_size)
     fingerprint = fingerprint_of(shapes, **settings)
     path = None if checkpoint is None else pathlib.Path(checkpoint)
-    values = np.full(rows.size, np.nan)
-    converged = np.zeros(rows.size, bool)
-    change = np.full(rows.size, np.nan)
-    codes = np.zeros(rows.size, np.int32)
-    steps = np.zeros(rows.size, np.int64)
-    done = np.zeros(rows.size, bool)
+    job = _PairsJob(k)
+    state = job.init()
     saved = load_checkpoint(path, fingerprint) if path is not None and resume else None
     if saved is not None:
-        missing = {"result_codes", "num_steps"} - set(saved)
-        if missing:
-            raise InputError(
-                f"checkpoint {str(path)!r} has no {sorted(missing)}: an earlier release wrote "
-                "it; start over without resuming"
-            )
-        values, converged, change, codes, steps, done = (
-            saved[key]
-            for key in (
-                "values",
-                "converged",
-                "refinement_change",
-                "result_codes",
-                "num_steps",
-                "done",
-            )
-        )
+        state = job.restore(saved, path)
 
     chunk_size = default_chunk(strategy) if batch_size is None else batch_size
-    size = min(chunk_size or rows.size, rows.size)
-    todo = [(a, b) for a, b in chunk_bounds(rows.size, chunk_size) if not done[a:b].all()]
-    started, done_before = time.perf_counter(), int(done.sum())
+    size = min(chunk_size or job.pairs, job.pairs)
+    todo = [(a, b) for a, b in chunk_bounds(job.pairs, chunk_size) if not state.done[a:b].all()]
+    started, done_before = time.perf_counter(), int(state.done.sum())
 
     def finished(chunk, out):
-        a, b = chunk
-        values[a:b], converged[a:b], change[a:b], codes[a:b], steps[a:b] = (
-            np.asarray(c)[: b - a] for c in out
-        )
-        done[a:b] = True
+        nonlocal state
+        state = job.step(state, chunk, out)
         if path is not None:
-            save_npz_atomic(
-                path,
-                values=values,
-                converged=converged,
-                refinement_change=change,
-                result_codes=codes,
-                num_steps=steps,
-                done=done,
-                fingerprint=fingerprint,
-            )
+            save_npz_atomic(path, fingerprint=fingerprint, **state._asdict())
         if progress is not None:
             seconds = time.perf_counter() - started
-            now, left = int(done.sum()), int((~done).sum())
+            now, left = int(state.done.sum()), int((~state.done).sum())
             rate = (now - done_before) / seconds if seconds > 0 else 0.0
             progress(
                 {
                     "pairs_done": now,
-                    "pairs": int(rows.size),
+                    "pairs": job.pairs,
                     "seconds": seconds,
                     "eta_s": left / rate if rate > 0 else None,
                 }
             )
 
+    rows, cols = job.rows, job.cols
     if client is not None:
         from .._runtime.distributed import Pool
 
@@ -182,23 +240,11 @@ def distance_matrix(
             # Index per chunk: all K(K-1)/2 pairs at once would copy every surface K - 1 times.
             first, second = shapes[rows[a:b]], shapes[cols[a:b]]
             finished((a, b), distance_chunk(first, second, metric, modulo, options, strategy, size))
+    if not job.terminate(state):  # a failed chunk raises above: this is a bug if reached
+        raise RuntimeError("distance_matrix: some chunks of pairs were never solved")
 
-    def symmetric(upper, diagonal, dtype):
-        matrix = np.zeros((k, k), dtype)
-        matrix[rows, cols] = upper
-        matrix = matrix + matrix.T if dtype is not bool else matrix | matrix.T
-        np.fill_diagonal(matrix, diagonal)
-        return matrix
-
-    unconverged = np.flatnonzero(~converged)
-    result = DistanceMatrixResult(
-        distances=jnp.asarray(symmetric(values, 0.0, np.float64), dtype=shapes.dtype),
-        pairs_converged=jnp.asarray(symmetric(converged, True, bool)),
-        refinement_change=jnp.asarray(symmetric(change, 0.0, np.float64), dtype=shapes.dtype),
-        converged=jnp.asarray(converged.all()),
-        result=RESULTS.from_code(codes[unconverged[0]]) if unconverged.size else RESULTS.successful,
-        num_steps=jnp.asarray(steps.sum()),
-    )
+    result = job.result(state, shapes.dtype)
+    converged = state.converged
     if not converged.all():
         failed = [
             (int(i), int(j)) for i, j, ok in zip(rows, cols, converged, strict=True) if not ok
