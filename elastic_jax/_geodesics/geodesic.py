@@ -607,7 +607,7 @@ def geodesic(
         metric, g1, g2, f1, f2, solved, units, values, dframe, n_times=n_times, scheme=scheme
     )
     if is_concrete(result.converged, result.num_steps) and not bool(result.converged):
-        if result.result == RESULTS.successful:
+        if result.result == RESULTS.saddle_point:
             reason = f"and {saddle_checks} saddle escapes: {result.message}"
         else:
             reason = f"without meeting tol={tol:g}: {result.message}"
