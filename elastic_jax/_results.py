@@ -113,3 +113,11 @@ def first_failure(results: RESULTS, ok: Array) -> RESULTS:
     first = jnp.argmin(ok)  # the first False; 0 when all are True (then unused)
     failed = jax.tree_util.tree_map(lambda value: value[first], results)
     return RESULTS.where(jnp.all(ok), RESULTS.successful, failed)
+
+
+def unsolved_message(record, kind: str, k: int, last: int) -> str:
+    """'' for a converged ``record``; else which ``kind`` (node, rung) k of last did not
+    solve and the code's words: the message of a record of sequential solves."""
+    if bool(record.converged):
+        return ""
+    return f"{kind} {k} of {last} did not solve: {result_message(record.result)}"

@@ -37,7 +37,7 @@ from .._geometry.metric import SplitMetric
 from .._geometry.units import in_units
 from .._geometry.validation import as_surface
 from .._options import SHOOTING_SCHEMES
-from .._results import RESULTS, first_failure, result_message
+from .._results import RESULTS, first_failure, unsolved_message
 from .geodesic import basis_np, safe_sqrt
 
 
@@ -79,10 +79,8 @@ class ShootingResult(NamedTuple):
     @property
     def message(self) -> str:
         """Which node did not solve and why ('' when every node did)."""
-        if bool(self.converged):
-            return ""
-        k, last = int(self.n_valid), self.path.shape[-4] - 1
-        return f"node {k} of {last} did not solve: {result_message(self.result)}"
+        last = self.path.shape[-4] - 1
+        return unsolved_message(self, "node", int(self.n_valid), last)
 
 
 def default_newton_tol(dtype) -> float:

@@ -32,7 +32,7 @@ from .._geometry.energy import as_path
 from .._geometry.harmonics import check_degree
 from .._geometry.metric import SplitMetric, metric_inner
 from .._geometry.units import units_of
-from .._results import RESULTS, first_failure, result_message
+from .._results import RESULTS, first_failure, unsolved_message
 from .geodesic import basis_np
 from .shooting import as_velocity, check_scheme, default_newton_tol, node_solve
 
@@ -68,10 +68,8 @@ class TransportResult(NamedTuple):
     @property
     def message(self) -> str:
         """Which rung did not solve and why ('' when every rung did)."""
-        if bool(self.converged):
-            return ""
-        k, last = int(self.n_valid), self.vectors.shape[-4] - 1
-        return f"rung {k} of {last} did not solve: {result_message(self.result)}"
+        last = self.vectors.shape[-4] - 1
+        return unsolved_message(self, "rung", int(self.n_valid), last)
 
 
 def _ladder(metric, w, path, values, dframe, *, scheme, midpoint, tol, max_newton):
