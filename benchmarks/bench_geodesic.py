@@ -6,12 +6,14 @@ middle row; skipped when absent) and a synthetic pair (bent cylinders); both sol
 the multiresolution schedule at 50 x 99. One JSON record per solve. Targets on a 2-core
 CPU after compilation: under 5 s at 25 x 49 and under 20 s at 50 x 99.
 
-Run: python benchmarks/bench_geodesic.py [--repeats 3] [--quick]
+Run: python benchmarks/bench_geodesic.py [--repeats 3] [--quick] [--dtypes float64,float32]
+     [--solvers bfgs,lbfgs]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import time
 import warnings
 
@@ -71,14 +73,18 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="only the 25 x 49 synthetic row")
     # The issue-3 comparison with the authors' code was made with their forward scheme.
     parser.add_argument("--scheme", default="midpoint", choices=("midpoint", "forward", "central"))
+    parser.add_argument("--dtypes", default="float64", help="comma-separated: float64,float32")
+    parser.add_argument("--solvers", default="bfgs,lbfgs", help="comma-separated: bfgs,lbfgs")
     args = parser.parse_args()
     env = environment()
     rows = [(25, 49, 7, 10)] if args.quick else [(25, 49, 7, 10), (50, 99, 7, 13)]
-    for m, n, degree, n_times in rows:
+    for (m, n, degree, n_times), dtype in itertools.product(rows, args.dtypes.split(",")):
         for pair, (f1, f2) in pairs(m, n).items():
             if args.quick and pair != "bent cylinders (synthetic)":
                 continue
-            solvers = ["bfgs"] if args.quick else ["bfgs", "lbfgs"]
+            # The library computes in its inputs' precision (float32 is a GPU user's choice).
+            f1, f2 = f1.astype(dtype), f2.astype(dtype)
+            solvers = ["bfgs"] if args.quick else args.solvers.split(",")
             schedules = [()] if (args.quick or m < 50) else [(), ((4, 5), (7, 7))]
             for solver in solvers:
                 for schedule in schedules:
@@ -99,7 +105,7 @@ def main() -> None:
                                 "m": m,
                                 "n": n,
                                 "metric": METRIC,
-                                "dtype": "float64",
+                                "dtype": dtype,
                                 **{k: v for k, v in options.items() if k != "schedule"},
                                 "schedule": [list(level) for level in schedule],
                             },

@@ -8,14 +8,16 @@ strategy ("vmap", "map" = lax.map in one jit, "loop" = Python loop of jitted sol
 each in its own process so that its peak resident memory (ru_maxrss) is its own; then a
 16-shape distance matrix (120 pairs,
 strategy "map" by default). One JSON record per measurement: first call (with
-compilation) and a repeat.
+compilation), a repeat, and the sum of the distances and of their squares (what every
+strategy must give alike) with whether every inner solve converged.
 
 Measured on 2 CPU cores (jax 0.10.2, float64), repeat after compilation, with issue 5's
 solver (central scheme, 2 outer steps): Karcher step map 17.7 s, loop 19.8 s, vmap
 52.8 s; distance matrix map 140.5 s, loop 206 s.
 
 Run: python benchmarks/bench_karcher.py [--shapes 8] [--matrix-shapes 16]
-     [--strategies vmap,map,loop] [--matrix-strategy map]   (--strategies "" skips them)
+     [--strategies vmap,map,loop] [--matrix-strategy map] [--dtype float64|float32]
+     (--strategies "" skips them)
 """
 
 from __future__ import annotations
@@ -52,22 +54,27 @@ while len(coll) < k:
     f = np.asarray(ej.center(shapes.sample(make, m, n, rotation=r)))
     coll.append(f / np.sqrt(float(ej.surface_area(f))) * (1 + 0.05 * i))
     i += 1
-coll = jnp.asarray(np.stack(coll))
+coll = jnp.asarray(np.stack(coll), {dtype!r})
 metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 warnings.simplefilter("ignore", ej.ConvergenceWarning)
 
 def run():
     if task == "karcher":
         kw = dict(modulo="rigid", max_steps=1, strategy=strategy, options=options)
-        return ej.karcher_mean(coll, metric, **kw).mean
+        return ej.karcher_mean(coll, metric, **kw)
     kw = dict(modulo="rigid", strategy=strategy, options=options)
-    return ej.distance_matrix(coll, metric, **kw).distances
+    return ej.distance_matrix(coll, metric, **kw)
 
 t = time.perf_counter(); jax.block_until_ready(run()); first = time.perf_counter() - t
 t = time.perf_counter(); out = jax.block_until_ready(run()); again = time.perf_counter() - t
+# Invariant figures (a mean is defined up to rotation, so no sum of its coordinates):
+# the distances, which every strategy must give alike.
+d = np.asarray(out.distances)
 print(json.dumps({{"first_s": first, "repeat_s": again,
                   "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-                  "checksum": float(jnp.sum(out))}}))
+                  "sum_distances": float(d.sum()), "sum_sq_distances": float((d ** 2).sum()),
+                  "converged": bool(np.all(out.geodesics_converged if task == "karcher"
+                                           else out.pairs_converged))}}))
 """
 
 
@@ -77,6 +84,7 @@ def main() -> None:
     parser.add_argument("--matrix-shapes", type=int, default=16)
     parser.add_argument("--strategies", default="vmap,map,loop")
     parser.add_argument("--matrix-strategy", default="map")
+    parser.add_argument("--dtype", default="float64", choices=("float64", "float32"))
     args = parser.parse_args()
     import pathlib
 
@@ -89,7 +97,9 @@ def main() -> None:
     if args.matrix_shapes:
         jobs.append(("distance_matrix", args.matrix_strategy, args.matrix_shapes))
     for task, strategy, k in jobs:
-        code = WORKER.format(bench_dir=bench_dir, k=k, task=task, strategy=strategy)
+        code = WORKER.format(
+            bench_dir=bench_dir, k=k, task=task, strategy=strategy, dtype=args.dtype
+        )
         out = subprocess.run(
             [sys.executable, "-c", code], capture_output=True, text=True, check=True
         )
@@ -104,6 +114,7 @@ def main() -> None:
                     "grid": [25, 49],
                     "metric": [1.0, 1.0, 0.1, 0.0],
                     "modulo": "rigid",
+                    "dtype": args.dtype,
                     "options": {"degree": 5, "vf_degree": 5, "n_times": 7},
                 },
                 **record,

@@ -15,7 +15,7 @@ error against a fine reference solve (50 x 99, degree 12, vf degree 12, N = 21).
 target: every row at least 20 x faster than the paper's fastest time for it.
 
 Run: python benchmarks/bench_shape.py [--rows low,middle,high,defaults] [--pairs synthetic,cats]
-     [--no-reference]
+     [--no-reference] [--dtype float64|float32]
 """
 
 from __future__ import annotations
@@ -75,11 +75,14 @@ def options_of(settings: dict) -> ej.ShapeOptions:
     return ej.ShapeOptions(**{k: settings[k] for k in keys if k in settings})
 
 
-def solve(name: str, settings: dict, metric: ej.SplitMetric, row: str) -> dict | None:
+def solve(
+    name: str, settings: dict, metric: ej.SplitMetric, row: str, dtype: str = "float64"
+) -> dict | None:
     m, n = settings["grid"]
     surfaces = pair(name, m, n)
     if surfaces is None:
         return None
+    surfaces = tuple(jnp.asarray(f, dtype) for f in surfaces)
     options = options_of(settings)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
@@ -98,6 +101,7 @@ def solve(name: str, settings: dict, metric: ej.SplitMetric, row: str) -> dict |
             "n": n,
             "metric": METRIC,
             "modulo": "diff",
+            "dtype": dtype,
             "options": options.as_dict(),
         },
         "compile_s_estimate": first - seconds,
@@ -129,12 +133,15 @@ def main() -> None:
     parser.add_argument("--rows", default="low,middle,high,defaults")
     parser.add_argument("--pairs", default="synthetic,cats")
     parser.add_argument("--no-reference", action="store_true")
+    parser.add_argument("--dtype", default="float64", choices=("float64", "float32"))
     args = parser.parse_args()
     env = environment()
     emit({"benchmark": "environment", "environment": env})
     metric = ej.SplitMetric(*METRIC)
     for name in args.pairs.split(","):
-        records = {row: solve(name, ROWS[row], metric, row) for row in args.rows.split(",")}
+        records = {
+            row: solve(name, ROWS[row], metric, row, args.dtype) for row in args.rows.split(",")
+        }
         if args.no_reference or not any(records.values()):
             continue
         reference = solve(name, {**REFERENCE, "paper_s": None}, metric, "reference")
