@@ -1,7 +1,7 @@
 """Spherical parametrization of closed genus-0 meshes: time, fold-freeness, distortion.
 
 Measures ``elastic_jax.io.spherical_parametrization`` (default settings: area_weight 0.9,
-max_iter 20000, rtol 1e-5) on the issue's meshes:
+max_steps 20000, rtol 1e-5) on the issue's meshes:
 
 - the four shared surfaces (../shared/data: cat1, cat2, horse0, hand4, each 50 x 99),
   meshed with ``grid_to_mesh`` (9408 faces); skipped, with a record saying so, when the
@@ -116,7 +116,7 @@ def run_case(name: str, progress: bool) -> dict:
         record.update({"skipped": True, "reason": f"data absent: {DATA}"})
         emit(record)
         return record
-    options = {"area_weight": 0.9, "max_iter": 20_000, "rtol": 1e-5}
+    options = {"area_weight": 0.9, "max_steps": 20_000, "rtol": 1e-5}
     record["settings"] = {**settings, "options": options}
     record.update({"faces": len(mesh.faces), "vertices": len(mesh.vertices)})
     report = (

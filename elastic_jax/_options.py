@@ -12,7 +12,16 @@ import dataclasses
 from ._checks import check_bool, check_choice, check_int, check_positive
 from ._errors import InputError
 
-__all__ = ["InputError", "ShapeOptions", "check_choice", "check_int", "check_positive"]
+__all__ = [
+    "FROM_OPTIONS",
+    "FromOptions",
+    "InputError",
+    "ShapeOptions",
+    "check_choice",
+    "check_int",
+    "check_positive",
+    "settings_from",
+]
 
 SOLVERS = ("bfgs", "lbfgs")
 SCHEMES = ("forward", "central", "midpoint")
@@ -161,3 +170,48 @@ class ShapeOptions:
         registration)."""
         names = ("degree", "n_times", "solver", "max_steps", "tol", "scheme", "saddle_checks")
         return {name: getattr(self, name) for name in names}
+
+
+class FromOptions:
+    """The default of a keyword that an options record also holds: take the record's."""
+
+    def __repr__(self) -> str:
+        return "<from options>"
+
+
+# One object: ``value is FROM_OPTIONS`` tells a keyword left out from one given (None is
+# a value of its own for some of them: tol=None is the precision's default tolerance).
+FROM_OPTIONS = FromOptions()
+
+
+def settings_from(function: str, options: ShapeOptions | None, **keywords) -> dict:
+    """The settings of one call: each keyword given, else the field of ``options`` (a
+    :class:`ShapeOptions`; its defaults when None).
+
+    One record holds every path and solver setting, so that a limit has one name and one
+    default wherever it is used (``geodesic``, ``shoot``, ``parallel_transport`` and the
+    solves between shapes). A keyword given together with a record that says otherwise is
+    refused: which of the two was meant cannot be known.
+    """
+    if options is None:
+        record = ShapeOptions()
+    elif isinstance(options, ShapeOptions):
+        record = options
+    else:
+        raise InputError(
+            f"{function}: options must be an elastic_jax.ShapeOptions or None; "
+            f"got {type(options).__name__}"
+        )
+    settings = {}
+    for name, value in keywords.items():
+        held = getattr(record, name)
+        if value is FROM_OPTIONS:
+            settings[name] = held
+            continue
+        if options is not None and value != held:
+            raise InputError(
+                f"{function}: {name}={value!r} given as a keyword, and options has "
+                f"{name}={held!r}; give it once (options.replace({name}=...) changes it)"
+            )
+        settings[name] = value
+    return settings

@@ -27,6 +27,7 @@ import json
 import operator
 import os
 import pathlib
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 
 import jax
@@ -209,10 +210,11 @@ def spherical_parametrization(
     mesh: trimesh.Trimesh | trimesh.Scene,
     *,
     area_weight: float = 0.9,
-    max_iter: int = 20_000,
+    max_steps: int = 20_000,
     rtol: float = 1e-5,
     init: np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
+    max_iter: int | None = None,
 ) -> SphericalParametrization:
     """A bijective, orientation-preserving map of a closed genus-0 mesh onto the sphere.
 
@@ -230,18 +232,19 @@ def spherical_parametrization(
     Runs in float64 whatever JAX's x64 setting (``jax.enable_x64`` locally).
 
     The map is never folded: a face whose image is turned over (triple product of its
-    sphere points <= 0) after ``max_iter`` iterations raises ParametrizationError.
+    sphere points <= 0) after ``max_steps`` iterations raises ParametrizationError.
 
     Args:
         mesh: a closed, consistently wound, vertex-manifold ``trimesh.Trimesh`` with Euler
             characteristic 2 and no zero-area faces (or a Scene of one).
         area_weight: w in (0, 1], default 0.9.
-        max_iter: L-BFGS iterations in all (>= 1).
+        max_steps: L-BFGS iterations in all (>= 1); the record's ``num_steps`` counts them.
         rtol: stop when a round of 250 iterations lowers the energy by less than this
             fraction (with no folded face).
         init: optional ``(V, 3)`` starting directions on the sphere (normalized here), for
             example a map from another tool; folded starts are untangled.
         progress: called with a line of text after every round.
+        max_iter: the former name of max_steps (until 2026-11-26; a DeprecationWarning).
 
     Returns:
         :class:`SphericalParametrization`: vertices, faces (wound outward), sphere
@@ -254,16 +257,24 @@ def spherical_parametrization(
         InputError: bad options.
 
     Warns:
-        ConvergenceWarning: ``max_iter`` ran out while the energy was still falling (the
+        ConvergenceWarning: ``max_steps`` ran out while the energy was still falling (the
             record says ``converged=False``; the map has no folds).
     """
+    if max_iter is not None:
+        # Every step limit of the package is called max_steps (issue 31).
+        warnings.warn(
+            "spherical_parametrization: max_iter is now called max_steps",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        max_steps = max_iter
     mesh = _as_trimesh(mesh)
     vertices, faces = _checked_mesh(mesh)
     return parametrize(
         vertices,
         faces,
         area_weight=area_weight,
-        max_iter=max_iter,
+        max_steps=max_steps,
         rtol=rtol,
         init=init,
         progress=progress,

@@ -236,7 +236,7 @@ def test_a_tangled_start_is_untangled_or_refused():
     folded = int(np.sum(triple(unit, np.asarray(mesh.faces)) <= 0))
     assert folded > 100
     with pytest.raises(io.ParametrizationError, match="folded face") as info:
-        io.spherical_parametrization(mesh, init=init, max_iter=1)
+        io.spherical_parametrization(mesh, init=init, max_steps=1)
     assert info.value.flipped > 0 and f"{info.value.flipped} folded" in str(info.value)
     untangled = io.spherical_parametrization(mesh, init=init)
     assert_tiles_the_sphere(untangled)
@@ -246,8 +246,8 @@ def test_a_tangled_start_is_untangled_or_refused():
 
 def test_a_map_stopped_early_says_so():
     # 250 iterations unfold the U-tube (measured) but leave it far from converged.
-    with pytest.warns(ej.ConvergenceWarning, match="not converged after max_iter=250"):
-        par = io.spherical_parametrization(u_tube(), max_iter=250)
+    with pytest.warns(ej.ConvergenceWarning, match="not converged after max_steps=250"):
+        par = io.spherical_parametrization(u_tube(), max_steps=250)
     assert not par.converged and par.iterations == 250
     assert_tiles_the_sphere(par)
 
@@ -332,8 +332,12 @@ def test_options_are_checked():
     mesh = ellipsoid_mesh(1)
     with pytest.raises(ValueError, match="area_weight must be in"):
         io.spherical_parametrization(mesh, area_weight=1.5)
-    with pytest.raises(ValueError, match="max_iter must be an integer >= 1"):
-        io.spherical_parametrization(mesh, max_iter=0)
+    with pytest.raises(ValueError, match="max_steps must be an integer >= 1"):
+        io.spherical_parametrization(mesh, max_steps=0)
+    # The former name still reaches the same limit, with a warning that it was renamed.
+    with pytest.warns(DeprecationWarning, match="max_iter is now called max_steps"):
+        with pytest.raises(ValueError, match="max_steps must be an integer >= 1"):
+            io.spherical_parametrization(mesh, max_iter=0)
     with pytest.raises(ValueError, match="progress must be a callable"):
         io.spherical_parametrization(mesh, progress="verbose")
     with pytest.raises(ValueError, match="method must be one of"):

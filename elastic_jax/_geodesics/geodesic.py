@@ -38,7 +38,14 @@ from .._geometry.interp import resample
 from .._geometry.metric import SplitMetric, split_bilinear
 from .._geometry.units import in_units
 from .._geometry.validation import as_surface
-from .._options import SCHEMES, SOLVERS
+from .._options import (
+    FROM_OPTIONS,
+    SCHEMES,
+    SOLVERS,
+    FromOptions,
+    ShapeOptions,
+    settings_from,
+)
 from .._results import RESULTS, result_message
 from .._runtime.cache import cached
 from .solvers import Minimum, lanczos_smallest, minimize
@@ -475,15 +482,16 @@ def geodesic(
     f2: Float[ArrayLike, "3 m n"],
     metric: SplitMetric,
     *,
-    degree: int = 7,
-    n_times: int = 13,
-    solver: str = "bfgs",
-    max_steps: int = 1000,
-    tol: float | None = None,
+    degree: int | FromOptions = FROM_OPTIONS,
+    n_times: int | FromOptions = FROM_OPTIONS,
+    solver: str | FromOptions = FROM_OPTIONS,
+    max_steps: int | FromOptions = FROM_OPTIONS,
+    tol: float | None | FromOptions = FROM_OPTIONS,
     init: Float[ArrayLike, "K L"] | None = None,
-    scheme: str = "midpoint",
+    scheme: str | FromOptions = FROM_OPTIONS,
     schedule: Sequence[tuple[int, ...]] = (),
-    saddle_checks: int | None = 1,
+    saddle_checks: int | None | FromOptions = FROM_OPTIONS,
+    options: ShapeOptions | None = None,
 ) -> GeodesicResult:
     """Geodesic between two parametrized surfaces under a split metric (paper Algorithm 1).
 
@@ -492,17 +500,25 @@ def geodesic(
     from the straight line (or ``init``), with gradients by autodiff through the energy.
     The whole solve is one jitted call; batch over targets with ``jax.vmap``.
 
+    The path and solver settings (degree, n_times, solver, max_steps, tol, scheme,
+    saddle_checks) are the fields of one record, :class:`ShapeOptions`, which
+    :func:`shape_geodesic`, :func:`karcher_mean`, :func:`distance_matrix`, :func:`shoot` and
+    :func:`parallel_transport` take too: give them as keywords or as ``options``, and a
+    setting left out is the record's (its defaults below).
+
     Args:
         f1, f2: ``(3, m, n)`` immersions on the same grid.
         metric: the split metric coefficients.
-        degree: highest spherical-harmonic degree of the perturbations
+        degree: highest spherical-harmonic degree of the perturbations, default 7
             (limit: min(m - 3, (n - 3) // 2)).
-        n_times: N >= 3 time points, end points included.
-        solver: ``"bfgs"`` (optimistix.BFGS) or ``"lbfgs"`` (jaxopt.LBFGS).
-        max_steps: step limit; reaching it gives ``converged=False`` and a ConvergenceWarning.
+        n_times: N >= 3 time points, end points included; default 13.
+        solver: ``"bfgs"`` (optimistix.BFGS, default) or ``"lbfgs"`` (jaxopt.LBFGS).
+        max_steps: step limit, default 500; reaching it gives ``converged=False`` and a
+            ConvergenceWarning.
         tol: converged means the 2-norm of the gradient of the scaled objective (energy /
             straight-line energy in whitened coefficients, Hessian ~2 I) is at most tol,
-            for either solver; default 1e-6 in float64, 3e-3 in float32 (:func:`default_tol`).
+            for either solver; default (None) 1e-6 in float64, 3e-3 in float32
+            (:func:`default_tol`).
         init: ``(N - 2, L)`` coefficients of an earlier solve (warm start); zeros by default.
         scheme: ``"midpoint"`` (default), ``"forward"`` (the paper's) or ``"central"``
             (see :func:`path_energy`). The forward scheme's discrete energy has minima
@@ -530,6 +546,9 @@ def geodesic(
             BFGS steps at degree 7, N = 13 on 25 x 49 and 50 x 99. A start in a
             symmetric subspace (mirror-symmetric pairs) keeps BFGS in it, where it can
             stop at a saddle (MATH.md 9).
+        options: a :class:`ShapeOptions` whose path and solver fields are the settings
+            not given as keywords (None: its defaults). A keyword that disagrees with the
+            record is an InputError.
 
     Returns:
         :class:`GeodesicResult`.
@@ -543,6 +562,18 @@ def geodesic(
         >>> bool(res.energy < res.straight_energy)
         True
     """
+    settings = settings_from(
+        "geodesic",
+        options,
+        degree=degree,
+        n_times=n_times,
+        solver=solver,
+        max_steps=max_steps,
+        tol=tol,
+        scheme=scheme,
+        saddle_checks=saddle_checks,
+    )
+    degree, n_times, solver, max_steps, tol, scheme, saddle_checks = settings.values()
     f1, f2 = check_pair(f1, f2)
     m, n = f1.shape[-2:]
     degree = check_degree(degree, m, n)

@@ -36,7 +36,13 @@ from .._geometry.harmonics import check_degree
 from .._geometry.metric import SplitMetric
 from .._geometry.units import in_units
 from .._geometry.validation import as_surface
-from .._options import SHOOTING_SCHEMES
+from .._options import (
+    FROM_OPTIONS,
+    SHOOTING_SCHEMES,
+    FromOptions,
+    ShapeOptions,
+    settings_from,
+)
 from .._results import RESULTS, first_failure, unsolved_message
 from .geodesic import basis_np, safe_sqrt
 
@@ -239,11 +245,12 @@ def shoot(
     v: Float[ArrayLike, "3 m n"],
     metric: SplitMetric,
     *,
-    n_times: int = 13,
-    degree: int = 7,
-    scheme: str = "midpoint",
+    n_times: int | FromOptions = FROM_OPTIONS,
+    degree: int | FromOptions = FROM_OPTIONS,
+    scheme: str | FromOptions = FROM_OPTIONS,
     tol: float | None = None,
     max_newton: int = 20,
+    options: ShapeOptions | None = None,
 ) -> ShootingResult:
     """Shoot the discrete geodesic from f with initial velocity v (the discrete exp map).
 
@@ -258,11 +265,15 @@ def shoot(
         f: ``(3, m, n)`` the starting immersion.
         v: ``(3, m, n)`` the initial velocity (a vector field on the grid).
         metric: the split metric coefficients.
-        n_times: N >= 3 time points, f and the endpoint included.
-        degree: the surface basis' degree (limit: min(m - 3, (n - 3) // 2)).
+        n_times: N >= 3 time points, f and the endpoint included; default 13.
+        degree: the surface basis' degree, default 7 (limit: min(m - 3, (n - 3) // 2)).
         scheme: ``"midpoint"`` (default) or ``"forward"``; ``"central"`` is refused.
-        tol: each Newton solve's tolerance (:func:`default_newton_tol`).
-        max_newton: Newton iterations per step.
+        tol: each Newton solve's tolerance (:func:`default_newton_tol`); a limit of
+            shooting's own, not the record's minimization tol.
+        max_newton: Newton iterations per step (shooting's own limit).
+        options: a :class:`ShapeOptions` whose n_times, degree and scheme are the ones
+            not given as keywords (None: its defaults), so that a path shot from a
+            :func:`geodesic` or :func:`log` uses that solve's record.
 
     Returns:
         :class:`ShootingResult`; a ConvergenceWarning when a step's solve failed. The
@@ -270,6 +281,8 @@ def shoot(
         counts the solved nodes. Vmappable over f and v; differentiable (optimistix's
         implicit adjoint per step).
     """
+    settings = settings_from("shoot", options, n_times=n_times, degree=degree, scheme=scheme)
+    n_times, degree, scheme = settings["n_times"], settings["degree"], settings["scheme"]
     check_scheme(scheme)
     f = as_surface(f, "f")
     if f.ndim != 3:

@@ -32,6 +32,7 @@ from .._geometry.energy import as_path
 from .._geometry.harmonics import check_degree
 from .._geometry.metric import SplitMetric, metric_inner
 from .._geometry.units import units_of
+from .._options import FROM_OPTIONS, FromOptions, ShapeOptions, settings_from
 from .._results import RESULTS, first_failure, unsolved_message
 from .geodesic import basis_np
 from .shooting import as_velocity, check_scheme, default_newton_tol, node_solve
@@ -137,11 +138,12 @@ def parallel_transport(
     path: Float[ArrayLike, "N 3 m n"],
     metric: SplitMetric,
     *,
-    degree: int = 7,
-    scheme: str = "midpoint",
+    degree: int | FromOptions = FROM_OPTIONS,
+    scheme: str | FromOptions = FROM_OPTIONS,
     midpoint: str = "exact",
     tol: float | None = None,
     max_newton: int = 20,
+    options: ShapeOptions | None = None,
 ) -> TransportResult:
     """Carry the tangent vector w at path[0] along the path to path[-1] (Schild's ladder,
     module docstring; the discrete parallel transport of the paper's metric).
@@ -150,15 +152,20 @@ def parallel_transport(
         w: ``(3, m, n)`` a vector at path[0].
         path: ``(N, 3, m, n)`` N >= 2 surfaces, e.g. a geodesic's path or a shot path.
         metric: the split metric coefficients.
-        degree: the surface basis of the midpoint and reflection solves.
-        scheme: the energy's scheme, ``"midpoint"`` or ``"forward"``.
+        degree: the surface basis of the midpoint and reflection solves; default 7.
+        scheme: the energy's scheme, ``"midpoint"`` (default) or ``"forward"``.
         midpoint: ``"exact"`` (the discrete geodesic midpoint, default) or ``"affine"``
             (the coordinates' average; for comparison: it does not converge).
-        tol, max_newton: each Newton solve's tolerance and iteration limit.
+        tol, max_newton: each Newton solve's tolerance and iteration limit (the ladder's
+            own, as in :func:`shoot`).
+        options: a :class:`ShapeOptions` whose degree and scheme are the ones not given
+            as keywords (None: its defaults).
 
     Returns:
         :class:`TransportResult`; a ConvergenceWarning when a solve failed.
     """
+    settings = settings_from("parallel_transport", options, degree=degree, scheme=scheme)
+    degree, scheme = settings["degree"], settings["scheme"]
     check_scheme(scheme)
     check_choice("midpoint", midpoint, ("exact", "affine"))
     path = as_path(path)

@@ -125,7 +125,7 @@ class SphericalParametrization(NamedTuple):
         energy: the final distortion energy per unit area (2 for an isometry, the minimum).
         iterations: L-BFGS iterations in all.
         converged: True when the energy stopped decreasing (relative change below ``rtol``
-            over a round of iterations) before ``max_iter``.
+            over a round of iterations) before ``max_steps``.
         seconds: wall-clock time of the whole parametrization.
     """
 
@@ -149,7 +149,7 @@ class SphericalParametrization(NamedTuple):
 
     @property
     def result(self) -> RESULTS:
-        """``successful``, or ``max_steps_reached`` (the energy still fell at max_iter)."""
+        """``successful``, or ``max_steps_reached`` (the energy still fell at max_steps)."""
         return RESULTS.successful if self.converged else RESULTS.max_steps_reached
 
     @property
@@ -609,7 +609,7 @@ def parametrize(
     faces: np.ndarray,
     *,
     area_weight: float = 0.9,
-    max_iter: int = 20_000,
+    max_steps: int = 20_000,
     rtol: float = 1e-5,
     init: np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
@@ -619,7 +619,7 @@ def parametrize(
     area_weight = check_positive("area_weight", area_weight)
     if not area_weight <= 1:
         raise InputError(f"area_weight must be in (0, 1]; got {area_weight!r}")
-    max_iter = check_int("max_iter", max_iter, 1)
+    max_steps = check_int("max_steps", max_steps, 1)
     rtol = check_positive("rtol", rtol)
     if progress is not None and not callable(progress):
         raise InputError(f"progress must be a callable taking a line of text; got {progress!r}")
@@ -661,8 +661,8 @@ def parametrize(
             dmin = float(jnp.min(_distortion(x, *args[:3], 0.0, area_weight)[0]))
             # A folded start needs a regularized barrier to untangle; an unfolded one barely.
             eps = 2 * np.sqrt(1e-2 * (1e-2 - dmin)) if dmin <= 0 else 1e-8
-            while iterations < max_iter:
-                steps = min(_ROUND, max_iter - iterations)
+            while iterations < max_steps:
+                steps = min(_ROUND, max_steps - iterations)
                 y = jnp.asarray(preconditioner.to_y(np.asarray(x)))
                 solve = _solver(steps, isinstance(preconditioner, _Preconditioner))
                 x, k, dmin, before, after, flips = solve(y, np.int64(token), eps, *args)
@@ -692,15 +692,15 @@ def parametrize(
     if flipped:
         raise ParametrizationError(
             f"the spherical parametrization ended with {flipped} folded face(s) of "
-            f"{len(faces)} after {iterations} iterations (max_iter={max_iter}); raise max_iter "
+            f"{len(faces)} after {iterations} iterations (max_steps={max_steps}); raise max_steps "
             "or remesh the surface (very thin or needle-like triangles)",
             flipped,
         )
     if not converged:
         warnings.warn(
-            f"spherical parametrization: not converged after max_iter={max_iter} iterations "
+            f"spherical parametrization: not converged after max_steps={max_steps} iterations "
             f"(energy {final:.6g}, still falling by more than rtol={rtol:g} per round of "
-            f"{_ROUND}); the map has no folds but is not the energy's minimizer: raise max_iter",
+            f"{_ROUND}); the map has no folds but is not the energy's minimizer: raise max_steps",
             ConvergenceWarning,
             stacklevel=3,
         )

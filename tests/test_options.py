@@ -1,0 +1,102 @@
+"""The options protocol (issue 31): one record, ``ShapeOptions``, holds the path and solver
+settings of every solve; each function that solves takes it as ``options=``, a keyword
+changes one setting, and a limit has one name and one default wherever it appears.
+
+The solves use the 13 x 25 configurations of tests/test_results.py (degree 3, N 5), so
+that the suite's compilation cache already holds their programs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+
+import numpy as np
+import pytest
+
+import elastic_jax as ej
+from elastic_jax import shapes
+from elastic_jax._options import FROM_OPTIONS
+
+M, N = 13, 25
+METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+FAST = ej.ShapeOptions(degree=3, n_times=5)
+FIELDS = {f.name for f in dataclasses.fields(ej.ShapeOptions)}
+# Limits and settings that belong to one algorithm and keep their own meaning (README,
+# "Example"): Newton's tolerance and iterations, the Karcher iteration's, SRNF inversion's.
+OWN = {
+    # geodesic's init is a warm start (coefficients), not the registration's search.
+    "geodesic": {"init"},
+    "shoot": {"tol"},
+    "parallel_transport": {"tol"},
+    "karcher_mean": {"max_steps", "tol", "init"},
+    "srnf_invert": {"max_steps", "tol", "solver"},
+}
+TAKES_OPTIONS = (
+    "geodesic",
+    "shoot",
+    "parallel_transport",
+    "shape_geodesic",
+    "log",
+    "karcher_mean",
+    "distance_matrix",
+)
+
+
+def _pair():
+    return shapes.sample(shapes.sphere, M, N), shapes.sample(shapes.ellipsoid, M, N)
+
+
+@pytest.mark.parametrize("name", TAKES_OPTIONS)
+def test_every_solve_takes_the_record_and_no_keyword_has_a_default_of_its_own(name):
+    parameters = inspect.signature(getattr(ej, name)).parameters
+    assert parameters["options"].default is None
+    shared = (FIELDS & set(parameters)) - OWN.get(name, set())
+    for field in shared:
+        # A second default for a record's field is what made geodesic's step limit 1000
+        # against the record's 500.
+        assert parameters[field].default is FROM_OPTIONS, (name, field)
+
+
+def test_srnf_inversion_keeps_its_own_limits_and_says_so():
+    # Not a record's user: its max_steps and tol bound another objective (the SRNF
+    # mismatch), so the record's values would mean something else there.
+    parameters = inspect.signature(ej.srnf_invert).parameters
+    assert "options" not in parameters
+    assert parameters["max_steps"].default == ej.ShapeOptions().max_steps
+
+
+def test_a_record_and_its_keywords_give_the_same_geodesic():
+    f1, f2 = _pair()
+    by_keywords = ej.geodesic(f1, f2, METRIC, degree=3, n_times=5)
+    by_record = ej.geodesic(f1, f2, METRIC, options=FAST)
+    # A keyword that agrees with the record is accepted.
+    both = ej.geodesic(f1, f2, METRIC, degree=3, options=FAST)
+    for res in (by_record, both):
+        assert float(res.distance) == float(by_keywords.distance)
+        assert int(res.num_steps) == int(by_keywords.num_steps)
+    # The record's step limit is the solve's (test_results.py's capped configuration).
+    with pytest.warns(ej.ConvergenceWarning, match="stopped after 1 steps"):
+        capped = ej.geodesic(f1, f2, METRIC, options=FAST.replace(max_steps=1))
+    assert int(capped.num_steps) == 1 and not bool(capped.converged)
+
+
+def test_a_record_and_its_keywords_give_the_same_shot_path_and_transport():
+    f1, f2 = _pair()
+    v = 0.2 * (f2 - f1)
+    by_keywords = ej.shoot(f1, v, METRIC, degree=3, n_times=5)
+    by_record = ej.shoot(f1, v, METRIC, options=FAST)
+    np.testing.assert_array_equal(np.asarray(by_record.path), np.asarray(by_keywords.path))
+    carried = ej.parallel_transport(v, by_record.path, METRIC, degree=3)
+    carried_by_record = ej.parallel_transport(v, by_record.path, METRIC, options=FAST)
+    np.testing.assert_array_equal(np.asarray(carried_by_record.vector), np.asarray(carried.vector))
+
+
+def test_a_keyword_that_contradicts_the_record_is_refused():
+    f1, f2 = _pair()
+    with pytest.raises(ej.InputError, match=r"degree=5 given as a keyword.*degree=3"):
+        ej.geodesic(f1, f2, METRIC, degree=5, options=FAST)
+    with pytest.raises(ej.InputError, match=r"n_times=7 given as a keyword.*n_times=5"):
+        ej.shoot(f1, f2 - f1, METRIC, n_times=7, options=FAST)
+    with pytest.raises(ej.InputError, match="options must be an elastic_jax.ShapeOptions"):
+        ej.geodesic(f1, f2, METRIC, options={"degree": 3})
