@@ -76,6 +76,14 @@ def main() -> None:
     parser.add_argument("--dtypes", default="float64", help="comma-separated: float64,float32")
     parser.add_argument("--solvers", default="bfgs,lbfgs", help="comma-separated: bfgs,lbfgs")
     args = parser.parse_args()
+    # A wrong name is a usage error (exit 2, one line) before anything compiles.
+    for flag, given, allowed in (
+        ("--dtypes", args.dtypes, ("float64", "float32")),
+        ("--solvers", args.solvers, ("bfgs", "lbfgs")),
+    ):
+        unknown = sorted(set(given.split(",")) - set(allowed))
+        if unknown:
+            parser.error(f"{flag}: unknown {unknown}; choose from {', '.join(allowed)}")
     env = environment()
     rows = [(25, 49, 7, 10)] if args.quick else [(25, 49, 7, 10), (50, 99, 7, 13)]
     for (m, n, degree, n_times), dtype in itertools.product(rows, args.dtypes.split(",")):
