@@ -23,14 +23,13 @@ METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 FAST = ej.ShapeOptions(degree=3, n_times=5)
 FIELDS = {f.name for f in dataclasses.fields(ej.ShapeOptions)}
 # Limits and settings that belong to one algorithm and keep their own meaning (README,
-# "Example"): Newton's tolerance and iterations, the Karcher iteration's, SRNF inversion's.
+# "Example"): Newton's tolerance and iterations, the Karcher iteration's.
 OWN = {
     # geodesic's init is a warm start (coefficients), not the registration's search.
     "geodesic": {"init"},
     "shoot": {"tol"},
     "parallel_transport": {"tol"},
     "karcher_mean": {"max_steps", "tol", "init"},
-    "srnf_invert": {"max_steps", "tol", "solver"},
 }
 TAKES_OPTIONS = (
     "geodesic",
@@ -40,6 +39,8 @@ TAKES_OPTIONS = (
     "log",
     "karcher_mean",
     "distance_matrix",
+    "srnf_invert",
+    "srnf_geodesic",
 )
 
 
@@ -58,12 +59,23 @@ def test_every_solve_takes_the_record_and_no_keyword_has_a_default_of_its_own(na
         assert parameters[field].default is FROM_OPTIONS, (name, field)
 
 
-def test_srnf_inversion_keeps_its_own_limits_and_says_so():
-    # Not a record's user: its max_steps and tol bound another objective (the SRNF
-    # mismatch), so the record's values would mean something else there.
-    parameters = inspect.signature(ej.srnf_invert).parameters
-    assert "options" not in parameters
-    assert parameters["max_steps"].default == ej.ShapeOptions().max_steps
+def test_srnf_inversion_reads_the_record_with_its_own_precision_default():
+    # The record's tol=None is each objective's own precision default: the SRNF
+    # mismatch's is 1e-8 in float64 (inversion_tol), a geodesic's 1e-6.
+    f1, f2 = _pair()
+    q = ej.srnf(f2)
+    by_keywords = ej.srnf_invert(q, degrees=(2,), solver="lbfgs", max_steps=40)
+    by_record = ej.srnf_invert(q, degrees=(2,), options=FAST.replace(solver="lbfgs", max_steps=40))
+    np.testing.assert_array_equal(np.asarray(by_record.surface), np.asarray(by_keywords.surface))
+    assert int(by_record.num_steps) == int(by_keywords.num_steps)
+    default = ej.srnf_invert(q, degrees=(2,))
+    assert float(default.grad_norm) <= 1e-8
+    # A record's tol is a tol: looser than the inversion's own default, fewer steps.
+    loose = ej.srnf_invert(q, degrees=(2,), options=FAST.replace(tol=1e-3))
+    assert 1e-8 < float(loose.grad_norm) <= 1e-3
+    assert int(loose.num_steps) < int(default.num_steps)
+    with pytest.raises(ej.InputError, match=r"srnf_geodesic: n_times=7 given.*n_times=5"):
+        ej.srnf_geodesic(f1, f2, 7, options=FAST)
 
 
 def test_a_record_and_its_keywords_give_the_same_geodesic():

@@ -38,7 +38,7 @@ from .._geometry.grid import integrate_interior, interior_weights_np, sphere_poi
 from .._geometry.harmonics import check_degree
 from .._geometry.srnf import center_unchecked, sqrt_normal, srnf_unchecked, surface_area_unchecked
 from .._geometry.validation import as_surface
-from .._options import SOLVERS
+from .._options import FROM_OPTIONS, SOLVERS, FromOptions, ShapeOptions, settings_from
 from .._results import RESULTS, first_failure, result_message
 from .._runtime.cache import cached
 from .geodesic import basis_np, check_pair, sqrt_inverse_pair
@@ -319,9 +319,10 @@ def srnf_invert(
     *,
     f0: Float[ArrayLike, "3 m n"] | None = None,
     degrees: Sequence[int] = (2, 4, 7),
-    max_steps: int = 500,
-    tol: float | None = None,
-    solver: str = "bfgs",
+    options: ShapeOptions | None = None,
+    max_steps: int | FromOptions = FROM_OPTIONS,
+    tol: float | None | FromOptions = FROM_OPTIONS,
+    solver: str | FromOptions = FROM_OPTIONS,
 ) -> SrnfInversion:
     """A surface whose SRNF is closest to q: min_c ||Q(f0 + sum_j c_j S_j) - q|| (Laga et al.).
 
@@ -346,12 +347,16 @@ def srnf_invert(
             (on the grid) equals ||q||^2, the area q encodes (|Q(f)|^2 is f's area element).
         degrees: strictly increasing degrees of the levels, each at most
             min(m - 3, (n - 3) // 2).
-        max_steps: step limit of each level's solve.
+        options: a :class:`ShapeOptions` whose ``solver``, ``max_steps`` and ``tol`` this
+            solve uses (its defaults when None); the keywords below change one of them.
+        max_steps: step limit of each level's solve (default: the record's, 500).
         tol: converged means the 2-norm of the gradient of the last level's scaled
-            objective is at most tol (:func:`elastic_jax.geodesic`'s convention); default
-            1e-8 in float64, 1e-4 in float32 (:func:`inversion_tol`). Near a zero residual
-            the surface is then accurate to about tol / 2 relative.
-        solver: ``"bfgs"`` (optimistix.BFGS) or ``"lbfgs"`` (jaxopt.LBFGS).
+            objective is at most tol (:func:`elastic_jax.geodesic`'s convention). None
+            (the record's default) is this objective's precision default, 1e-8 in float64
+            and 1e-4 in float32 (:func:`inversion_tol`), tighter than a geodesic's. Near a
+            zero residual the surface is then accurate to about tol / 2 relative.
+        solver: ``"bfgs"`` (optimistix.BFGS) or ``"lbfgs"`` (jaxopt.LBFGS); default the
+            record's.
 
     Returns:
         :class:`SrnfInversion`; a ConvergenceWarning when the last level did not converge.
@@ -364,6 +369,8 @@ def srnf_invert(
         >>> bool(res.relative_residual < 1e-4)
         True
     """
+    settings = settings_from("srnf_invert", options, solver=solver, max_steps=max_steps, tol=tol)
+    solver, max_steps, tol = settings.values()
     q = _check_srnf(q)
     m, n = q.shape[-2:]
     degrees, max_steps, tol = _check_options(degrees, solver, max_steps, tol, m, n, q.dtype)
@@ -403,12 +410,13 @@ def srnf_invert(
 def srnf_geodesic(
     f1: Float[ArrayLike, "3 m n"],
     f2: Float[ArrayLike, "3 m n"],
-    n_times: int = 13,
+    n_times: int | FromOptions = FROM_OPTIONS,
     *,
     degrees: Sequence[int] = (2, 4, 7),
-    max_steps: int = 500,
-    tol: float | None = None,
-    solver: str = "bfgs",
+    options: ShapeOptions | None = None,
+    max_steps: int | FromOptions = FROM_OPTIONS,
+    tol: float | None | FromOptions = FROM_OPTIONS,
+    solver: str | FromOptions = FROM_OPTIONS,
 ) -> SrnfGeodesic:
     """The inverted SRNF straight line: f_k = Q^-1((1 - t_k) q1 + t_k q2) (paper, Table 2: L_i).
 
@@ -423,13 +431,22 @@ def srnf_geodesic(
 
     Args:
         f1, f2: ``(3, m, n)`` immersions on the same grid.
-        n_times: N >= 2 time points, ends included.
-        degrees, max_steps, tol, solver: the inversion options of :func:`srnf_invert`,
-            for every interior node.
+        n_times: N >= 2 time points, ends included (default: the record's, 13).
+        degrees, options, max_steps, tol, solver: the inversion options of
+            :func:`srnf_invert`, for every interior node.
 
     Returns:
         :class:`SrnfGeodesic`; a ConvergenceWarning when a node did not converge.
     """
+    settings = settings_from(
+        "srnf_geodesic",
+        options,
+        n_times=n_times,
+        solver=solver,
+        max_steps=max_steps,
+        tol=tol,
+    )
+    n_times, solver, max_steps, tol = settings.values()
     f1, f2 = check_pair(f1, f2)
     m, n = f1.shape[-2:]
     n_times = check_int("n_times", n_times, 2)
