@@ -177,7 +177,9 @@ def test_the_forward_scheme_stops_at_a_saddle_and_its_escape_is_an_artifact(
     assert float(saddle.min_curvature) < -1.0
     assert bool(saddle.converged)  # 0 reports the estimate only
     unchecked = ej.geodesic(*saddle_pair, METRIC, scheme="forward", saddle_checks=None, **SADDLE)
-    assert float(unchecked.energy) == float(saddle.energy)
+    # The same minimization: the same steps, and the same energy up to the last bits
+    # (two programs, fused differently: measured 1 ulp apart).
+    assert relerr(unchecked.energy, saddle.energy) < 1e-14
     assert int(unchecked.num_steps) == int(saddle.num_steps)
     assert bool(jnp.isnan(unchecked.min_curvature))
     # The escape reaches the forward energy's minimum 26.50, in float64 and float32 alike...

@@ -47,7 +47,7 @@ from .._options import (
     settings_from,
 )
 from .._results import RESULTS, result_message
-from .._runtime.cache import cached
+from .._runtime.cache import cached, solver_jit
 from .solvers import Minimum, lanczos_smallest, minimize
 
 
@@ -289,9 +289,15 @@ def solve_path(
     def checked_minimum(start):
         """Minimize from start; the Lanczos estimate (value, vector) of the end's curvature."""
         found = minimize(objective, start, solver=solver, max_steps=max_steps, tol=tol)
-        # H v = d/de grad(x + e v): the jvp of grad, linearized once so that each Lanczos
-        # step runs only the tangent part, not the gradient at x again.
-        _, hessian_vector = jax.linearize(jax.grad(objective), found.x)
+
+        # H v = d/de grad(x + e v), the jvp of grad at each Lanczos step. Each step also
+        # evaluates the gradient at x again (24 gradients, against the solve's hundreds),
+        # but the program compiles smaller than jax.linearize's, which splits out and
+        # stores the tangent part: the saddle check compiled in 3.2 s instead of 4.2
+        # (12 x 25 cats, degree 5, N 5), the same Ritz value to 15 digits.
+        def hessian_vector(v):
+            return jax.jvp(jax.grad(objective), (found.x,), (v,))[1]
+
         curvature, direction = lanczos_smallest(
             hessian_vector, lanczos_start, iterations=_LANCZOS_ITERATIONS
         )
@@ -354,7 +360,7 @@ def solve_path(
     )
 
 
-_geodesic = jax.jit(
+_geodesic = solver_jit(
     solve_path, static_argnames=("n_times", "solver", "max_steps", "tol", "scheme", "saddle_checks")
 )
 

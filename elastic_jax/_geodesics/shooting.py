@@ -44,6 +44,7 @@ from .._options import (
     settings_from,
 )
 from .._results import RESULTS, first_failure, unsolved_message
+from .._runtime.cache import solver_jit
 from .geodesic import basis_np, safe_sqrt
 
 
@@ -227,7 +228,7 @@ def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
     return path, speeds, residuals, coefficients, newton_steps, n_valid, result
 
 
-_shoot_jit = jax.jit(_shoot, static_argnames=("n_times", "scheme", "tol", "max_newton"))
+_shoot_jit = solver_jit(_shoot, static_argnames=("n_times", "scheme", "tol", "max_newton"))
 
 
 def check_scheme(scheme: str) -> None:

@@ -40,7 +40,7 @@ from .._geometry.srnf import center_unchecked, sqrt_normal, srnf_unchecked, surf
 from .._geometry.validation import as_surface
 from .._options import FROM_OPTIONS, SOLVERS, FromOptions, ShapeOptions, settings_from
 from .._results import RESULTS, first_failure, result_message
-from .._runtime.cache import cached
+from .._runtime.cache import cached, solver_jit
 from .geodesic import basis_np, check_pair, sqrt_inverse_pair
 from .solvers import minimize
 
@@ -220,10 +220,10 @@ def _invert(q, f0, values, dframe, *, degrees, solver, max_steps, tol):
 
 
 _STATIC = ("degrees", "solver", "max_steps", "tol")
-_invert_jit = jax.jit(_invert, static_argnames=_STATIC)
+_invert_jit = solver_jit(_invert, static_argnames=_STATIC)
 
 
-@functools.partial(jax.jit, static_argnames=("n_times", *_STATIC))
+@functools.partial(solver_jit, static_argnames=("n_times", *_STATIC))
 def _srnf_line(q1, q2, f1, values, dframe, *, n_times, degrees, solver, max_steps, tol):
     """Interior nodes of the inverted straight line, each warm-started from the previous."""
     times = jnp.linspace(0.0, 1.0, n_times, dtype=q1.dtype)[1:-1]

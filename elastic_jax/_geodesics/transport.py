@@ -34,6 +34,7 @@ from .._geometry.metric import SplitMetric, metric_inner
 from .._geometry.units import units_of
 from .._options import FROM_OPTIONS, FromOptions, ShapeOptions, settings_from
 from .._results import RESULTS, first_failure, unsolved_message
+from .._runtime.cache import solver_jit
 from .geodesic import basis_np
 from .shooting import as_velocity, check_scheme, default_newton_tol, node_solve
 
@@ -130,7 +131,7 @@ def _ladder(metric, w, path, values, dframe, *, scheme, midpoint, tol, max_newto
     return vectors, norms, residuals, n_valid, jnp.sum(steps), first_failure(results, ok)
 
 
-_ladder_jit = jax.jit(_ladder, static_argnames=("scheme", "midpoint", "tol", "max_newton"))
+_ladder_jit = solver_jit(_ladder, static_argnames=("scheme", "midpoint", "tol", "max_newton"))
 
 
 def parallel_transport(

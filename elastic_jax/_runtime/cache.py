@@ -32,8 +32,10 @@ from .atomic import atomic_path
 # (about 2000 fusions) they hold about 780 MB more while compiling (peak RSS 1445 MB
 # against 664 MB, 25 x 49 at the defaults) and compile slower (XLA's part of the low
 # row's first call 15.7 s against 12.6 s), for code no faster (bench_shape's synthetic
-# pair, middle row: 3.0-3.2 s against 2.5 s). Given to the large solver programs only
-# (solver_jit), never to JAX's configuration.
+# pair, middle row: 3.0-3.2 s against 2.5 s). The same for one geodesic (the cats at
+# 25 x 49, degree 7, N 13: compile 10.4 -> 7.9 s, the solve 3.0 s both). Given to the
+# large solver programs only (solver_jit: the shape solve's phases, the batches, geodesic,
+# shoot, parallel_transport, srnf_invert), never to JAX's configuration.
 _CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 # Added for programs that run for milliseconds once per solve (solver_jit(quick=True)):
 # LLVM's optimizations cost more than they save there. The shape solve's last phase (the
