@@ -258,8 +258,12 @@ def solve_path(
     scheme,
     saddle_checks=None,
     frames=None,
+    step_cap=None,
 ):
     """One parametrized geodesic (traceable; the jitted entry point is ``_geodesic``).
+
+    max_steps, tol, step_cap: as in :func:`minimize` (each solve of the saddle loop gets
+    the same limits).
 
     frames: the ends' differentials (start, end), each (a1, a2) on the interior points,
     when they are not the central differences of f1 and f2 (shape_geodesic's chain rule).
@@ -288,7 +292,9 @@ def solve_path(
 
     def checked_minimum(start):
         """Minimize from start; the Lanczos estimate (value, vector) of the end's curvature."""
-        found = minimize(objective, start, solver=solver, max_steps=max_steps, tol=tol)
+        found = minimize(
+            objective, start, solver=solver, max_steps=max_steps, tol=tol, step_cap=step_cap
+        )
 
         # H v = d/de grad(x + e v), the jvp of grad at each Lanczos step. Each step also
         # evaluates the gradient at x again (24 gradients, against the solve's hundreds),
@@ -323,7 +329,9 @@ def solve_path(
         return (rounds == 0) | ((rounds <= saddle_checks) & (curvature < threshold))
 
     if saddle_checks is None:
-        found = minimize(objective, x0, solver=solver, max_steps=max_steps, tol=tol)
+        found = minimize(
+            objective, x0, solver=solver, max_steps=max_steps, tol=tol, step_cap=step_cap
+        )
         num_steps = found.num_steps
         curvature = jnp.full((), jnp.nan, dtype)
     elif saddle_checks == 0:
@@ -360,8 +368,32 @@ def solve_path(
     )
 
 
+def _solve_path_any_limits(
+    metric, f1, f2, init, values, dframe, max_steps, tol, *, n_times, solver, scheme, saddle_checks
+):
+    """solve_path with the step limit and tolerance traced (int32 and float scalars): the
+    geodesics of one grid, basis and solver compile once, whatever limits they are given
+    (the suite's solves of one configuration with other limits compiled anew, 11-34 s
+    each on 2 cores). The iterates are those of a solve with these limits as constants."""
+    return solve_path(
+        metric,
+        f1,
+        f2,
+        init,
+        values,
+        dframe,
+        n_times=n_times,
+        solver=solver,
+        max_steps=None,
+        tol=tol,
+        scheme=scheme,
+        saddle_checks=saddle_checks,
+        step_cap=max_steps,
+    )
+
+
 _geodesic = solver_jit(
-    solve_path, static_argnames=("n_times", "solver", "max_steps", "tol", "scheme", "saddle_checks")
+    _solve_path_any_limits, static_argnames=("n_times", "solver", "scheme", "saddle_checks")
 )
 
 
@@ -633,10 +665,10 @@ def geodesic(
         jax.lax.stop_gradient(init),
         values,
         dframe,
+        jnp.asarray(max_steps, jnp.int32),
+        jnp.asarray(tol, f1.dtype),
         n_times=n_times,
         solver=solver,
-        max_steps=max_steps,
-        tol=float(tol),
         scheme=scheme,
         saddle_checks=saddle_checks,
     )

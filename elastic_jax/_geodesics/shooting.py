@@ -228,7 +228,8 @@ def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
     return path, speeds, residuals, coefficients, newton_steps, n_valid, result
 
 
-_shoot_jit = solver_jit(_shoot, static_argnames=("n_times", "scheme", "tol", "max_newton"))
+# tol is traced (a scalar array): shots that differ only in it share one program.
+_shoot_jit = solver_jit(_shoot, static_argnames=("n_times", "scheme", "max_newton"))
 
 
 def check_scheme(scheme: str) -> None:
@@ -306,7 +307,7 @@ def shoot(
         dframe,
         n_times=n_times,
         scheme=scheme,
-        tol=float(tol),
+        tol=jnp.asarray(tol, g.dtype),
         max_newton=max_newton,
     )
     path = units.restore(path).at[0].set(f)

@@ -47,9 +47,9 @@ class _GradientBFGS(optx.BFGS):
     accepted point (optimistix's own rule, on changes of y and f, is kept at rounding
     level, rtol = atol = 100 eps, so that a solve that cannot move stops there)."""
 
-    gtol: float
+    gtol: float | Array  # traced when one compiled solve serves several tolerances
 
-    def __init__(self, gtol: float, rounding: float):
+    def __init__(self, gtol: float | Array, rounding: float):
         super().__init__(rtol=rounding, atol=rounding)
         self.gtol = gtol
 
@@ -61,9 +61,9 @@ class _GradientBFGS(optx.BFGS):
 
 class _Capped(optx.AbstractMinimiser):
     """A minimiser stopped after ``args`` steps (the solve's args carry the cap): a traced
-    cap, at most the static ``max_steps``, so that one compiled solve serves solves of
-    different lengths. It stops exactly where a solve with ``max_steps = cap`` stops (the
-    same iterates, result code and step count)."""
+    cap, at most the static ``max_steps`` (None: no bound but the cap), so that one
+    compiled solve serves solves of different lengths. It stops exactly where a solve with
+    ``max_steps = cap`` stops (the same iterates, result code and step count)."""
 
     inner: optx.AbstractMinimiser
     rtol: float
@@ -111,8 +111,8 @@ def minimize(
     x0,
     *,
     solver: str,
-    max_steps: int,
-    tol: float,
+    max_steps: int | None,
+    tol: float | Array,
     step_cap: Array | None = None,
 ) -> Minimum:
     """Minimize a smooth scalar function of one array (traceable, vmappable).
@@ -132,11 +132,17 @@ def minimize(
     ``step_cap`` (an int array, at most ``max_steps``; None: ``max_steps``) stops the
     solve after that many steps as if it were ``max_steps``, but traced: call sites that
     differ only in their step limit can share one solve, and with it one compiled copy of
-    the objective and its gradient.
+    the objective and its gradient. ``max_steps`` None (only with a step_cap): no static
+    bound at all, so that the cap alone limits the solve.
+
+    ``tol`` may be traced too (a scalar array): it is a threshold the loop compares with,
+    never a shape, so one compiled solve serves every tolerance.
     """
     check_solver(solver)
     if step_cap is not None:
         step_cap = jnp.asarray(step_cap, jnp.int32)
+    elif max_steps is None:
+        raise ValueError("minimize: max_steps=None needs a step_cap")
     if solver == "bfgs":
         rounding = 100 * float(jnp.finfo(jax.tree_util.tree_leaves(x0)[0].dtype).eps)
         bfgs = _GradientBFGS(gtol=tol, rounding=rounding)
@@ -159,7 +165,9 @@ def minimize(
             x, state = _jaxopt().LBFGS(fun=fun, maxiter=max_steps, tol=tol).run(x0)
             cut = state.iter_num >= max_steps
         else:
-            capped = _capped_lbfgs()(fun=lambda x, step_cap: fun(x), maxiter=max_steps, tol=tol)
+            # jaxopt's loop bound may be traced; the cap is the bound that matters here.
+            bound = step_cap if max_steps is None else max_steps
+            capped = _capped_lbfgs()(fun=lambda x, step_cap: fun(x), maxiter=bound, tol=tol)
             x, state = capped.run(x0, step_cap=step_cap)
             cut = state.iter_num >= step_cap.astype(state.iter_num.dtype)
         # jaxopt stops silently at maxiter; its other stops are judged below.

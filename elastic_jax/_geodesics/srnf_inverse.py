@@ -167,7 +167,10 @@ def _invert_level(q_inner, norm2, f0_frames, c0, dframe, *, solver, max_steps, t
         d = q_of(c0 + whiten @ z) - q_inner
         return _srnf_norm2(d) / norm2
 
-    found = minimize(objective, jnp.zeros_like(c0), solver=solver, max_steps=max_steps, tol=tol)
+    # max_steps and tol are traced scalars (see _STATIC): the step limit is a cap.
+    found = minimize(
+        objective, jnp.zeros_like(c0), solver=solver, max_steps=None, tol=tol, step_cap=max_steps
+    )
     c = c0 + whiten @ found.x
     residual = jnp.sqrt(_srnf_norm2(q_of(c) - q_inner))
     return c, residual, found
@@ -219,7 +222,9 @@ def _invert(q, f0, values, dframe, *, degrees, solver, max_steps, tol):
     )
 
 
-_STATIC = ("degrees", "solver", "max_steps", "tol")
+# The step limit and tol are traced (int32 and float scalars): inversions that differ
+# only in them share one compiled program.
+_STATIC = ("degrees", "solver")
 _invert_jit = solver_jit(_invert, static_argnames=_STATIC)
 
 
@@ -394,8 +399,8 @@ def srnf_invert(
         dframe,
         degrees=degrees,
         solver=solver,
-        max_steps=max_steps,
-        tol=float(tol),
+        max_steps=jnp.asarray(max_steps, jnp.int32),
+        tol=jnp.asarray(tol, q.dtype),
     )
     found = found._replace(
         surface=found.surface * scale,
@@ -468,8 +473,8 @@ def srnf_geodesic(
             n_times=n_times,
             degrees=degrees,
             solver=solver,
-            max_steps=max_steps,
-            tol=float(tol),
+            max_steps=jnp.asarray(max_steps, jnp.int32),
+            tol=jnp.asarray(tol, f1.dtype),
         )
         ti = t[1:-1, None, None, None]
         # Q fixes no translation: carry the ends' centroids along the line.

@@ -131,7 +131,8 @@ def _ladder(metric, w, path, values, dframe, *, scheme, midpoint, tol, max_newto
     return vectors, norms, residuals, n_valid, jnp.sum(steps), first_failure(results, ok)
 
 
-_ladder_jit = solver_jit(_ladder, static_argnames=("scheme", "midpoint", "tol", "max_newton"))
+# tol is traced (a scalar array): ladders that differ only in it share one program.
+_ladder_jit = solver_jit(_ladder, static_argnames=("scheme", "midpoint", "max_newton"))
 
 
 def parallel_transport(
@@ -189,7 +190,7 @@ def parallel_transport(
         dframe,
         scheme=scheme,
         midpoint=midpoint,
-        tol=float(tol),
+        tol=jnp.asarray(tol, path.dtype),
         max_newton=max_newton,
     )
     vectors, norms = vectors * s, norms * s
