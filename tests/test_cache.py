@@ -7,6 +7,7 @@ import sys
 
 import jax
 import jax.numpy as jnp
+import pytest
 
 from .conftest import traced_functions
 
@@ -225,6 +226,7 @@ def test_the_shape_solve_phases_are_rebuilt_with_their_own_structures():
             carried = (out,)
 
 
+@pytest.mark.slow
 def test_the_solve_in_phases_is_the_solve_in_one_program():
     """The compiled phases compute what the one-program solve computes (the program a
     caller's batch compiles): every field of the result, on a pair that takes rounds.

@@ -104,7 +104,7 @@ def test_jit_matches_eager_and_vmap_matches_a_loop():
     )
 
 
-@pytest.mark.parametrize("scheme", ["forward", "central"])
+@pytest.mark.parametrize("scheme", [pytest.param("forward", marks=pytest.mark.slow), "central"])
 def test_gradient_matches_finite_differences(scheme):
     """Derivatives along well-formed perturbations of the interior frames (poles stay constant)."""
     path = _small_path(4)

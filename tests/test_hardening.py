@@ -111,6 +111,7 @@ def test_float32_matches_float64_at_every_scale(scale):
     np.testing.assert_array_equal(d64.path[0], f1)  # the ends are the inputs exactly
 
 
+@pytest.mark.slow
 def test_tol_means_the_gradient_norm_for_both_solvers():
     results = {
         (solver, tol): ej.geodesic(F1, F2, METRIC, degree=3, n_times=5, solver=solver, tol=tol)

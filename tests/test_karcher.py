@@ -69,6 +69,7 @@ def test_concentric_spheres_mean_is_the_mean_radius():
     assert res.num_steps == 1 and res.num_solves == 2  # one step, accepted at once
 
 
+@pytest.mark.slow
 def test_karcher_mean_of_moved_concentric_spheres_modulo_rigid():
     spheres = _moved_spheres()
     res = ej.karcher_mean(spheres, METRIC, modulo="rigid", options=SHAPE, strategy="loop")

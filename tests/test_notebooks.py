@@ -37,6 +37,7 @@ def _run(name: str) -> tuple[dict, int]:
     return json.loads(text[-1].strip().splitlines()[-1]), figures
 
 
+@pytest.mark.slow
 def test_parametrized_geodesic_notebook():
     out, figures = _run("01_parametrized_geodesic")
     assert figures == 1
@@ -46,6 +47,7 @@ def test_parametrized_geodesic_notebook():
     assert out["stiff"] > out["soft"]  # bending costs more when c is larger
 
 
+@pytest.mark.slow
 def test_shape_geodesic_notebook():
     out, figures = _run("02_shape_geodesic")
     assert figures == 2
@@ -54,6 +56,7 @@ def test_shape_geodesic_notebook():
     assert out["rigid_shape"] < out["rigid_parametrized"]
 
 
+@pytest.mark.slow
 def test_karcher_mean_notebook():
     out, figures = _run("03_karcher_mean")
     assert figures == 2
@@ -74,6 +77,7 @@ def test_any_mesh_notebook():
     assert out["area_bound"] <= out["shape"] < out["parametrized"]
 
 
+@pytest.mark.slow
 def test_statistics_notebook():
     out, figures = _run("05_statistics")
     assert figures == 2  # the modes, then A, A', B, B'

@@ -58,7 +58,7 @@ def bumpy_pair():
     return shapes.sample(shapes.bumpy, M, N), shapes.sample(shapes.bumpy, M, N, rotation=h), h
 
 
-@pytest.mark.parametrize("modulo", ["diff", "rigid"])
+@pytest.mark.parametrize("modulo", ["diff", pytest.param("rigid", marks=pytest.mark.slow)])
 def test_concentric_spheres_modulo_shape(modulo):
     # MATH.md 9: d = sqrt(8 pi b) |r2 - r1| modulo anything. The forward scheme gave 7.17
     # (-29 %) here and 6.18 at 13 x 25: the registration exploited large time steps.
@@ -118,7 +118,14 @@ def test_refinement_of_a_synthetic_pair(bumpy_pair):
     assert float(res.distance) < 0.7 * float(res.parametrized_distance)
 
 
-@pytest.mark.parametrize("phi", ["moebius 0.3", "moebius 0.6", "diff steps"])
+@pytest.mark.parametrize(
+    "phi",
+    [
+        "moebius 0.3",
+        pytest.param("moebius 0.6", marks=pytest.mark.slow),
+        pytest.param("diff steps", marks=pytest.mark.slow),
+    ],
+)
 def test_self_recovery_on_a_synthetic_shape(bumpy_pair, phi):
     # MATH.md 9: d(f, f o phi) = 0. Registration must find phi from scratch: a Moebius
     # map (areas stretched up to 16 times at |a| = 0.6) or two large Diff steps
@@ -136,7 +143,14 @@ def test_self_recovery_on_a_synthetic_shape(bumpy_pair, phi):
 
 
 @pytest.mark.data
-@pytest.mark.parametrize("phi", ["moebius 0.3", "moebius 0.6", "diff steps"])
+@pytest.mark.parametrize(
+    "phi",
+    [
+        "moebius 0.3",
+        pytest.param("moebius 0.6", marks=pytest.mark.slow),
+        pytest.param("diff steps", marks=pytest.mark.slow),
+    ],
+)
 def test_self_recovery_on_cat1(phi):
     # f o phi reads f's own interpolant (bicubic), the surface the registration works on.
     points = ej.sphere_points(M, N)
@@ -151,6 +165,7 @@ def test_self_recovery_on_cat1(phi):
     assert float(res.distance) <= 0.15 * float(reference.distance)
 
 
+@pytest.mark.slow
 def test_a_reparametrization_the_grid_cannot_resolve_is_not_called_converged():
     # MATH.md 9: d(f, f o phi) = 0. At 13 x 25 the grid resolves Moebius maps up to |a| =
     # 0.65 (_resolution_np); past that the registration stops at the area floor with the
@@ -181,6 +196,7 @@ def test_a_reparametrization_the_grid_cannot_resolve_is_not_called_converged():
 
 
 @pytest.mark.data
+@pytest.mark.slow
 def test_refinement_on_the_cats(capsys):
     # The cats are under-resolved at 25 x 49: their straight line's energy rises by 24 %
     # on the 49 x 97 grid (the same interpolated surfaces). The registered result's
@@ -208,6 +224,7 @@ def test_refinement_on_the_cats(capsys):
     assert 0 < gap <= par_gap
 
 
+@pytest.mark.slow
 def test_joint_and_coordinate_descent_agree(bumpy_pair):
     f1, _, h = bumpy_pair
     stretch = jnp.asarray([1.3, 1.0, 0.8])
@@ -377,6 +394,7 @@ def test_self_recovery_on_the_shared_shapes_at_their_grid(name):
     assert bool(res.converged)
 
 
+@pytest.mark.slow
 def test_the_start_search_finds_a_rotation_and_a_moebius_map():
     # MATH.md 9 on the synthetic shape at 13 x 25 (the configuration of tests/test_cli.py):
     # f against f o h o phi_a (h a rotation of the parameter sphere, |a| = 0.37), modulo
@@ -446,6 +464,7 @@ def test_the_chain_rule_differential_converges_where_grid_differences_cut_corner
     np.testing.assert_allclose(frame, interior_frame(f), rtol=0, atol=scale)
 
 
+@pytest.mark.slow
 def test_chain_differential_keeps_the_spheres_closed_form_and_identity():
     # MATH.md 9 under differential="chain": the moved unit sphere against the translated
     # radius-3 sphere, modulo rigid: sqrt(8 pi b) |r2 - r1| within 2 %;
@@ -485,6 +504,7 @@ def test_a_given_identity_start_is_init_none():
     np.testing.assert_array_equal(given.gamma, searched.gamma)
 
 
+@pytest.mark.slow
 def test_a_coarse_solve_starts_the_finer_grid():
     # Multiresolution in grid (paper section 5): f against f o h o phi_a solved at 13 x 25,
     # its gamma read at the 25 x 49 grid's points as the start there. The coarse gamma is

@@ -141,7 +141,15 @@ def shared_map(name: str):
 
 
 @pytest.mark.data
-@pytest.mark.parametrize("name", ["cat1", "cat2", "horse0", "hand4"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param("cat1", marks=pytest.mark.slow),
+        "cat2",
+        pytest.param("horse0", marks=pytest.mark.slow),
+        "hand4",
+    ],
+)
 def test_shared_surfaces_map_without_folds_and_resample_closely(name):
     mesh, par = shared_map(name)
     assert io.star_center(mesh) is None  # radial projection cannot do these
@@ -161,6 +169,7 @@ def test_shared_surfaces_map_without_folds_and_resample_closely(name):
 
 
 @pytest.mark.data
+@pytest.mark.slow
 def test_resampled_cats_are_as_close_as_the_originals():
     # The authors' own parametrizations against ours, at 25 x 49, modulo Diff: our
     # resampling must not add distance (measured 0.66x, 1.23x and 0.65x of d(cat1, cat2)

@@ -67,6 +67,7 @@ print(json.dumps(out))
 """
 
 
+@pytest.mark.slow
 def test_the_annotations_hold_at_runtime(capsys, monkeypatch):
     run = subprocess.run(
         [sys.executable, "-c", SCRIPT, "checked", str(COMPILATION_CACHE)],
