@@ -368,32 +368,12 @@ def solve_path(
     )
 
 
-def _solve_path_any_limits(
-    metric, f1, f2, init, values, dframe, max_steps, tol, *, n_times, solver, scheme, saddle_checks
-):
-    """solve_path with the step limit and tolerance traced (int32 and float scalars): the
-    geodesics of one grid, basis and solver compile once, whatever limits they are given
-    (the suite's solves of one configuration with other limits compiled anew, 11-34 s
-    each on 2 cores). The iterates are those of a solve with these limits as constants."""
-    return solve_path(
-        metric,
-        f1,
-        f2,
-        init,
-        values,
-        dframe,
-        n_times=n_times,
-        solver=solver,
-        max_steps=None,
-        tol=tol,
-        scheme=scheme,
-        saddle_checks=saddle_checks,
-        step_cap=max_steps,
-    )
-
-
+# The step limit is a traced cap and tol a traced scalar (keywords step_cap and tol):
+# the geodesics of one grid, basis and solver compile once, whatever limits they are
+# given (the suite's solves with other limits each compiled anew, 11-34 s on 2 cores).
 _geodesic = solver_jit(
-    _solve_path_any_limits, static_argnames=("n_times", "solver", "scheme", "saddle_checks")
+    functools.partial(solve_path, max_steps=None),
+    static_argnames=("n_times", "solver", "scheme", "saddle_checks"),
 )
 
 
@@ -665,8 +645,8 @@ def geodesic(
         jax.lax.stop_gradient(init),
         values,
         dframe,
-        jnp.asarray(max_steps, jnp.int32),
-        jnp.asarray(tol, f1.dtype),
+        step_cap=jnp.asarray(max_steps, jnp.int32),
+        tol=jnp.asarray(tol, f1.dtype),
         n_times=n_times,
         solver=solver,
         scheme=scheme,
