@@ -63,6 +63,8 @@ from ._runtime.cache import clear_caches as clear_caches
 from ._runtime.cache import enable_compilation_cache as enable_compilation_cache
 from ._statistics.distances import DistanceMatrixResult as DistanceMatrixResult
 from ._statistics.distances import distance_matrix as distance_matrix
+from ._statistics.fit import MetricFit as MetricFit
+from ._statistics.fit import fit_metric as fit_metric
 from ._statistics.karcher import KarcherResult as KarcherResult
 from ._statistics.karcher import karcher_mean as karcher_mean
 from ._statistics.log import LogResult as LogResult
@@ -70,6 +72,8 @@ from ._statistics.log import log as log
 from ._statistics.pca import TangentPCA as TangentPCA
 from ._statistics.pca import mode_path as mode_path
 from ._statistics.pca import tangent_pca as tangent_pca
+from ._statistics.retrieval import RetrievalScores as RetrievalScores
+from ._statistics.retrieval import retrieval_scores as retrieval_scores
 
 _SUBMODULES = ("cli", "io", "plot")
 

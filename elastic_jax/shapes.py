@@ -21,10 +21,19 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._errors import InputError
 from ._geometry.grid import sphere_points
 from ._geometry.reparam import moebius as _moebius_map
 
-__all__ = ["sphere", "ellipsoid", "bumpy", "bent_cylinder", "sample", "random_rotation"]
+__all__ = [
+    "sphere",
+    "ellipsoid",
+    "bumpy",
+    "bent_cylinder",
+    "sample",
+    "random_rotation",
+    "two_classes",
+]
 
 
 def sphere(x: Float[ArrayLike, "3 ..."], radius: float = 1.0) -> Float[Array, "3 ..."]:
@@ -127,3 +136,58 @@ def random_rotation(seed: int) -> np.ndarray:
     if np.linalg.det(q) < 0:
         q[:, 0] = -q[:, 0]
     return q
+
+
+# The families of two_classes: what separates the classes, and what varies in both.
+FAMILIES = ("bending", "elongation")
+
+
+def two_classes(
+    family: str, count: int, m: int, n: int, seed: int = 0
+) -> tuple[Float[np.ndarray, "K 3 m n"], np.ndarray]:
+    """Two classes of surfaces that one kind of deformation separates while another varies
+    at random in both: a test of learning the metric from data (:func:`elastic_jax.fit_metric`).
+
+    - ``"bending"``: bent cylinders (:func:`bent_cylinder`) of curvature 0.2 (class 0) or
+      0.4 (class 1), each +-0.03; half-length uniform in [0.8, 2] and radius in [0.3, 0.7]
+      (the nuisance is stretching: length and thickness). The split metric weighs bending
+      with c; the default (1, 1, 0.1, 0) weighs the nuisance more.
+    - ``"elongation"``: spheroids elongated at fixed volume, semi-axes
+      (z^-1/2, z^-1/2, z) with z = 1 (class 0) or 1.15 (class 1), each times
+      exp(+-0.03); every surface scaled by exp(u), u uniform in [-0.6, 0.6] (the nuisance
+      is change of volume, the b term; the signal is mostly shear, the a term).
+
+    Every surface is sampled on one parametrization (no rotation): modulo="none" compares
+    them as they correspond.
+
+    Args:
+        family: ``"bending"`` or ``"elongation"``.
+        count: surfaces, alternately class 0 and class 1.
+        m, n: grid size; seed: the random draw.
+
+    Returns:
+        surfaces ``(count, 3, m, n)`` (numpy float64; computed in JAX's default float) and
+        labels ``(count,)`` (0 or 1).
+    """
+    if family not in FAMILIES:
+        raise InputError(f"family must be one of {FAMILIES}; got {family!r}")
+    rng = np.random.default_rng(seed)
+    labels = np.arange(count) % 2
+    out = []
+    x = np.asarray(sphere_points(m, n), np.float64)
+    for label in labels:
+        if family == "bending":
+            f = sample(
+                bent_cylinder,
+                m,
+                n,
+                curvature=(0.2, 0.4)[label] + rng.uniform(-0.03, 0.03),
+                half_length=rng.uniform(0.8, 2.0),
+                radius=rng.uniform(0.3, 0.7),
+            )
+        else:
+            z = (1.0, 1.15)[label] * np.exp(rng.uniform(-0.03, 0.03))
+            size = np.exp(rng.uniform(-0.6, 0.6))
+            f = size * x * np.array([z**-0.5, z**-0.5, z])[:, None, None]
+        out.append(np.asarray(f, np.float64))
+    return np.stack(out), labels

@@ -554,3 +554,35 @@ def test_pca_and_shoot_equal_the_library_and_compose(tmp_path, capsys, monkeypat
     sigma = float(np.sqrt(pca.variances[0]))
     assert summary["length"] == pytest.approx(2 * sigma, rel=0.05)
     assert summary["converged"] is True and len(summary["speeds"]) == 3
+
+
+def test_fit_metric_equals_the_library_and_scores_the_held_out_files(tmp_path, capsys):
+    """fit-metric over files with a labels file (name,label lines) and a held-out split:
+    the coefficients are fit_metric's, the held-out scores retrieval_scores' of
+    distance_matrix at the start and the fitted metric."""
+    kinds = [(0.1, 1.0), (0.1, 1.4), (0.5, 1.0), (0.5, 1.4), (0.12, 1.2), (0.45, 1.2)]
+    f = [shapes.sample(shapes.bent_cylinder, M, N, curvature=k, half_length=h) for k, h in kinds]
+    files = [_save(tmp_path, f"s{i}.npz", x) for i, x in enumerate(f)]
+    labels = ["straight", "straight", "bent", "bent", "straight", "bent"]
+    # name,label lines in another order than the files.
+    (tmp_path / "labels.csv").write_text("".join(f"s{i},{labels[i]}\n" for i in (3, 1, 0, 2)))
+    test_labels = [labels[i] for i in (0, 2, 4, 5)]
+    (tmp_path / "test.txt").write_text("\n".join(test_labels) + "\n")
+    argv = ["fit-metric", *files[:4], "--labels", str(tmp_path / "labels.csv"), "--modulo"]
+    argv += ["none", "--strategy", "loop", "--test", files[0], files[2], files[4], files[5]]
+    argv += ["--test-labels", str(tmp_path / "test.txt"), *SMALL, "--out", str(tmp_path / "o")]
+    code = cli.main(argv)
+    summary = json.loads(capsys.readouterr().out)
+    assert code == 0, summary["message"]
+    small = {"modulo": "none", "options": ej.ShapeOptions(degree=3, n_times=5), "strategy": "loop"}
+    fit = ej.fit_metric(np.stack(f[:4]), labels[:4], **small)
+    got = [summary["metric"][c] for c in "abcd"]
+    np.testing.assert_allclose(got, [getattr(fit.metric, c) for c in "abcd"], rtol=1e-9)
+    held = np.stack([f[0], f[2], f[4], f[5]])
+    for name, metric in (("before", fit.initial_metric), ("after", fit.metric)):
+        d = ej.distance_matrix(held, metric, **small)
+        assert summary["held_out_scores"][name] == pytest.approx(
+            ej.retrieval_scores(d.distances, test_labels)._asdict()
+        )
+    saved = np.load(tmp_path / "o" / "fit_metric.npz")
+    np.testing.assert_allclose(saved["distances"], fit.distances, rtol=1e-9)

@@ -3,6 +3,7 @@ equal the in-process ones, and a worker killed mid-job costs nothing but time.""
 
 import os
 import signal
+import warnings
 
 import jax.numpy as jnp
 import numpy as np
@@ -93,6 +94,21 @@ def test_a_killed_worker_has_its_task_rerun(client, tmp_path):
     np.testing.assert_allclose(saved["values"], here.distances[np.triu_indices(4, 1)], rtol=1e-9)
     client.wait_for_workers(2, timeout=120)  # the nanny restarted the killed one
     assert pids[0] not in client.run(os.getpid).values()
+
+
+@pytest.mark.slow
+def test_fit_metric_on_the_cluster_equals_the_in_process_fit(client):
+    coll, labels = shapes.two_classes("bending", 4, M, N, seed=3)
+    kwargs = {"modulo": "none", "options": FAST, "strategy": "map", "batch_size": 2}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        here = ej.fit_metric(coll, labels, max_steps=2, **kwargs)
+        there = ej.fit_metric(coll, labels, max_steps=2, client=client, **kwargs)
+    assert int(there.num_steps) == int(here.num_steps) >= 1
+    for c in "abcd":
+        assert getattr(there.metric, c) == pytest.approx(getattr(here.metric, c), rel=1e-9)
+    np.testing.assert_allclose(there.history, here.history, rtol=1e-9)
+    np.testing.assert_allclose(there.distances, here.distances, rtol=1e-9)
 
 
 def test_bad_clients_are_refused():

@@ -103,3 +103,16 @@ def test_statistics_notebook():
     np.testing.assert_allclose(ratio_a, [np.log(1.25), 0.0, 0.0], atol=1e-12)
     assert abs(ratio_b[0] - ratio_a[0]) <= 0.06
     assert np.max(np.abs(ratio_b[1:])) <= 0.08
+
+
+@pytest.mark.slow
+def test_fit_metric_notebook():
+    out, figures = _run("06_fit_metric")
+    assert figures == 2  # six of the shapes, then the two distance matrices
+    assert out["converged"]
+    assert out["objective_after"] < out["objective_before"]
+    # Held out: the fitted metric classifies the bending family, the default does not.
+    assert out["fitted_nn"] >= 0.9 and out["fitted_nn"] >= out["default_nn"] + 0.15
+    assert out["fitted_first_tier"] > out["default_first_tier"]
+    # Bending is the signal: the fitted metric weighs it most.
+    assert out["metric"][2] > max(out["metric"][:2])

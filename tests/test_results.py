@@ -99,6 +99,21 @@ def _distance_matrix():
     return res, sum(int(s.num_steps) for s in singles)
 
 
+def _fit_metric(**changes):
+    coll = jnp.stack(
+        [
+            shapes.sample(shapes.bent_cylinder, M, N, curvature=k, half_length=h)
+            for k, h in [(0.1, 1.0), (0.1, 1.4), (0.5, 1.0), (0.5, 1.4)]
+        ]
+    )
+    res = _quiet(
+        lambda: ej.fit_metric(
+            coll, [0, 0, 1, 1], modulo="none", options=FAST, strategy="loop", **changes
+        )
+    )
+    return res, None
+
+
 def _sphere_map():
     import trimesh
 
@@ -126,6 +141,8 @@ CASES = {
     "karcher_mean capped": (lambda: _karcher(max_steps=0), "max_steps_reached"),
     "distance_matrix": (_distance_matrix, "successful"),
     "spherical_parametrization": (_sphere_map, "successful"),
+    "fit_metric": (_fit_metric, "successful"),
+    "fit_metric capped": (lambda: _fit_metric(max_steps=0), "nonlinear_max_steps_reached"),
 }
 
 

@@ -186,24 +186,25 @@ def _cached_line() -> int:
 # of moving code (issue 31: the tree may change, these names may not).
 PUBLIC = {
     "elastic_jax": """ConvergenceWarning DistanceMatrixResult GeodesicResult InputError
-        KarcherResult LogResult RESULTS Refinement ShapeGeodesicResult ShapeOptions
-        ShootingResult SphericalHarmonics SplitMetric SrnfGeodesic SrnfInversion TangentPCA
-        TransportResult base_inner center clear_caches diffeomorphism diffeomorphism_bound
-        differential distance_matrix elastic_metric_inner enable_compilation_cache exp geodesic
-        grid_angles hat icosahedral_group integrate jacobian_determinant karcher_mean log
-        max_degree metric_inner mode_path moebius parallel_transport path_energy path_length
-        quadrature_weights real_sph_harm reparametrize resample rotate_parametrization
-        shape_geodesic shoot so3_exp so3_log sphere_points split_inner split_parts srnf
-        srnf_distance srnf_geodesic srnf_invert srnf_path_length straight_path surface_area
-        surface_basis tangent_pca upsample_coefficients validate_surface vector_field_basis
-        vee""",
+        KarcherResult LogResult MetricFit RESULTS Refinement ShapeGeodesicResult ShapeOptions
+        RetrievalScores ShootingResult SphericalHarmonics SplitMetric SrnfGeodesic
+        SrnfInversion TangentPCA TransportResult base_inner center clear_caches
+        diffeomorphism diffeomorphism_bound differential distance_matrix
+        elastic_metric_inner enable_compilation_cache exp fit_metric geodesic grid_angles
+        hat icosahedral_group integrate jacobian_determinant karcher_mean log max_degree
+        metric_inner mode_path moebius parallel_transport path_energy path_length
+        quadrature_weights real_sph_harm reparametrize resample retrieval_scores
+        rotate_parametrization shape_geodesic shoot so3_exp so3_log sphere_points
+        split_inner split_parts srnf srnf_distance srnf_geodesic srnf_invert
+        srnf_path_length straight_path surface_area surface_basis tangent_pca
+        upsample_coefficients validate_surface vector_field_basis vee""",
     "elastic_jax.io": """MESH_FORMATS DegenerateFaceError InconsistentWindingError MeshError
         NonManifoldVertexError NotGenusZeroError NotStarShapedError NotWatertightError
         ParametrizationError SphericalParametrization grid_to_mesh load_surface mesh_to_grid
         save_path save_surface spherical_parametrization star_center surface_files""",
     "elastic_jax.plot": """parametrization_colors plot_path plot_modes plot_energy
         plot_distance_matrix save_figure""",
-    "elastic_jax.shapes": "sphere ellipsoid bumpy bent_cylinder sample random_rotation",
+    "elastic_jax.shapes": "sphere ellipsoid bumpy bent_cylinder sample random_rotation two_classes",
 }
 
 

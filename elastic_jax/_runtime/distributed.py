@@ -77,6 +77,12 @@ def _shapes_task(chunk, shapes, index, mean, starts, settings, size, x64):
         return tuple(np.asarray(x) for x in out)
 
 
+def _solved_pairs_task(chunk, shapes, rows, cols, starts, settings, size, x64):
+    with jax.enable_x64(x64):
+        out = chunk(shapes[rows], shapes[cols], *settings, size, starts)
+        return tuple(np.asarray(x) for x in out)
+
+
 class Pool:
     """One job's link to a cluster: the scattered collection and the solve's settings.
 
@@ -112,6 +118,16 @@ class Pool:
             # On an error or Ctrl-C, the tasks not collected are not left running.
             self.client.cancel([f for f in futures if not f.done()])
 
+    def _in_order(self, futures: dict) -> list:
+        """The results of ``futures`` (future -> its index 0..n-1), in index order."""
+        parts = [None] * len(futures)
+
+        def finished(i, result):
+            parts[i] = result
+
+        self._as_completed(futures, finished)
+        return parts
+
     def _submit(self, task, chunk, *args, size: int):
         """One task on the scattered collection with this job's settings; never cached
         by Dask (pure=False): a rerun after a resume solves again."""
@@ -128,6 +144,29 @@ class Pool:
             for a, b in chunks
         }
         self._as_completed(futures, finished)
+
+    def solved_pairs(self, chunk, rows, cols, chunks, size: int, metric, starts=None) -> list:
+        """The pairs (rows[a:b], cols[a:b]) of every chunk (a, b) solved under ``metric``
+        (not the pool's) by ``chunk(first, second, metric, modulo, options, strategy, size,
+        starts[a:b])``; each chunk's result, in the chunks' order. ``starts``: None or a
+        tuple of arrays with the pairs' leading axis (each pair's warm start)."""
+        settings = (metric, *self._settings[1:])
+        futures = {
+            self.client.submit(
+                _solved_pairs_task,
+                chunk,
+                self._shapes,
+                rows[a:b],
+                cols[a:b],
+                None if starts is None else tuple(np.asarray(x[a:b]) for x in starts),
+                settings,
+                size,
+                self._x64,
+                pure=False,
+            ): i
+            for i, (a, b) in enumerate(chunks)
+        }
+        return self._in_order(futures)
 
     def velocities(self, chunk, mean, chunks, size: int, starts=None) -> tuple:
         """The geodesics from every shape to ``mean``, chunk by chunk, each by
@@ -146,10 +185,4 @@ class Pool:
             ): i
             for i, (a, b) in enumerate(chunks)
         }
-        parts = [None] * len(chunks)
-
-        def finished(i, result):
-            parts[i] = result
-
-        self._as_completed(futures, finished)
-        return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
+        return tuple(np.concatenate(p) for p in zip(*self._in_order(futures), strict=True))

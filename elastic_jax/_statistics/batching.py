@@ -109,6 +109,28 @@ def _pair_distance(a, b, metric, modulo, options):
     return res.distance, res.converged, change, code, jnp.asarray(res.num_steps, jnp.int32)
 
 
+def _registered_pair(a, b, metric, modulo, options, start=None):
+    """One pair's solve, warm-started at ``start`` (gamma, R, C) when given: distance,
+    status, result code, solver steps, and the solution (gamma, R, C) that
+    :func:`elastic_jax.fit_metric` holds when it differentiates the distance in the metric.
+
+    modulo="none": the geodesic from the path coefficients C (gamma and R are the identity).
+    Otherwise: shape_geodesic, from the registration (gamma, R) instead of the start search.
+    """
+    if modulo == "none":
+        init = None if start is None else start[2]
+        res = geodesic(a, b, metric, init=init, **options.geodesic_kwargs())
+        m, n = a.shape[-2:]
+        gamma, rotation = sphere_points(m, n, a.dtype), jnp.eye(3, dtype=a.dtype)
+    else:
+        warm = None if start is None else (start[0], start[1])
+        res = shape_geodesic(a, b, metric, modulo=modulo, options=options, start=warm)
+        gamma, rotation = res.gamma, res.rotation
+    code = jnp.asarray(res.result._value, jnp.int32)
+    steps = jnp.asarray(res.num_steps, jnp.int32)
+    return res.distance, res.converged, code, steps, gamma, rotation, res.coefficients
+
+
 # Module-level jitted batch solves: the mean and the metric are arguments and the options
 # (a frozen ShapeOptions) a static key, so consecutive Karcher steps reuse one compilation.
 @functools.partial(solver_jit, static_argnames=("modulo", "options", "mode"))
@@ -127,6 +149,16 @@ def _distances_batch(pairs, metric, *, modulo, options, mode):
         return _pair_distance(pair[0], pair[1], metric, modulo, options)
 
     return jax.lax.map(one, pairs) if mode == "map" else jax.vmap(one)(pairs)
+
+
+@functools.partial(solver_jit, static_argnames=("modulo", "options", "mode"))
+def _registered_batch(batch, metric, *, modulo, options, mode):
+    """batch: (firsts, seconds) or (firsts, seconds, gammas, rotations, coefficients)."""
+
+    def one(item):
+        return _registered_pair(item[0], item[1], metric, modulo, options, item[2:] or None)
+
+    return jax.lax.map(one, batch) if mode == "map" else jax.vmap(one)(batch)
 
 
 def _batched(batch_call: Callable, single_call: Callable, batch, strategy: str) -> tuple:
@@ -191,6 +223,24 @@ def distance_chunk(first, second, metric, modulo, options, strategy, size) -> tu
         return _pair_distance(pair[0], pair[1], metric, modulo, options)
 
     return _solve_chunk(batch_call, single_call, (first, second), strategy, size)
+
+
+def registered_chunk(first, second, metric, modulo, options, strategy, size, starts=None):
+    """The pairs (first[i], second[i]) solved with their solutions: distance, status, result
+    code, solver steps, gamma, R and the path coefficients C (:func:`_registered_pair`).
+
+    starts: None (the start search, or the straight line for modulo="none"), or
+    (gammas (b, 3, m, n), rotations (b, 3, 3), coefficients (b, N - 2, L)) to start from.
+    """
+    batch = (first, second) if starts is None else (first, second, *starts)
+
+    def batch_call(batch, mode):
+        return _registered_batch(batch, metric, modulo=modulo, options=options, mode=mode)
+
+    def single_call(item):
+        return _registered_pair(item[0], item[1], metric, modulo, options, item[2:] or None)
+
+    return _solve_chunk(batch_call, single_call, batch, strategy, size)
 
 
 def chunk_bounds(n: int, size: int | None):

@@ -4,8 +4,8 @@ Every command reads surfaces (``.npz`` with array ``f``, the authors' ``.mat``, 
 trimesh reads, resampled by :func:`elastic_jax.io.mesh_to_grid`), computes, and writes into
 ``--out DIR``: the arrays (``.npz``), meshes (``.ply``), figures (``.png``) and
 ``summary.json``. The summary is also printed on stdout. All files are written atomically,
-so Ctrl-C never leaves half a file; ``karcher`` and ``distances`` checkpoint every finished
-step or chunk and continue with ``--resume``. A directory among the inputs stands for the
+so Ctrl-C never leaves half a file; ``karcher``, ``distances`` and ``fit-metric``
+checkpoint every finished step or chunk and continue with ``--resume``. A directory among the inputs stands for the
 surface files in it. The statistics run in two commands: ``karcher`` writes ``mean.npz``
 (the mean, the velocities at it, the settings) and ``pca`` on that file computes the modes
 and their figure without solving again.
@@ -31,6 +31,7 @@ from .bench import run_bench
 from .common import BadInput, Progress, one_line, write_summary
 from .demo import run_demo
 from .distances import run_distances
+from .fit_metric import run_fit_metric
 from .geodesic import run_geodesic
 from .karcher import run_karcher
 from .parser import build_parser
@@ -71,6 +72,7 @@ COMMANDS = {
     "shape-geodesic": run_shape_geodesic,
     "karcher": run_karcher,
     "distances": run_distances,
+    "fit-metric": run_fit_metric,
     "pca": run_pca,
     "shoot": run_shoot,
     "demo": run_demo,
@@ -121,7 +123,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         how = "terminated" if isinstance(err, Terminated) else "interrupted"
         print(
             f"elastic-jax {args.command}: {how}; every file in {args.out} is complete "
-            "(karcher, pca and distances continue with --resume)",
+            "(karcher, pca, distances and fit-metric continue with --resume)",
             file=sys.stderr,
         )
         return EXIT_TERMINATED if isinstance(err, Terminated) else EXIT_INTERRUPTED

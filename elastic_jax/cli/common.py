@@ -20,6 +20,7 @@ CHECKPOINTS = {
     "karcher": "karcher_checkpoint.npz",
     "pca": "karcher_checkpoint.npz",
     "distances": "distances_checkpoint.npz",
+    "fit-metric": "fit_metric_checkpoint.npz",
 }
 
 
@@ -36,7 +37,7 @@ SURFACE_FILES = SURFACE_FILE.replace("a surface", "surfaces") + ", or a director
 KARCHER_OUTPUT_KEYS = ("f", "velocities", "distances", "settings", "inputs", "result", "converged")
 
 
-SHAPE_COMMANDS = ("shape-geodesic", "karcher", "pca", "distances")
+SHAPE_COMMANDS = ("shape-geodesic", "karcher", "pca", "distances", "fit-metric")
 
 
 SHAPE_DEFAULTS = ShapeOptions()

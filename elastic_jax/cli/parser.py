@@ -100,7 +100,13 @@ def _common(
     parser.add_argument("--max-steps", type=int, default=max_steps, help=max_steps_help)
 
 
-def _shape_options(parser: argparse.ArgumentParser, *, modulo: str, inner: str = "") -> None:
+def _shape_options(
+    parser: argparse.ArgumentParser,
+    *,
+    modulo: str,
+    inner: str = "",
+    moduli: tuple[str, ...] = ("diff", "rigid"),
+) -> None:
     """The options of shape geodesics (one ShapeOptions record; the library's defaults)."""
     d = SHAPE_DEFAULTS
     _common(
@@ -112,9 +118,10 @@ def _shape_options(parser: argparse.ArgumentParser, *, modulo: str, inner: str =
     )
     parser.add_argument(
         "--modulo",
-        choices=("diff", "rigid"),
+        choices=moduli,
         default=modulo,
-        help="reparametrizations, or reparametrizations and rigid motions",
+        help="reparametrizations, or reparametrizations and rigid motions"
+        + (" (none: parametrized geodesics)" if "none" in moduli else ""),
     )
     parser.add_argument(
         "--scheme",
@@ -253,6 +260,56 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("files", nargs="+", help=SURFACE_FILES)
     _shape_options(p, modulo="rigid")
     _batch_options(p)
+
+    p = command(
+        "fit-metric",
+        help="learn the metric's coefficients from labelled shapes (or target distances)",
+        description="Fit the split metric's coefficients (a, b, c, d) to the shapes' class "
+        "labels (soft nearest neighbours) or to a matrix of target dissimilarities "
+        "(elastic_jax.fit_metric), starting from --metric; a + b + c + d = 1 in the result. "
+        "With --test and --test-labels, also scores the start and the fitted metric on those "
+        "held-out shapes (nearest neighbour, first and second tier). Writes summary.json "
+        "and fit_metric.npz (the coefficients, the distance matrices, the history).",
+    )
+    p.add_argument("files", nargs="+", help=SURFACE_FILES)
+    data = p.add_mutually_exclusive_group(required=True)
+    data.add_argument(
+        "--labels",
+        default=None,
+        help="text file: one class label per line in the files' order, or lines name,label",
+    )
+    data.add_argument(
+        "--targets", default=None, help="(K, K) dissimilarities: .npy, .npz, .csv or text"
+    )
+    _shape_options(p, modulo="rigid", moduli=("rigid", "diff", "none"))
+    _batch_options(p)
+    p.add_argument("--learn", default="abc", help="the coefficients that move (of abcd)")
+    p.add_argument(
+        "--temperature",
+        type=float,
+        default=0.1,
+        help="softness of the soft nearest neighbours (squared mean distances)",
+    )
+    p.add_argument(
+        "--fit-steps",
+        type=int,
+        default=30,
+        help="most trust region steps (each solves every pair once)",
+    )
+    p.add_argument(
+        "--fit-tol",
+        type=float,
+        default=1e-3,
+        help="the fit converges when its gradient norm is at most this",
+    )
+    p.add_argument(
+        "--test",
+        nargs="+",
+        default=None,
+        metavar="FILE",
+        help="held-out surface files to score the metrics on",
+    )
+    p.add_argument("--test-labels", default=None, help="their labels (as --labels)")
 
     p = command(
         "pca",

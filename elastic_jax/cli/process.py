@@ -116,6 +116,16 @@ def preflight(args) -> None:
             raise BadInput(
                 f"{args.command} needs at least 2 surface files{also}; got {len(args.files)}"
             )
+    if args.command == "fit-metric":
+        if len(args.files) < 3:
+            raise BadInput(f"fit-metric needs at least 3 surface files; got {len(args.files)}")
+        if (args.test is None) != (args.test_labels is None):
+            raise BadInput("--test and --test-labels go together")
+        if args.test is not None and args.labels is None:
+            raise BadInput("--test scores a classification: it needs --labels")
+        checked_flag("--fit-steps", check_int, args.fit_steps, 0)
+        checked_flag("--fit-tol", check_positive, args.fit_tol)
+        checked_flag("--temperature", check_positive, args.temperature)
     if args.command in ("karcher", "pca"):
         checked_flag("--karcher-steps", check_int, args.karcher_steps, 0)
         checked_flag("--tol", check_positive, args.tol)

@@ -1,0 +1,683 @@
+"""Learning the split metric's coefficients from data (the paper's introduction: "choose
+the constants of the metric in a data driven way").
+
+The distances d_ij(a, b, c, d) of a collection are minima over paths (and
+registrations) of an energy that is linear in the coefficients (MATH.md 3, 4):
+E_ij(w) = sum_k w_k E_ij^k at the optimal path, where E_ij^k is the energy of that path
+under the k-th coefficient alone. By the envelope theorem the derivative of d_ij in w is
+that of sqrt(E_ij(w)) with the path and registration held, so one batched solve of all
+pairs gives an objective's value and exact gradient, and a model of it around the current
+coefficients (the held paths' energies, cheap to evaluate for any w). The fit is a trust
+region method on that model: minimize the model within a box around the coefficients,
+solve the pairs again there (warm-started from the held solutions), accept the step if the
+objective went down, and adjust the box by how well the model predicted it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import os
+import pathlib
+import time
+import warnings
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from .._checks import check_bool, check_choice, check_int, check_positive
+from .._errors import ConvergenceWarning, InputError
+from .._geodesics.geodesic import basis_np, frames_between, perturbed_frames, safe_sqrt
+from .._geodesics.solvers import minimize
+from .._geometry.differential import interior_frame
+from .._geometry.energy import frame_energy
+from .._geometry.metric import SplitMetric
+from .._options import ShapeOptions
+from .._registration.problem import make_bases, make_problem, path_energy_at
+from .._results import RESULTS, result_message
+from .._runtime.atomic import save_npz_atomic
+from .batching import (
+    check_batch,
+    check_collection,
+    chunk_bounds,
+    default_chunk,
+    job_settings,
+    registered_chunk,
+)
+from .checkpoints import fingerprint_of, load_checkpoint
+from .retrieval import check_distances, check_labels
+
+# The least share of a learned coefficient in a + b + c + d = 1 (times the learned
+# coefficients' total share): a, b, c stay positive, as the metric needs, and a
+# coefficient the data do not want ends at this floor instead of running off to zero.
+FLOOR = 1e-3
+
+# Trust region radius (in the log of the coefficients): start, largest, and the one below
+# which a step that still does not lower the objective ends the fit as stalled.
+_RADIUS = (0.5, 4.0, 1e-3)
+
+OBJECTIVES = ("nca", "stress")
+COEFFICIENTS = "abcd"
+
+
+class MetricFit(NamedTuple):
+    """A split metric fitted to a collection (:func:`fit_metric`).
+
+    Attributes:
+        metric: the fitted :class:`SplitMetric`, normalized to a + b + c + d = 1.
+        initial_metric: the metric the fit started from, normalized the same way.
+        objective_before: ``()`` the objective at ``initial_metric``.
+        objective_after: ``()`` the objective at ``metric``.
+        history: ``(max(max_steps, num_steps) + 1,)`` the objective at the start and after
+            each step (a rejected step repeats the value; NaN for steps not taken).
+        grad_norm: ``()`` 2-norm of the objective's gradient in the log of the learned
+            coefficients at ``metric`` (envelope derivative, paths and registrations held).
+        gradient: ``(4,)`` the objective's derivatives in (a, b, c, d) at ``metric``
+            (envelope derivative); orthogonal to (a, b, c, d), as the objective is
+            invariant under scaling the metric.
+        distances: ``(K, K)`` the distance matrix at ``metric``.
+        distances_before: ``(K, K)`` the distance matrix at ``initial_metric``.
+        pairs_converged: ``(K, K)`` bool, each pair's solve at ``metric`` (diagonal True).
+        converged: ``()`` grad_norm <= tol.
+        result: ``successful``, ``nonlinear_max_steps_reached`` (max_steps ran out) or
+            ``stalled`` (the trust region shrank below 1e-3 without a lower objective).
+        num_steps: ``()`` trust region steps taken (accepted or not).
+        evaluations: ``()`` batched solves of all pairs (one per step, plus the first).
+    """
+
+    metric: SplitMetric
+    initial_metric: SplitMetric
+    objective_before: Float[Array, ""]
+    objective_after: Float[Array, ""]
+    history: Float[Array, " S"]
+    grad_norm: Float[Array, ""]
+    gradient: Float[Array, " 4"]
+    distances: Float[Array, "K K"]
+    distances_before: Float[Array, "K K"]
+    pairs_converged: Bool[Array, "K K"]
+    converged: Bool[Array, ""]
+    result: RESULTS
+    num_steps: Int[Array, ""]
+    evaluations: Int[Array, ""]
+
+    @property
+    def message(self) -> str:
+        """Why the fit stopped without converging ('' when it converged)."""
+        return result_message(self.result)
+
+
+def normalized(metric: SplitMetric) -> np.ndarray:
+    """The coefficients (a, b, c, d) of a metric with concrete float leaves, over their sum."""
+    values = np.asarray([float(getattr(metric, k)) for k in COEFFICIENTS])
+    return values / values.sum()
+
+
+def weights_of(theta: Array, fixed: Array, free: tuple[int, ...]) -> Array:
+    """The coefficients (a, b, c, d), summing to 1, from the learned ones' parameters.
+
+    ``fixed (4,)``: the held coefficients' shares (zero at the learned positions);
+    ``theta (F,)``: the learned ones are (1 - sum fixed) (FLOOR + (1 - F FLOOR) softmax(theta)).
+    """
+    share = 1.0 - jnp.sum(fixed)
+    learned = share * (FLOOR + (1.0 - len(free) * FLOOR) * jax.nn.softmax(theta))
+    return fixed.at[jnp.asarray(free)].set(learned)
+
+
+def initial_theta(start: np.ndarray, free: tuple[int, ...]) -> np.ndarray:
+    """theta with weights_of(theta) = the start's learned shares, each raised to 2 FLOOR."""
+    share = np.asarray(start)[list(free)]
+    share = np.maximum(share / share.sum(), 2.0 * FLOOR)
+    share = share / share.sum()
+    return np.log((share - FLOOR) / (1.0 - len(free) * FLOOR))
+
+
+def _pair_matrix(values: Array, rows, cols, k: int) -> Array:
+    matrix = jnp.zeros((k, k), values.dtype).at[rows, cols].set(values)
+    return matrix + matrix.T
+
+
+def nca_loss(d: Array, same: Array, rows, cols, temperature) -> Array:
+    """Soft nearest neighbours' loss (NCA, Goldberger et al. 2004, in its log form).
+
+    The distances ``d (P,)`` (the upper triangle's pairs ``rows, cols``) over their mean,
+    p_ij = softmax_j (-D_ij^2 / temperature) over j != i, and the loss
+    -(1/K) sum_i log sum_{j in i's class, j != i} p_ij: the mean log-probability that a
+    shape's soft nearest neighbour is a classmate. Invariant under scaling every distance.
+    """
+    k = same.shape[0]
+    scaled = _pair_matrix(d / jnp.mean(d), rows, cols, k)
+    eye = jnp.eye(k, dtype=bool)
+    logits = jnp.where(eye, -jnp.inf, -(scaled**2) / temperature)
+    log_p = jax.nn.log_softmax(logits, axis=1)
+    classmates = jnp.where(same & ~eye, log_p, -jnp.inf)
+    return -jnp.mean(jax.nn.logsumexp(classmates, axis=1))
+
+
+def stress_loss(d: Array, targets: Array) -> Array:
+    """1 - cos^2 between the distances ``d (P,)`` and the targets ``(P,)``: the residual
+    min_s |d - s t|^2 / |d|^2 of the best scale s. 0 exactly when d is proportional to t;
+    invariant under scaling either."""
+    return 1.0 - jnp.dot(d, targets) ** 2 / (jnp.dot(d, d) * jnp.dot(targets, targets))
+
+
+def _loss_at(parts, w, data, *, objective, k):
+    """The objective at the held paths: parts ``(P, 4)`` (E_ij^k), coefficients ``w (4,)``."""
+    d = safe_sqrt(parts @ w)
+    rows, cols = np.triu_indices(k, 1)
+    if objective == "nca":
+        same, temperature = data
+        return nca_loss(d, same, rows, cols, temperature)
+    return stress_loss(d, data)
+
+
+def _loss(parts, theta, data, fixed, *, objective, free, k):
+    return _loss_at(parts, weights_of(theta, fixed, free), data, objective=objective, k=k)
+
+
+@functools.partial(jax.jit, static_argnames=("objective", "free", "k"))
+def _value_and_grad(parts, theta, data, fixed, *, objective, free, k):
+    return jax.value_and_grad(_loss, argnums=1)(
+        parts, theta, data, fixed, objective=objective, free=free, k=k
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("objective", "k"))
+def _coefficient_gradient(parts, w, data, *, objective, k):
+    return jax.grad(_loss_at, argnums=1)(parts, w, data, objective=objective, k=k)
+
+
+@functools.partial(jax.jit, static_argnames=("objective", "free", "k"))
+def _model_step(parts, theta, radius, data, fixed, tol, *, objective, free, k):
+    """The minimum of the model (the objective at the held paths) over the box
+    |theta' - theta| <= radius (componentwise; theta' = theta + radius tanh(u)): the new
+    theta, the model's predicted decrease, and whether the step reached the box's edge."""
+
+    def model(u):
+        return _loss(
+            parts, theta + radius * jnp.tanh(u), data, fixed, objective=objective, free=free, k=k
+        )
+
+    found = minimize(model, jnp.zeros_like(theta), solver="bfgs", max_steps=200, tol=tol)
+    step = radius * jnp.tanh(found.x)
+    edge = jnp.max(jnp.abs(step)) >= 0.9 * radius
+    return theta + step, model(jnp.zeros_like(theta)) - model(found.x), edge
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "modulo"))
+def energy_parts(first, second, gammas, rotations, coefficients, bases, *, cfg, modulo):
+    """E_ij^k: the energies of the held paths under each coefficient alone, ``(b, 4)``.
+
+    first, second ``(b, 3, m, n)``; gammas ``(b, 3, m, n)``, rotations ``(b, 3, 3)``,
+    coefficients ``(b, N - 2, L)`` the solutions (in the surfaces' own units). modulo
+    "none": the path from first to second perturbed by C (as geodesic evaluates it);
+    else the path from first o gamma to R second (as shape_geodesic does, MATH.md 4).
+    The energy is linear in the metric, so E(w) = parts @ w for every w.
+    """
+    units = SplitMetric(*jnp.eye(4, dtype=first.dtype))
+
+    def one(a, b, gamma, rotation, c):
+        def energy(metric):
+            if modulo == "none":
+                frames = frames_between(interior_frame(a), interior_frame(b), cfg.n_times)
+                return frame_energy(metric, *perturbed_frames(frames, c, bases), cfg.scheme)
+            prob = make_problem(metric, a, b, bases, modulo == "rigid")
+            return path_energy_at(prob, cfg, gamma, rotation, c)
+
+        return jax.vmap(energy)(units)
+
+    return jax.vmap(one)(first, second, gammas, rotations, coefficients)
+
+
+# The held solutions' names in a checkpoint.
+_STARTS = ("gammas", "rotations", "coefficients")
+
+
+class _Held(NamedTuple):
+    """One batched solve of all pairs at a metric: what the model holds."""
+
+    parts: np.ndarray  # (P, 4)
+    starts: tuple  # (gammas, rotations, coefficients), each with leading axis P
+    converged: np.ndarray  # (P,)
+
+
+def fit_metric(
+    shapes: Float[ArrayLike, "K 3 m n"],
+    labels: ArrayLike | None = None,
+    *,
+    targets: Float[ArrayLike, "K K"] | None = None,
+    modulo: str = "rigid",
+    options: ShapeOptions | None = None,
+    init: SplitMetric | None = None,
+    objective: str | None = None,
+    learn: str = "abc",
+    temperature: float = 0.1,
+    max_steps: int = 30,
+    tol: float = 1e-3,
+    batch_size: int | None = None,
+    strategy: str = "auto",
+    checkpoint: str | os.PathLike | None = None,
+    resume: bool = False,
+    progress: Callable[[dict], None] | None = None,
+    client=None,
+) -> MetricFit:
+    """Fit the split metric's coefficients to labels or to target dissimilarities.
+
+    Objectives (both invariant under scaling the distances, so under scaling the shapes
+    and the metric):
+
+    - ``"nca"`` (with ``labels``): soft nearest neighbours (:func:`nca_loss`): makes each
+      shape's nearest shapes its classmates, the differentiable surrogate of
+      leave-one-out nearest-neighbour classification.
+    - ``"stress"`` (with ``targets``, e.g. expert ratings): 1 - cos^2 between the
+      distances and the targets over the pairs i < j (:func:`stress_loss`).
+
+    Normalization: distances scale with the square root of the metric, so only the
+    coefficients' ratios are learned; the result has a + b + c + d = 1. The coefficients
+    in ``learn`` move (each keeps at least FLOOR = 1e-3 of their total share, so a, b, c
+    stay positive); the others keep their share of ``init``.
+
+    Method: the envelope theorem gives the exact gradient of every distance in the
+    coefficients with the solved paths and registrations held, and the held paths'
+    energies are linear in the coefficients (module docstring). Each step minimizes that
+    model over a box of radius r in log-coefficients (BFGS), solves all K(K-1)/2 pairs at
+    the new coefficients, warm-started from the held solutions (for modulo "diff" and
+    "rigid" the registrations: the start search runs at the first solve only; for
+    "none" the path coefficients), and accepts the step when the objective went down. r
+    starts at 0.5, doubles after a well-predicted step to the box's edge, and shrinks by 4
+    after a poor one. Converged: the gradient's 2-norm in the log-coefficients <= tol.
+
+    Args:
+        shapes: ``(K, 3, m, n)`` on one grid, K >= 3.
+        labels: ``(K,)`` class ids (at least two classes, two shapes in each); or
+        targets: ``(K, K)`` symmetric, non-negative dissimilarities (diagonal unused).
+        modulo: ``"rigid"``, ``"diff"`` or ``"none"`` (parametrized geodesics).
+        options: the solves' :class:`ShapeOptions`.
+        init: the metric to start from (default ``SplitMetric(1, 1, 0.1, 0)``).
+        objective: ``"nca"`` or ``"stress"``; default: the one the data given calls for.
+        learn: which coefficients move, a string of at least two of ``"abcd"``.
+        temperature: NCA's softness, in units of the squared mean distance.
+        max_steps: trust region steps at most (each one batched solve of all pairs).
+        tol: the gradient norm that ends the fit.
+        batch_size, strategy: how the pairs are batched, as in :func:`distance_matrix`.
+        checkpoint: path of an .npz written atomically after the first solve of all pairs
+            and after every step (the coefficients, the trust region, the held solutions).
+        resume: continue from ``checkpoint`` (refused if it belongs to other shapes,
+            labels, targets or settings; ``max_steps`` may differ). A fit killed during a
+            step loses that step's solves only.
+        progress: called after each step with a dict: step, objective, grad_norm, metric
+            (a, b, c, d), radius, accepted, seconds.
+        client: a ``dask.distributed.Client`` or a scheduler address: every step's pairs
+            are solved as tasks on its workers (chunks of ``batch_size``), as in
+            :func:`distance_matrix`; the numbers equal the in-process ones.
+
+    Returns:
+        :class:`MetricFit`. A fit that did not converge also warns
+        (:class:`ConvergenceWarning`).
+
+    Raises:
+        InputError: labels and targets both or neither given, labels of the wrong length,
+            with NaN or a class of one shape or one class only, targets not square,
+            symmetric, finite and non-negative, ``learn`` not two or more of "abcd".
+    """
+    strategy = check_batch(modulo, strategy, batch_size)
+    shapes, options = check_collection(shapes, options)
+    k = shapes.shape[0]
+    if k < 3:
+        raise InputError(f"fit_metric needs at least 3 shapes; got {k}")
+    if (labels is None) == (targets is None):
+        raise InputError("fit_metric: give labels (classes) or targets (dissimilarities), one")
+    if objective is None:
+        objective = "nca" if labels is not None else "stress"
+    check_choice("objective", objective, OBJECTIVES)
+    if (objective == "nca") != (labels is not None):
+        needs = "labels" if objective == "nca" else "targets"
+        raise InputError(f"objective={objective!r} needs {needs}")
+    free = _check_learn(learn)
+    max_steps = check_int("max_steps", max_steps, 0)
+    resume = check_bool("resume", resume)
+    tol = check_positive("tol", tol)
+    dtype = shapes.dtype
+    rows = np.triu_indices(k, 1)[0]
+    data = _objective_data(objective, labels, targets, temperature, k, dtype)
+
+    start = normalized(SplitMetric(1.0, 1.0, 0.1, 0.0) if init is None else init)
+    fixed = np.where(np.isin(np.arange(4), free), 0.0, start)
+    if fixed.sum() >= 1.0:
+        raise InputError(
+            "fit_metric: the coefficients in learn are all zero in init and "
+            "the others hold the whole metric"
+        )
+    theta0 = jnp.asarray(initial_theta(start, free), dtype)
+    fingerprint = fingerprint_of(
+        shapes,
+        np.asarray(data[0] if objective == "nca" else data),
+        # max_steps is left out: a resumed fit may be given more steps.
+        **job_settings(
+            SplitMetric(*(float(x) for x in start)),
+            modulo,
+            options,
+            objective=objective,
+            learn=learn,
+            temperature=temperature,
+            tol=tol,
+            batch_size=batch_size,
+        ),
+    )
+    path = None if checkpoint is None else pathlib.Path(checkpoint)
+    saved = load_checkpoint(path, fingerprint) if path is not None and resume else None
+    chunk = default_chunk(strategy) if batch_size is None else batch_size
+    solves = _Solves(
+        shapes,
+        modulo,
+        options,
+        strategy,
+        chunk,
+        min(chunk or rows.size, rows.size),
+        _evaluation_bases(shapes.shape[-2:], options, modulo, dtype),
+    )
+    job = _FitJob(data, jnp.asarray(fixed, dtype), free, objective, k, tol, solves)
+    with contextlib.ExitStack() as stack:
+        if client is not None:
+            from .._runtime.distributed import Pool
+
+            stack.enter_context(
+                pool := Pool(client, shapes, job.metric_at(theta0), modulo, options, strategy)
+            )
+            job = job._replace(solves=solves._replace(pool=pool))
+        state = job.init(theta0) if saved is None else job.restore(saved, dtype)
+        _save(path, fingerprint, state)
+        began = time.perf_counter()
+        while (result := job.terminate(state, max_steps)) is None:
+            state, accepted = job.step(state)
+            _save(path, fingerprint, state)
+            if progress is not None:
+                progress(
+                    {
+                        **job.report(state),
+                        "accepted": accepted,
+                        "seconds": time.perf_counter() - began,
+                    }
+                )
+    fit = job.result(state, theta0, result, max_steps)
+    if not bool(fit.converged):
+        warnings.warn(
+            f"fit_metric: not converged after {int(fit.num_steps)} steps (gradient norm "
+            f"{float(fit.grad_norm):.3g} > tol {tol:g}): {fit.message}",
+            ConvergenceWarning,
+            stacklevel=2,
+        )
+    return fit
+
+
+class _Solves(NamedTuple):
+    """How the pairs are solved: the collection, the solves' settings, the pool."""
+
+    shapes: Array
+    modulo: str
+    options: ShapeOptions
+    strategy: str
+    chunk: int | None
+    size: int
+    bases: object
+    pool: object = None
+
+
+class _FitState(NamedTuple):
+    """Where a fit stands after a step (what its checkpoint holds)."""
+
+    theta: Array  # (F,) the learned coefficients' parameters
+    held: _Held  # the pairs solved at theta
+    before: _Held  # the pairs solved at the start
+    radius: float
+    steps: int
+    evaluations: int
+    history: list  # the objective at the start and after each step
+
+
+class _FitJob(NamedTuple):
+    """A fit as init / step / terminate over a :class:`_FitState` (:func:`fit_metric` is
+    the driver: checkpoints, progress, the pool)."""
+
+    data: object  # (classmates (K, K), temperature) for "nca"; targets (P,) for "stress"
+    fixed: Array  # (4,) the held coefficients' shares
+    free: tuple[int, ...]
+    objective: str
+    k: int
+    tol: float
+    solves: _Solves
+
+    def metric_at(self, theta) -> SplitMetric:
+        return SplitMetric(*(float(w) for w in np.asarray(self.weights(theta))))
+
+    def weights(self, theta) -> Array:
+        return weights_of(theta, self.fixed, self.free)
+
+    def value_and_grad(self, parts, theta):
+        return _value_and_grad(
+            parts,
+            theta,
+            self.data,
+            self.fixed,
+            objective=self.objective,
+            free=self.free,
+            k=self.k,
+        )
+
+    def solve(self, theta, starts) -> _Held:
+        return _solve_pairs(self.metric_at(theta), starts, self.solves)
+
+    def init(self, theta) -> _FitState:
+        held = self.solve(theta, None)
+        value = self.value_and_grad(held.parts, theta)[0]
+        return _FitState(theta, held, held, _RADIUS[0], 0, 1, [float(value)])
+
+    def restore(self, saved: dict, dtype) -> _FitState:
+        held = _Held(
+            saved["parts"],
+            tuple(jnp.asarray(saved[k], dtype) for k in _STARTS),
+            saved["converged"],
+        )
+        before = _Held(saved["before_parts"], (), saved["before_converged"])
+        return _FitState(
+            jnp.asarray(saved["theta"], dtype),
+            held,
+            before,
+            float(saved["radius"]),
+            int(saved["steps"]),
+            int(saved["evaluations"]),
+            list(saved["history"]),
+        )
+
+    def terminate(self, state: _FitState, max_steps: int) -> RESULTS | None:
+        """The result code when the fit stops here, None while it goes on."""
+        grad = self.value_and_grad(state.held.parts, state.theta)[1]
+        if float(jnp.linalg.norm(grad)) <= self.tol:
+            return RESULTS.successful
+        if state.radius < _RADIUS[2]:
+            return RESULTS.stalled
+        if state.steps >= max_steps:
+            return RESULTS.nonlinear_max_steps_reached
+        return None
+
+    def step(self, state: _FitState) -> tuple[_FitState, bool]:
+        """One trust region step: the model's minimum in the box, the pairs solved there
+        (warm-started), accepted if the objective went down; the box adjusted."""
+        dtype = state.theta.dtype
+        value = self.value_and_grad(state.held.parts, state.theta)[0]
+        trial, predicted, edge = _model_step(
+            state.held.parts,
+            state.theta,
+            jnp.asarray(state.radius, dtype),
+            self.data,
+            self.fixed,
+            jnp.asarray(0.01 * self.tol, dtype),
+            objective=self.objective,
+            free=self.free,
+            k=self.k,
+        )
+        new = self.solve(trial, state.held.starts)
+        new_value = self.value_and_grad(new.parts, trial)[0]
+        ratio = float(value - new_value) / max(float(predicted), 1e-300)
+        accepted = bool(new_value < value)
+        radius = state.radius
+        if accepted and ratio > 0.75 and bool(edge):
+            radius = min(2.0 * radius, _RADIUS[1])
+        elif not accepted or ratio < 0.25:
+            radius = radius / 4.0
+        theta, held = (trial, new) if accepted else (state.theta, state.held)
+        history = [*state.history, float(new_value if accepted else value)]
+        return state._replace(
+            theta=theta,
+            held=held,
+            radius=radius,
+            steps=state.steps + 1,
+            evaluations=state.evaluations + 1,
+            history=history,
+        ), accepted
+
+    def report(self, state: _FitState) -> dict:
+        value, grad = self.value_and_grad(state.held.parts, state.theta)
+        return {
+            "step": state.steps,
+            "objective": float(value),
+            "grad_norm": float(jnp.linalg.norm(grad)),
+            "metric": tuple(float(w) for w in self.weights(state.theta)),
+            "radius": state.radius,
+        }
+
+    def result(self, state: _FitState, theta0, result: RESULTS, max_steps: int) -> MetricFit:
+        rows, cols = np.triu_indices(self.k, 1)
+        value, grad = self.value_and_grad(state.held.parts, state.theta)
+        dtype = state.theta.dtype
+
+        def matrix(held: _Held, theta) -> Array:
+            d = safe_sqrt(jnp.asarray(held.parts) @ self.weights(theta))
+            return _pair_matrix(d, rows, cols, self.k)
+
+        pairs_ok = np.ones((self.k, self.k), bool)
+        pairs_ok[rows, cols] = pairs_ok[cols, rows] = state.held.converged
+        history = np.full(max(max_steps, state.steps) + 1, np.nan)
+        history[: len(state.history)] = state.history
+        return MetricFit(
+            metric=self.metric_at(state.theta),
+            initial_metric=self.metric_at(theta0),
+            objective_before=self.value_and_grad(state.before.parts, theta0)[0],
+            objective_after=value,
+            history=jnp.asarray(history, dtype),
+            grad_norm=jnp.linalg.norm(grad),
+            gradient=_coefficient_gradient(
+                jnp.asarray(state.held.parts),
+                self.weights(state.theta),
+                self.data,
+                objective=self.objective,
+                k=self.k,
+            ),
+            distances=matrix(state.held, state.theta),
+            distances_before=matrix(state.before, theta0),
+            pairs_converged=jnp.asarray(pairs_ok),
+            converged=jnp.asarray(result == RESULTS.successful),
+            result=result,
+            num_steps=jnp.asarray(state.steps),
+            evaluations=jnp.asarray(state.evaluations),
+        )
+
+
+def _save(path, fingerprint: str, state: _FitState) -> None:
+    """The fit's checkpoint, written atomically (nothing without a path)."""
+    if path is None:
+        return
+    save_npz_atomic(
+        path,
+        fingerprint=fingerprint,
+        theta=np.asarray(state.theta),
+        radius=state.radius,
+        steps=state.steps,
+        evaluations=state.evaluations,
+        history=np.asarray(state.history),
+        parts=state.held.parts,
+        converged=state.held.converged,
+        before_parts=state.before.parts,
+        before_converged=state.before.converged,
+        **{k: np.asarray(x) for k, x in zip(_STARTS, state.held.starts, strict=True)},
+    )
+
+
+def _objective_data(objective, labels, targets, temperature, k: int, dtype):
+    """What the objective compares with: (classmates (K, K) bool, temperature) for "nca",
+    the targets' upper triangle (P,) for "stress"; checked."""
+    if objective == "nca":
+        classes = check_labels(labels, k)
+        same = jnp.asarray(classes[:, None] == classes[None, :])
+        return same, jnp.asarray(check_positive("temperature", temperature), dtype)
+    t = check_distances(targets, "targets")
+    if t.shape[0] != k:
+        raise InputError(f"targets must have shape ({k}, {k}); got {t.shape}")
+    rows, cols = np.triu_indices(k, 1)
+    if not np.any(t[rows, cols] > 0):
+        raise InputError("targets are all zero off the diagonal")
+    return jnp.asarray(t[rows, cols], dtype)
+
+
+def _check_learn(learn) -> tuple[int, ...]:
+    if (
+        not isinstance(learn, str)
+        or len(set(learn)) != len(learn)
+        or not set(learn) <= set(COEFFICIENTS)
+        or len(learn) < 2
+    ):
+        raise InputError(
+            f"learn must name at least two different coefficients of 'abcd' (their sum is "
+            f"fixed, so one alone cannot move); got {learn!r}"
+        )
+    return tuple(sorted(COEFFICIENTS.index(c) for c in learn))
+
+
+def _evaluation_bases(grid, options: ShapeOptions, modulo: str, dtype):
+    """What energy_parts needs besides the pairs: the path basis' differentials (modulo
+    "none") or the registration problem's bases."""
+    m, n = grid
+    if modulo == "none":
+        return jnp.asarray(basis_np(m, n, options.degree)[1], dtype)
+    return make_bases(m, n, options, dtype)
+
+
+def _solve_pairs(metric, starts, solves: _Solves) -> _Held:
+    """All pairs solved at ``metric`` (from ``starts`` when given) and their energy parts;
+    on the pool's workers when there is one (the parts are computed here)."""
+    shapes, modulo, options = solves.shapes, solves.modulo, solves.options
+    rows, cols = np.triu_indices(shapes.shape[0], 1)
+    chunks = chunk_bounds(rows.size, solves.chunk)
+    settings = (metric, modulo, options, solves.strategy, solves.size)
+    if solves.pool is not None:
+        outs = solves.pool.solved_pairs(
+            registered_chunk, rows, cols, chunks, solves.size, metric, starts
+        )
+    else:
+        outs = [
+            registered_chunk(
+                shapes[rows[a:b]],
+                shapes[cols[a:b]],
+                *settings,
+                None if starts is None else tuple(x[a:b] for x in starts),
+            )
+            for a, b in chunks
+        ]
+    parts, solutions, converged = [], [], []
+    for (a, b), out in zip(chunks, outs, strict=True):
+        _, ok, _, _, gamma, rotation, c = (jnp.asarray(x) for x in out)
+        first, second = shapes[rows[a:b]], shapes[cols[a:b]]
+        parts.append(
+            np.asarray(
+                energy_parts(
+                    first, second, gamma, rotation, c, solves.bases, cfg=options, modulo=modulo
+                )
+            )
+        )
+        solutions.append((gamma, rotation, c))
+        converged.append(np.asarray(ok))
+    starts = tuple(jnp.concatenate(x) for x in zip(*solutions, strict=True))
+    return _Held(np.concatenate(parts), starts, np.concatenate(converged))

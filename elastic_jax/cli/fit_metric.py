@@ -1,0 +1,167 @@
+"""``elastic-jax fit-metric``: learn the split metric's coefficients from labelled shapes
+(or target dissimilarities), and score them on held-out shapes."""
+
+from __future__ import annotations
+
+import pathlib
+import time
+
+from .common import (
+    CHECKPOINTS,
+    BadInput,
+    Progress,
+    collection_settings,
+    environment_record,
+    json_floats,
+    prepare,
+    result_fields,
+    shape_geodesic_options,
+)
+
+
+def read_labels(path: str, files: list[str]) -> list[str]:
+    """Class labels, one per surface file: a text file with one label per line in the
+    files' order, or lines ``name,label`` (name: the file's stem) in any order."""
+    p = pathlib.Path(path)
+    if not p.is_file():
+        raise BadInput(f"{path}: no such file (the labels)")
+    lines = [line.strip() for line in p.read_text().splitlines() if line.strip()]
+    stems = [pathlib.Path(f).stem for f in files]
+    if lines and all("," in line for line in lines):
+        given = dict(tuple(x.strip() for x in line.split(",", 1)) for line in lines)
+        missing = [s for s in stems if s not in given]
+        if missing:
+            raise BadInput(f"{path}: no label for {missing}")
+        return [given[s] for s in stems]
+    if len(lines) != len(files):
+        raise BadInput(
+            f"{path}: {len(lines)} labels for {len(files)} surface files (one per line, in "
+            "the files' order, or lines name,label)"
+        )
+    return lines
+
+
+def read_targets(path: str):
+    """A (K, K) dissimilarity matrix from .npy, .npz (its first array) or a CSV/text file."""
+    import numpy as np
+
+    p = pathlib.Path(path)
+    if not p.is_file():
+        raise BadInput(f"{path}: no such file (the targets)")
+    try:
+        if p.suffix == ".npy":
+            return np.load(p)
+        if p.suffix == ".npz":
+            with np.load(p) as data:
+                return data[data.files[0]]
+        return np.loadtxt(p, delimiter="," if p.suffix == ".csv" else None)
+    except (OSError, ValueError, IndexError) as err:
+        raise BadInput(f"{path}: cannot be read as a matrix ({err})") from err
+
+
+def run_fit_metric(args, progress: Progress) -> dict:
+    import numpy as np
+
+    from .._runtime.atomic import save_npz_atomic
+    from .._statistics.distances import distance_matrix
+    from .._statistics.fit import fit_metric
+    from .._statistics.retrieval import retrieval_scores
+
+    shapes, metric, options = prepare(args, progress, args.files, shape_geodesic_options)
+    k, m, n = shapes.shape[0], *shapes.shape[2:]
+    labels = None if args.labels is None else read_labels(args.labels, args.files)
+    targets = None if args.targets is None else read_targets(args.targets)
+    test_labels = None
+    if args.test:
+        test_labels = read_labels(args.test_labels, args.test)
+        test_shapes = prepare(args, progress, args.test, shape_geodesic_options)[0]
+        if test_shapes.shape[2:] != shapes.shape[2:]:
+            raise BadInput(
+                f"--test surfaces are on a {test_shapes.shape[2]} x {test_shapes.shape[3]} "
+                f"grid, the training ones on {m} x {n}: give --grid to resample both"
+            )
+
+    def report(info):
+        state = "accepted" if info["accepted"] else "rejected"
+        coefficients = ", ".join(f"{x:.4g}" for x in info["metric"])
+        progress(
+            f"step {info['step']} {state}: objective {info['objective']:.6g}, gradient "
+            f"{info['grad_norm']:.3g}, metric ({coefficients})"
+        )
+
+    progress(f"fitting the metric to {k} shapes modulo {args.modulo} on {m} x {n}")
+    start = time.perf_counter()
+    fit = fit_metric(
+        shapes,
+        labels,
+        targets=targets,
+        modulo=args.modulo,
+        options=options,
+        init=metric,
+        learn=args.learn,
+        temperature=args.temperature,
+        max_steps=args.fit_steps,
+        tol=args.fit_tol,
+        batch_size=args.batch_size,
+        strategy=args.strategy,
+        checkpoint=args.out / CHECKPOINTS["fit-metric"],
+        resume=args.resume,
+        progress=report,
+        client=args.client,
+    )
+    seconds = time.perf_counter() - start
+    coefficients = {c: float(getattr(fit.metric, c)) for c in "abcd"}
+    summary = {
+        "command": args.command,
+        "inputs": list(args.files),
+        "settings": {
+            **collection_settings(args, m, n, options),
+            "learn": args.learn,
+            "objective": "nca" if labels is not None else "stress",
+            "temperature": args.temperature,
+            "fit_steps": args.fit_steps,
+            "fit_tol": args.fit_tol,
+        },
+        "metric": coefficients,
+        "initial_metric": {c: float(getattr(fit.initial_metric, c)) for c in "abcd"},
+        "objective_before": float(fit.objective_before),
+        "objective_after": float(fit.objective_after),
+        "grad_norm": float(fit.grad_norm),
+        "history": json_floats(fit.history),
+        "evaluations": int(fit.evaluations),
+        **result_fields(fit),
+        "seconds": seconds,
+    }
+    if labels is not None:
+        summary["training_scores"] = {
+            "before": retrieval_scores(fit.distances_before, labels)._asdict(),
+            "after": retrieval_scores(fit.distances, labels)._asdict(),
+        }
+    arrays = {
+        "metric": np.asarray(list(coefficients.values())),
+        "distances": np.asarray(fit.distances),
+        "distances_before": np.asarray(fit.distances_before),
+        "history": np.asarray(fit.history),
+        "files": np.asarray(args.files),
+    }
+    if test_labels is not None:
+        progress(f"scoring on {len(args.test)} held-out shapes")
+        held_out = {}
+        for name, which in (("before", fit.initial_metric), ("after", fit.metric)):
+            res = distance_matrix(
+                test_shapes,
+                which,
+                modulo=args.modulo,
+                options=options,
+                batch_size=args.batch_size,
+                strategy=args.strategy,
+                client=args.client,
+            )
+            held_out[name] = retrieval_scores(res.distances, test_labels)._asdict()
+            arrays[f"test_distances_{name}"] = np.asarray(res.distances)
+        summary["held_out_scores"] = held_out
+        summary["test_inputs"] = list(args.test)
+    files = [str(save_npz_atomic(args.out / "fit_metric.npz", **arrays))]
+    summary["files"] = files
+    summary["environment"] = environment_record()
+    return summary
