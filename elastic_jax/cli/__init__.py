@@ -5,8 +5,8 @@ trimesh reads, resampled by :func:`elastic_jax.io.mesh_to_grid`), computes, and 
 ``--out DIR``: the arrays (``.npz``), meshes (``.ply``), figures (``.png``) and
 ``summary.json``. The summary is also printed on stdout. All files are written atomically,
 so Ctrl-C never leaves half a file; ``karcher``, ``distances`` and ``fit-metric``
-checkpoint every finished step or chunk and continue with ``--resume``. A directory among the inputs stands for the
-surface files in it. The statistics run in two commands: ``karcher`` writes ``mean.npz``
+checkpoint every finished step or chunk and continue with ``--resume``. A directory among
+the inputs stands for the surface files in it. The statistics run in two commands: ``karcher`` writes ``mean.npz``
 (the mean, the velocities at it, the settings) and ``pca`` on that file computes the modes
 and their figure without solving again.
 
