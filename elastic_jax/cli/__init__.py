@@ -1,4 +1,5 @@
-"""The ``elastic-jax`` command line: geodesics, shape geodesics, Karcher means, distances.
+"""The ``elastic-jax`` command line: geodesics, shape geodesics, Karcher means, distances,
+fitting the metric.
 
 Every command reads surfaces (``.npz`` with array ``f``, the authors' ``.mat``, or any mesh
 trimesh reads, resampled by :func:`elastic_jax.io.mesh_to_grid`), computes, and writes into
@@ -6,9 +7,9 @@ trimesh reads, resampled by :func:`elastic_jax.io.mesh_to_grid`), computes, and 
 ``summary.json``. The summary is also printed on stdout. All files are written atomically,
 so Ctrl-C never leaves half a file; ``karcher``, ``distances`` and ``fit-metric``
 checkpoint every finished step or chunk and continue with ``--resume``. A directory among
-the inputs stands for the surface files in it. The statistics run in two commands: ``karcher`` writes ``mean.npz``
-(the mean, the velocities at it, the settings) and ``pca`` on that file computes the modes
-and their figure without solving again.
+the inputs stands for the surface files in it. The statistics run in two commands:
+``karcher`` writes ``mean.npz`` (the mean, the velocities at it, the settings) and ``pca``
+on that file computes the modes and their figure without solving again.
 
 Exit codes: 0 done and converged; 2 bad input (unreadable file, invalid surface or mesh,
 bad option, an --out that is not a writable directory or that another run holds, a
