@@ -139,7 +139,7 @@ def random_rotation(seed: int) -> np.ndarray:
 
 
 # The families of two_classes: what separates the classes, and what varies in both.
-FAMILIES = ("bending", "elongation")
+FAMILIES = ("bending", "elongation", "length")
 
 
 def two_classes(
@@ -156,12 +156,15 @@ def two_classes(
       (z^-1/2, z^-1/2, z) with z = 1 (class 0) or 1.15 (class 1), each times
       exp(+-0.03); every surface scaled by exp(u), u uniform in [-0.6, 0.6] (the nuisance
       is change of volume, the b term; the signal is mostly shear, the a term).
+    - ``"length"``: bent cylinders of half-length 1.15 (class 0) or 1.45 (class 1), each
+      +-0.03, radius 0.5, curvature uniform in [0, 1.1] (the signal is stretching, the
+      nuisance bending: the default metric already weighs it this way).
 
     Every surface is sampled on one parametrization (no rotation): modulo="none" compares
     them as they correspond.
 
     Args:
-        family: ``"bending"`` or ``"elongation"``.
+        family: ``"bending"``, ``"elongation"`` or ``"length"``.
         count: surfaces, alternately class 0 and class 1.
         m, n: grid size; seed: the random draw.
 
@@ -176,7 +179,16 @@ def two_classes(
     out = []
     x = np.asarray(sphere_points(m, n), np.float64)
     for label in labels:
-        if family == "bending":
+        if family == "length":
+            f = sample(
+                bent_cylinder,
+                m,
+                n,
+                half_length=(1.15, 1.45)[label] + rng.uniform(-0.03, 0.03),
+                curvature=rng.uniform(0.0, 1.1),
+                radius=0.5,
+            )
+        elif family == "bending":
             f = sample(
                 bent_cylinder,
                 m,
