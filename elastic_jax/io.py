@@ -51,6 +51,7 @@ from ._meshes.sphere_map import (
     ParametrizationError,
     SphericalParametrization,
     check_mesh,
+    given_map,
     parametrize,
 )
 from ._runtime.atomic import atomic_path, save_npz_atomic
@@ -82,6 +83,20 @@ MESH_FORMATS = ("ply", "obj", "off", "stl", "glb")
 
 # Grid files; every other suffix is handed to trimesh.
 _GRID_FORMATS = ("npz", "mat")
+
+# Brain and anatomy surfaces, read with nibabel (the "neuro" extra): GIfTI by its suffix,
+# FreeSurfer's binary surfaces by their names (lh.white, rh.pial, lh.sphere.reg, ...).
+_NEURO_FORMATS = ("gii",)
+_FREESURFER_SURFACES = (
+    "white",
+    "pial",
+    "inflated",
+    "sphere",
+    "orig",
+    "smoothwm",
+    "reg",
+    "midthickness",
+)
 
 # Hits of one ray closer than this (times the mesh's size) are one crossing: a ray through
 # an edge or a vertex is reported once by each triangle there.
@@ -288,6 +303,7 @@ def mesh_to_grid(
     *,
     method: str = "auto",
     center: Sequence[float] | np.ndarray | None = None,
+    sphere: np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> np.ndarray:
     """A closed genus-0 triangle mesh as a surface on the m x n grid.
@@ -310,6 +326,10 @@ def mesh_to_grid(
     - ``"auto"`` (default): radial about ``center`` when one is given; otherwise radial
       about the area centroid when the mesh is star-shaped about it, else radial about
       :func:`star_center` when it is star-shaped about some point, else spherical.
+    - ``sphere=`` a spherical map the caller has (FreeSurfer's ``?h.sphere``, a
+      ``sphere_left.gii``): resampled through it as through the spherical method's own
+      map, after the same checks (no face folded over, the sphere tiled once). Method
+      "auto" or "spherical" only.
 
     One point per distinct grid point: (m - 2)(n - 1) interior directions and the two
     poles; the pole rows repeat the pole point and the seam column repeats column 0.
@@ -319,6 +339,9 @@ def mesh_to_grid(
         m, n: grid size (n odd, both >= 5).
         method: ``"auto"``, ``"radial"`` or ``"spherical"``.
         center: the point the rays start from, ``(3,)`` (radial only).
+        sphere: ``(V, 3)`` the given map: one position per vertex of ``mesh.vertices``, in
+            their order (trimesh merges and reorders vertices unless the mesh is built or
+            loaded with ``process=False``), on a sphere about the origin (any radius).
         progress: called with a line of text during a spherical parametrization.
 
     Returns:
@@ -332,7 +355,8 @@ def mesh_to_grid(
         NotStarShapedError: method "radial" and some rays miss the mesh or cross it more
             than once (counts and the first such direction given).
         ParametrizationError: method "spherical" (or "auto" on a non-star-shaped mesh)
-            and the map could not be unfolded.
+            and the map could not be unfolded; or the given ``sphere`` folds faces over or
+            does not tile the sphere once.
         MeshError: no faces, several connected components, or a scene without meshes.
         TypeError: ``mesh`` is not a trimesh mesh or scene.
         ValueError: a bad grid size, method or center.
@@ -342,8 +366,12 @@ def mesh_to_grid(
     check_choice("method", method, ("auto", "radial", "spherical"))
     if method == "spherical" and center is not None:
         raise InputError("center applies to method='radial' (or 'auto'), not 'spherical'")
+    if sphere is not None and (method == "radial" or center is not None):
+        raise InputError("sphere= is a spherical map: use method 'auto' or 'spherical', no center")
     mesh = _as_trimesh(mesh)
     vertices, faces = _checked_mesh(mesh)
+    if sphere is not None:
+        return given_map(vertices, faces, sphere).to_grid(m, n)
     if method == "radial" or center is not None:
         return _radial(mesh, vertices, m, n, center, hint=True)
     if method == "auto":
@@ -469,6 +497,53 @@ def grid_to_mesh(f) -> trimesh.Trimesh:
     return mesh
 
 
+def _neuro_kind(path: pathlib.Path) -> str | None:
+    """ "gii" for a GIfTI file, "freesurfer" for a FreeSurfer surface, else None."""
+    kind = _suffix(path)
+    if kind in _NEURO_FORMATS:
+        return kind
+    if kind in _FREESURFER_SURFACES and path.name[:3].lower() in ("lh.", "rh."):
+        return "freesurfer"
+    return None
+
+
+def _neuro_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices ``(V, 3)`` and faces ``(F, 3)`` of a GIfTI (``.gii``) or FreeSurfer surface
+    file (``lh.white``, ``rh.pial``, ``lh.sphere`` ...), in the file's vertex order.
+
+    Needs nibabel: ``pip install "elastic-jax[neuro]"``.
+    """
+    path = pathlib.Path(path)
+    kind = _neuro_kind(path)
+    if kind is None:
+        raise _unknown_suffix(path, "read as a GIfTI or FreeSurfer surface", _NEURO_FORMATS)
+    _check_exists(path)
+    try:
+        import nibabel
+    except ImportError as err:
+        raise InputError(
+            f"{str(path)!r}: reading GIfTI and FreeSurfer surfaces needs nibabel: "
+            'pip install "elastic-jax[neuro]"'
+        ) from err
+
+    def gifti():
+        image = nibabel.load(path)
+        points = image.get_arrays_from_intent("NIFTI_INTENT_POINTSET")
+        triangles = image.get_arrays_from_intent("NIFTI_INTENT_TRIANGLE")
+        if len(points) != 1 or len(triangles) != 1:
+            raise InputError(
+                f"{str(path)!r} holds {len(points)} point sets and {len(triangles)} triangle "
+                "arrays; a surface has one of each"
+            )
+        return points[0].data, triangles[0].data
+
+    def freesurfer():
+        return nibabel.freesurfer.read_geometry(path)[:2]
+
+    vertices, faces = _read(path, kind, gifti if kind == "gii" else freesurfer)
+    return np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+
+
 def _read(path: pathlib.Path, kind: str, reader):
     """``reader()``, with a failure to parse the file an InputError naming the file."""
     try:
@@ -532,7 +607,7 @@ def surface_files(directory: str | os.PathLike) -> list[pathlib.Path]:
     directory = pathlib.Path(directory)
     if not directory.is_dir():
         raise FileNotFoundError(f"{str(directory)!r}: no such directory")
-    readable = set(_GRID_FORMATS) | set(_mesh_loadable_formats())
+    readable = set(_GRID_FORMATS) | set(_mesh_loadable_formats()) | set(_NEURO_FORMATS)
     entries = sorted(p for p in directory.iterdir() if not p.name.startswith("."))
     found = [p for p in entries if p.is_file() and _suffix(p) in readable]
     if not found:
@@ -544,11 +619,24 @@ def surface_files(directory: str | os.PathLike) -> list[pathlib.Path]:
     return found
 
 
+def _map_positions(path: pathlib.Path) -> np.ndarray:
+    """The vertex positions of a sphere map's file (GIfTI, FreeSurfer or a mesh file)."""
+    if _neuro_kind(path) is not None:
+        return _neuro_mesh(path)[0]
+    kind = _suffix(path)
+    if kind not in _mesh_loadable_formats():
+        raise _unknown_suffix(path, "read as a sphere map", _NEURO_FORMATS + MESH_FORMATS)
+    _check_exists(path)
+    mesh = _read(path, kind, lambda: trimesh.load(path, force="mesh", process=False))
+    return np.asarray(mesh.vertices, np.float64)
+
+
 def load_surface(
     path: str | os.PathLike,
     m: int | None = None,
     n: int | None = None,
     *,
+    sphere: str | os.PathLike | np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> np.ndarray:
     """Read a surface ``(3, m, n)`` from a grid file or a mesh file.
@@ -561,6 +649,14 @@ def load_surface(
       ``trimesh.load(path, force="mesh")`` and resampled by :func:`mesh_to_grid` (method
       "auto": radial projection when the mesh is star-shaped, else a spherical
       parametrization) on the m x n grid, default 50 x 99.
+    - a GIfTI surface (``.gii``) or a FreeSurfer surface (``lh.white``, ``rh.pial``,
+      ``lh.sphere`` ...; by name), read with nibabel (``pip install
+      "elastic-jax[neuro]"``) in the file's vertex order and resampled as a mesh.
+
+    ``sphere``: a spherical map of the mesh to resample through instead of computing one
+    (:func:`mesh_to_grid`'s ``sphere=``): an array ``(V, 3)`` or a file of the same mesh's
+    sphere (FreeSurfer's ``?h.sphere``, a ``sphere_left.gii``, a mesh file trimesh reads
+    without reordering); meshes only.
 
     For grid files, giving m and n that differ from the file's grid resamples bilinearly
     (``elastic_jax.resample``, MATH.md 6) in float64.
@@ -590,15 +686,29 @@ def load_surface(
         check_grid_shape((3, m, n), "the grid (3, m, n)")
     kind = _suffix(path)
     mesh_formats = _mesh_loadable_formats()
-    if kind not in _GRID_FORMATS and kind not in mesh_formats:
-        raise _unknown_suffix(path, "load", _GRID_FORMATS + mesh_formats)
+    neuro = _neuro_kind(path)
+    if kind not in _GRID_FORMATS and kind not in mesh_formats and neuro is None:
+        raise _unknown_suffix(path, "load", _GRID_FORMATS + mesh_formats + _NEURO_FORMATS)
+    if sphere is not None and kind in _GRID_FORMATS:
+        raise InputError(f"sphere= resamples a mesh; {str(path)!r} is a grid file")
     _check_exists(path)
 
-    if kind in mesh_formats:
-        mesh = _read(path, kind, lambda: trimesh.load(path, force="mesh"))
+    if neuro is not None or kind in mesh_formats:
+        if neuro is not None:
+            mesh = trimesh.Trimesh(*_neuro_mesh(path), process=False)
+        else:
+            # Keep the file's vertices as they are when a map of them is given.
+            process = sphere is None
+            mesh = _read(path, kind, lambda: trimesh.load(path, force="mesh", process=process))
+        if sphere is not None and not isinstance(sphere, np.ndarray):
+            sphere = _map_positions(pathlib.Path(sphere))
         try:
             f = mesh_to_grid(
-                mesh, 50 if m is None else m, 99 if n is None else n, progress=progress
+                mesh,
+                50 if m is None else m,
+                99 if n is None else n,
+                sphere=sphere,
+                progress=progress,
             )
         except MeshError as err:
             err.args = (f"{str(path)!r}: {err}", *err.args[1:])

@@ -704,6 +704,14 @@ def parametrize(
             ConvergenceWarning,
             stacklevel=3,
         )
+    return _record(vertices, faces, sphere, final, iterations, converged, start)
+
+
+def _record(
+    vertices, faces, sphere, energy, iterations, converged, start
+) -> SphericalParametrization:
+    """The record of a map without folds, with its quality figures."""
+    area = _face_areas(vertices, faces)
     share = spherical_triangle_areas(sphere, faces) / (4 * np.pi)
     ratio = share / (area / area.sum())
     distortion = np.maximum(ratio, 1 / ratio)
@@ -713,15 +721,66 @@ def parametrize(
         vertices=vertices,
         faces=faces,
         sphere=sphere,
-        flipped=flipped,
+        flipped=0,
         area_distortion=float(distortion.max()),
         area_distortion_p99=float(np.percentile(distortion, 99)),
         angle_error=float(np.degrees(np.abs(angles_sphere - angles_mesh).mean())),
-        energy=final,
+        energy=energy,
         iterations=iterations,
         converged=converged,
         seconds=time.perf_counter() - start,
     )
+
+
+def given_map(vertices: np.ndarray, faces: np.ndarray, sphere) -> SphericalParametrization:
+    """A spherical map the caller already has (e.g. FreeSurfer's ?h.sphere), checked.
+
+    Args:
+        vertices, faces: a checked mesh, faces wound outward (:func:`check_mesh`).
+        sphere: ``(V, 3)`` one position per vertex (same order), on a sphere about the
+            origin of any radius: each row is taken as a direction.
+
+    Returns:
+        :class:`SphericalParametrization` (energy NaN, iterations 0: nothing optimized).
+
+    Raises:
+        InputError: a bad shape, NaN/inf, or a zero row at a vertex of a face.
+        ParametrizationError: faces folded over (counted; all of them: the map reverses
+            orientation), or spherical triangles that do not tile the sphere once.
+    """
+    start = time.perf_counter()
+    p = np.asarray(sphere, dtype=np.float64)
+    if p.shape != vertices.shape:
+        raise InputError(
+            f"sphere must have one position per mesh vertex, shape {vertices.shape}; got "
+            f"{p.shape} (build the mesh with trimesh's process=False to keep the file's "
+            "vertices and their order)"
+        )
+    if not np.all(np.isfinite(p)):
+        raise InputError("sphere contains NaN or inf")
+    norm = np.linalg.norm(p, axis=1, keepdims=True)
+    used = np.unique(faces)
+    if np.any(norm[used] == 0):
+        raise InputError("sphere has a zero position at a vertex of the mesh")
+    p = np.where(norm == 0, [0.0, 0.0, 1.0], p / np.where(norm == 0, 1, norm))
+    flipped = int(np.sum(_triple(p, faces) <= 0))
+    if flipped == len(faces):
+        raise ParametrizationError(
+            "the given sphere map reverses orientation (every face is turned over): it is "
+            "a mirror image of an orientation-preserving map",
+            flipped,
+        )
+    if flipped:
+        raise ParametrizationError(
+            f"the given sphere map folds {flipped} of {len(faces)} faces over", flipped
+        )
+    cover = float(spherical_triangle_areas(p, faces).sum()) / (4 * np.pi)
+    if abs(cover - 1) > 1e-8:
+        raise ParametrizationError(
+            f"the given sphere map's triangles cover the sphere {cover:.6g} times, not once",
+            0,
+        )
+    return _record(vertices, faces, p, float("nan"), 0, True, start)
 
 
 def sample_mesh(par: SphericalParametrization, directions: np.ndarray) -> np.ndarray:
