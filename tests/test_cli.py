@@ -586,3 +586,24 @@ def test_fit_metric_equals_the_library_and_scores_the_held_out_files(tmp_path, c
         )
     saved = np.load(tmp_path / "o" / "fit_metric.npz")
     np.testing.assert_allclose(saved["distances"], fit.distances, rtol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "extra, words",
+    [
+        (["--labels", "L", "--learn", "c"], "learn must name at least two"),
+        (["--labels", "missing.txt"], "--labels missing.txt: no such file"),
+        (["--labels", "L", "--temperature", "0"], "--temperature"),
+        (["--labels", "L", "--test", "A"], "--test and --test-labels go together"),
+    ],
+)
+def test_fit_metric_refuses_bad_options_before_any_work(tmp_path, capsys, extra, words):
+    files = [_save(tmp_path, f"s{i}.npz", shapes.sample(shapes.sphere, M, N)) for i in range(3)]
+    (tmp_path / "L").write_text("a\na\nb\n")
+    extra = [str(tmp_path / x) if x in ("L", "A") else x for x in extra]
+    out = tmp_path / "out"
+    code = cli.main(["fit-metric", *files, *extra, *SMALL, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert words in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists()

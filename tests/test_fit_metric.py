@@ -172,36 +172,8 @@ def test_the_gradient_agrees_with_central_differences_of_whole_solves(modulo):
     """
     f, labels = (capsules if modulo == "none" else elongated)(7, 4)
     options = FAST if modulo == "none" else SHAPE
-    w = np.array([0.3, 0.25, 0.4, 0.05])
-
-    def objective_at(w):
-        fit = _quiet(
-            lambda: ej.fit_metric(
-                f,
-                labels,
-                modulo=modulo,
-                options=options,
-                init=ej.SplitMetric(*w),
-                learn="abcd",
-                max_steps=0,
-                strategy="loop",
-                temperature=0.5,
-            )
-        )
-        return fit
-
-    at = objective_at(w)
-    gradient = np.asarray(at.gradient)
-    # Invariance under scaling the metric: the gradient is orthogonal to w.
-    assert abs(gradient @ w) <= 1e-9 * np.linalg.norm(gradient)
-    h = 1e-4
-    for i in range(4) if modulo == "none" else (1, 2):
-        e = np.eye(4)[i] * h
-        diff = (
-            float(objective_at(w + e).objective_before)
-            - float(objective_at(w - e).objective_before)
-        ) / (2 * h)
-        assert diff == pytest.approx(gradient[i], rel=1e-3, abs=1e-3 * np.linalg.norm(gradient))
+    coefficients = range(4) if modulo == "none" else (1, 2)
+    _assert_gradient_matches(f, labels, modulo, options, [0.3, 0.25, 0.4, 0.05], coefficients)
 
 
 @pytest.mark.slow
@@ -221,15 +193,22 @@ def test_the_gradient_on_the_shared_shapes_agrees_with_central_differences():
             )
         )
     f, labels = np.stack(f), [0, 0, 1, 1]
-    w = np.array([0.4, 0.3, 0.25, 0.05])
+    _assert_gradient_matches(f, labels, "none", FAST, [0.4, 0.3, 0.25, 0.05], range(4))
 
-    def fit_at(w):
-        return _quiet(
+
+def _assert_gradient_matches(f, labels, modulo, options, w, coefficients):
+    """MetricFit.gradient at w against central differences (h 1e-4) of the objective
+    re-solved from scratch (max_steps=0 fits) at w +- h e_i, i in ``coefficients``: rel
+    1e-3; and orthogonal to w (the objective is invariant under scaling the metric)."""
+    w = np.asarray(w, float)
+
+    def objective_at(w):
+        fit = _quiet(
             lambda: ej.fit_metric(
                 f,
                 labels,
-                modulo="none",
-                options=FAST,
+                modulo=modulo,
+                options=options,
                 init=ej.SplitMetric(*w),
                 learn="abcd",
                 max_steps=0,
@@ -237,15 +216,15 @@ def test_the_gradient_on_the_shared_shapes_agrees_with_central_differences():
                 temperature=0.5,
             )
         )
+        return fit
 
-    gradient = np.asarray(fit_at(w).gradient)
+    gradient = np.asarray(objective_at(w).gradient)
     assert abs(gradient @ w) <= 1e-9 * np.linalg.norm(gradient)
     h = 1e-4
-    for i in range(4):
+    for i in coefficients:
         e = np.eye(4)[i] * h
-        diff = (float(fit_at(w + e).objective_before) - float(fit_at(w - e).objective_before)) / (
-            2 * h
-        )
+        plus, minus = objective_at(w + e), objective_at(w - e)
+        diff = (float(plus.objective_before) - float(minus.objective_before)) / (2 * h)
         assert diff == pytest.approx(gradient[i], rel=1e-3, abs=1e-3 * np.linalg.norm(gradient))
 
 

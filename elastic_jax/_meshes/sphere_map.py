@@ -636,14 +636,7 @@ def parametrize(
             p[:, 0] = -p[:, 0]
         p = _centre(p, weight)
     else:
-        p = np.asarray(init, dtype=np.float64)
-        if p.shape != vertices.shape or not np.all(np.isfinite(p)):
-            raise InputError(f"init must be finite, shape {vertices.shape}; got {p.shape}")
-        norm = np.linalg.norm(p, axis=1, keepdims=True)
-        if np.any(norm[np.unique(faces)] == 0):
-            raise InputError("init has a zero vector for a vertex of the mesh")
-        # Vertices no face uses may be zero; any unit vector keeps x / |x| finite there.
-        p = np.where(norm == 0, [0.0, 0.0, 1.0], p / np.where(norm == 0, 1, norm))
+        p = _unit_rows(init, vertices, faces, "init")
     gram_inv, area = _reference(vertices, faces)
     iterations, converged = 0, False
     token = next(_TOKENS)
@@ -732,6 +725,25 @@ def _record(
     )
 
 
+def _unit_rows(positions, vertices: np.ndarray, faces: np.ndarray, name: str) -> np.ndarray:
+    """``positions (V, 3)``, one per vertex, as unit vectors; an InputError naming ``name``
+    for a bad shape, NaN/inf or a zero row at a vertex of a face."""
+    p = np.asarray(positions, dtype=np.float64)
+    if p.shape != vertices.shape:
+        raise InputError(
+            f"{name} must have one position per mesh vertex, shape {vertices.shape}; got "
+            f"{p.shape} (build the mesh with trimesh's process=False to keep a file's "
+            "vertices and their order)"
+        )
+    if not np.all(np.isfinite(p)):
+        raise InputError(f"{name} contains NaN or inf")
+    norm = np.linalg.norm(p, axis=1, keepdims=True)
+    if np.any(norm[np.unique(faces)] == 0):
+        raise InputError(f"{name} has a zero vector at a vertex of the mesh")
+    # Vertices no face uses may be zero; any unit vector keeps x / |x| finite there.
+    return np.where(norm == 0, [0.0, 0.0, 1.0], p / np.where(norm == 0, 1, norm))
+
+
 def given_map(vertices: np.ndarray, faces: np.ndarray, sphere) -> SphericalParametrization:
     """A spherical map the caller already has (e.g. FreeSurfer's ?h.sphere), checked.
 
@@ -749,20 +761,7 @@ def given_map(vertices: np.ndarray, faces: np.ndarray, sphere) -> SphericalParam
             orientation), or spherical triangles that do not tile the sphere once.
     """
     start = time.perf_counter()
-    p = np.asarray(sphere, dtype=np.float64)
-    if p.shape != vertices.shape:
-        raise InputError(
-            f"sphere must have one position per mesh vertex, shape {vertices.shape}; got "
-            f"{p.shape} (build the mesh with trimesh's process=False to keep the file's "
-            "vertices and their order)"
-        )
-    if not np.all(np.isfinite(p)):
-        raise InputError("sphere contains NaN or inf")
-    norm = np.linalg.norm(p, axis=1, keepdims=True)
-    used = np.unique(faces)
-    if np.any(norm[used] == 0):
-        raise InputError("sphere has a zero position at a vertex of the mesh")
-    p = np.where(norm == 0, [0.0, 0.0, 1.0], p / np.where(norm == 0, 1, norm))
+    p = _unit_rows(sphere, vertices, faces, "sphere")
     flipped = int(np.sum(_triple(p, faces) <= 0))
     if flipped == len(faces):
         raise ParametrizationError(

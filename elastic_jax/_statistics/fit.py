@@ -336,7 +336,7 @@ def fit_metric(
     if (objective == "nca") != (labels is not None):
         needs = "labels" if objective == "nca" else "targets"
         raise InputError(f"objective={objective!r} needs {needs}")
-    free = _check_learn(learn)
+    free = check_learn(learn)
     max_steps = check_int("max_steps", max_steps, 0)
     resume = check_bool("resume", resume)
     tol = check_positive("tol", tol)
@@ -344,6 +344,8 @@ def fit_metric(
     rows = np.triu_indices(k, 1)[0]
     data = _objective_data(objective, labels, targets, temperature, k, dtype)
 
+    if init is not None and not isinstance(init, SplitMetric):
+        raise InputError(f"init must be a SplitMetric; got {type(init).__name__}")
     start = normalized(SplitMetric(1.0, 1.0, 0.1, 0.0) if init is None else init)
     fixed = np.where(np.isin(np.arange(4), free), 0.0, start)
     if fixed.sum() >= 1.0:
@@ -622,7 +624,7 @@ def _objective_data(objective, labels, targets, temperature, k: int, dtype):
     return jnp.asarray(t[rows, cols], dtype)
 
 
-def _check_learn(learn) -> tuple[int, ...]:
+def check_learn(learn) -> tuple[int, ...]:
     if (
         not isinstance(learn, str)
         or len(set(learn)) != len(learn)
@@ -669,14 +671,11 @@ def _solve_pairs(metric, starts, solves: _Solves) -> _Held:
     parts, solutions, converged = [], [], []
     for (a, b), out in zip(chunks, outs, strict=True):
         _, ok, _, _, gamma, rotation, c = (jnp.asarray(x) for x in out)
-        first, second = shapes[rows[a:b]], shapes[cols[a:b]]
-        parts.append(
-            np.asarray(
-                energy_parts(
-                    first, second, gamma, rotation, c, solves.bases, cfg=options, modulo=modulo
-                )
-            )
-        )
+        # Every chunk padded to the solves' batch size: one compiled energy_parts.
+        pad = np.minimum(np.arange(solves.size), b - a - 1)
+        held = (shapes[rows[a:b][pad]], shapes[cols[a:b][pad]], gamma[pad], rotation[pad], c[pad])
+        energies = energy_parts(*held, solves.bases, cfg=options, modulo=modulo)
+        parts.append(np.asarray(energies)[: b - a])
         solutions.append((gamma, rotation, c))
         converged.append(np.asarray(ok))
     starts = tuple(jnp.concatenate(x) for x in zip(*solutions, strict=True))

@@ -123,6 +123,13 @@ def preflight(args) -> None:
             raise BadInput("--test and --test-labels go together")
         if args.test is not None and args.labels is None:
             raise BadInput("--test scores a classification: it needs --labels")
+        from .._statistics.fit import check_learn
+
+        checked_flag("--learn", lambda flag, value: check_learn(value), args.learn)
+        for flag in ("--labels", "--targets", "--test-labels"):
+            name = getattr(args, flag[2:].replace("-", "_"))
+            if name is not None and not pathlib.Path(name).is_file():
+                raise BadInput(f"{flag} {name}: no such file")
         checked_flag("--fit-steps", check_int, args.fit_steps, 0)
         checked_flag("--fit-tol", check_positive, args.fit_tol)
         checked_flag("--temperature", check_positive, args.temperature)
