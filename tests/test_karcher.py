@@ -107,6 +107,7 @@ def _three_reparametrized():
     )
 
 
+@pytest.mark.slow
 def test_karcher_mean_modulo_diff_reaches_its_fixed_point():
     # Three shapes, each under a reparametrization; a small tol. Every step is accepted
     # at once and the mean velocity falls to 0.2 % of its first norm (0.339, 4.8e-3,

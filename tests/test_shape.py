@@ -490,6 +490,7 @@ def test_chain_differential_keeps_the_spheres_closed_form_and_identity():
 # ---- start=: the rounds from a caller's registration (multiresolution in grid) ----
 
 
+@pytest.mark.slow
 def test_a_given_identity_start_is_init_none():
     m, n, options = 13, 25, ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
     f = shapes.sample(shapes.bumpy, m, n)
