@@ -17,5 +17,10 @@ class ConvergenceWarning(UserWarning):
     """A solve stopped before meeting its tolerance (its result says converged=False)."""
 
 
+class FrameWarning(UserWarning):
+    """A mesh's principal frame is undetermined (a symmetry): its grid uses the input's axes."""
+
+
 # Tracebacks and reprs name them where users import them from.
 InputError.__module__ = ConvergenceWarning.__module__ = "elastic_jax"
+FrameWarning.__module__ = "elastic_jax.io"

@@ -36,10 +36,11 @@ import scipy.io
 import trimesh
 
 from ._checks import check_choice
-from ._errors import InputError
+from ._errors import FrameWarning, InputError
 from ._geometry.grid import distinct_points, from_distinct, grid_directions
 from ._geometry.interp import resample
 from ._geometry.validation import check_grid_shape, validate_surface
+from ._meshes.frame import MeshFrame, principal_frame
 from ._meshes.sphere_map import (
     DegenerateFaceError,
     InconsistentWindingError,
@@ -59,8 +60,10 @@ from ._runtime.atomic import atomic_path, save_npz_atomic
 __all__ = [
     "MESH_FORMATS",
     "DegenerateFaceError",
+    "FrameWarning",
     "InconsistentWindingError",
     "MeshError",
+    "MeshFrame",
     "NonManifoldVertexError",
     "NotGenusZeroError",
     "NotStarShapedError",
@@ -69,6 +72,7 @@ __all__ = [
     "SphericalParametrization",
     "grid_to_mesh",
     "load_surface",
+    "mesh_frame",
     "mesh_to_grid",
     "save_path",
     "save_surface",
@@ -80,6 +84,9 @@ __all__ = [
 #: Mesh formats that :func:`save_surface` and :func:`save_path` write and that load back.
 #: (glTF is left out: trimesh writes it as several files, which cannot be renamed at once.)
 MESH_FORMATS = ("ply", "obj", "off", "stl", "glb")
+
+# The spherical map is computed from frame coordinates rounded to multiples of 1 / _SNAP.
+_SNAP = 2.0**16
 
 # Grid files; every other suffix is handed to trimesh.
 _GRID_FORMATS = ("npz", "mat")
@@ -221,6 +228,60 @@ def _direction_name(k: int, m: int, n: int, u: np.ndarray) -> str:
     return f"({u[0]:.4f}, {u[1]:.4f}, {u[2]:.4f}) ({where})"
 
 
+def _grid_frame(vertices: np.ndarray, faces: np.ndarray, frame) -> MeshFrame:
+    """The frame mesh_to_grid works in: principal axes (None), the input's, or given ones."""
+    found = principal_frame(vertices, faces)
+    if isinstance(frame, str):
+        check_choice("frame", frame, ("principal", "input"))
+        if frame == "input":
+            return found._replace(axes=np.eye(3))
+        frame = None
+    if frame is None:
+        if not found.undetermined:
+            return found
+        warnings.warn(
+            f"the mesh's principal frame is undetermined ({found.undetermined}); the grid "
+            "uses the input's coordinate axes, so it does not follow rigid motions of this "
+            "mesh (a symmetric mesh: pass frame='input' to choose this, or a rotation)",
+            FrameWarning,
+            stacklevel=3,
+        )
+        return found._replace(axes=np.eye(3))
+    axes = np.asarray(frame, dtype=np.float64)
+    if axes.shape != (3, 3) or not np.all(np.isfinite(axes)):
+        raise InputError(f"frame must be 'principal', 'input' or a (3, 3) rotation; got {frame!r}")
+    if np.abs(axes.T @ axes - np.eye(3)).max() > 1e-9 or np.linalg.det(axes) < 0:
+        raise InputError(
+            "frame must be a rotation (orthonormal columns, determinant +1, to 1e-9); got "
+            f"{np.array2string(axes, precision=4)}"
+        )
+    return found._replace(axes=axes)
+
+
+def mesh_frame(mesh: trimesh.Trimesh | trimesh.Scene) -> MeshFrame:
+    """The centroid, size and signed principal axes mesh_to_grid resamples a mesh in.
+
+    c = int x dA / A (area centroid), C = int (x - c)(x - c)^T dA / A, exact over the
+    triangles; the axes are C's eigenvectors, largest eigenvalue first, each signed by its
+    third moment int (e_k . (x - c))^3 dA (the two largest in magnitude; the third makes
+    the frame right-handed). A rigid motion x -> R x + t and a scaling of the mesh move
+    the frame with it. ``undetermined`` says why when the surface does not fix the axes:
+    equal eigenvalues or third moments below 1e-6 (a symmetry: spheres, ellipsoids,
+    mirror-symmetric tubes).
+
+    Args:
+        mesh: a ``trimesh.Trimesh`` (or a Scene of one).
+
+    Returns:
+        :class:`MeshFrame` (center ``(3,)``, scale, axes ``(3, 3)``, moments, skewness,
+        undetermined).
+    """
+    mesh = _as_trimesh(mesh)
+    return principal_frame(
+        np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+    )
+
+
 def spherical_parametrization(
     mesh: trimesh.Trimesh | trimesh.Scene,
     *,
@@ -228,6 +289,7 @@ def spherical_parametrization(
     max_steps: int = 20_000,
     rtol: float = 1e-5,
     init: np.ndarray | None = None,
+    frame: str | np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
     max_iter: int | None = None,
 ) -> SphericalParametrization:
@@ -239,12 +301,16 @@ def spherical_parametrization(
     2021), per face A_T ((1 - w) |J|^2 + w (det J^2 + 1)) / chi(det J, eps) with J the map's
     Jacobian from the mesh triangle (scaled to total area 4 pi) to its chord triangle on the
     sphere and chi(D, eps) = (D + sqrt(eps^2 + D^2)) / 2, is minimized by optimistix L-BFGS
-    for decreasing eps; a final area-weighted Kabsch rotation turns the map towards the
-    vertices' directions from their area centroid, so that a rotated mesh gives a rotated
-    map. ``w = area_weight`` trades angle distortion (w -> 0, conformal) for area
-    distortion (w -> 1, equal areas); area balance keeps thin parts of the mesh (legs,
+    for decreasing eps. ``w = area_weight`` trades angle distortion (w -> 0, conformal) for
+    area distortion (w -> 1, equal areas); area balance keeps thin parts of the mesh (legs,
     tails) from shrinking to nothing on the sphere, which is what the grid needs.
     Runs in float64 whatever JAX's x64 setting (``jax.enable_x64`` locally).
+
+    The map is computed on the mesh moved into its frame (:func:`mesh_frame`: centroid at
+    the origin, unit RMS size, principal axes along x, y, z) and ends with the area-weighted
+    Kabsch rotation that turns it towards the directions of the vertices in that frame: the
+    map is attached to the mesh, so a rigidly moved or scaled copy of the mesh gets the same
+    map (``sphere``), and ``to_grid`` the moved grid.
 
     The map is never folded: a face whose image is turned over (triple product of its
     sphere points <= 0) after ``max_steps`` iterations raises ParametrizationError.
@@ -258,13 +324,18 @@ def spherical_parametrization(
             fraction (with no folded face).
         init: optional ``(V, 3)`` starting directions on the sphere (normalized here), for
             example a map from another tool; folded starts are untangled.
+        frame: None (default) or ``"principal"``: the mesh's principal frame, with a
+            FrameWarning and the input's axes when a symmetry leaves it undetermined;
+            ``"input"``: the input's coordinate axes; or a ``(3, 3)`` rotation whose
+            columns are the axes to use.
         progress: called with a line of text after every round.
         max_iter: the former name of max_steps (until 2026-11-26; a DeprecationWarning).
 
     Returns:
-        :class:`SphericalParametrization`: vertices, faces (wound outward), sphere
-        positions and the quality figures (flipped faces, area-distortion ratio, mean
-        angle error, energy, iterations, time); ``.to_grid(m, n)`` resamples the mesh.
+        :class:`SphericalParametrization`: vertices (the mesh's own), faces (wound
+        outward), sphere positions (in the frame's axes) and the quality figures (flipped
+        faces, area-distortion ratio, mean angle error, energy, iterations, time);
+        ``.to_grid(m, n)`` resamples the mesh.
 
     Raises:
         MeshError: the mesh fails a check (the subclass and message say which).
@@ -274,6 +345,7 @@ def spherical_parametrization(
     Warns:
         ConvergenceWarning: ``max_steps`` ran out while the energy was still falling (the
             record says ``converged=False``; the map has no folds).
+        FrameWarning: the principal frame is undetermined (a symmetric mesh).
     """
     if max_iter is not None:
         # Every step limit of the package is called max_steps (issue 31).
@@ -285,15 +357,10 @@ def spherical_parametrization(
         max_steps = max_iter
     mesh = _as_trimesh(mesh)
     vertices, faces = _checked_mesh(mesh)
-    return parametrize(
-        vertices,
-        faces,
-        area_weight=area_weight,
-        max_steps=max_steps,
-        rtol=rtol,
-        init=init,
-        progress=progress,
-    )
+    where = _grid_frame(vertices, faces, frame)
+    local = trimesh.Trimesh(where.to_frame(vertices), faces, process=False)
+    options = {"area_weight": area_weight, "max_steps": max_steps, "rtol": rtol, "init": init}
+    return _spherical(local, vertices, faces, progress, **options)
 
 
 def mesh_to_grid(
@@ -304,32 +371,38 @@ def mesh_to_grid(
     method: str = "auto",
     center: Sequence[float] | np.ndarray | None = None,
     sphere: np.ndarray | None = None,
+    frame: str | np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> np.ndarray:
     """A closed genus-0 triangle mesh as a surface on the m x n grid.
 
+    Every method works in the mesh's frame (:func:`mesh_frame`): the grid direction
+    e1(phi_i, theta_j) of MATH.md 1 is read in the mesh's principal axes, so a rigidly
+    moved or uniformly scaled mesh gives the moved grid (to rounding), and where the
+    surface's symmetry leaves the axes undetermined a FrameWarning says so and the input's
+    axes are used (``frame=`` chooses them). Every grid point lies on the mesh (to
+    rounding: 1e-15 of the mesh's size measured).
+
     Methods:
 
     - ``"radial"``: with c the mesh's area-weighted centroid (sum_T area_T centroid_T /
-      sum_T area_T) or ``center``, f(phi_i, theta_j) = c + t_ij e1(phi_i, theta_j), where
-      t_ij > 0 is where the ray from c in the grid direction e1 (MATH.md 1) crosses the
-      mesh. Exact, and it needs the mesh star-shaped about c: every ray must cross the mesh
-      exactly once (crossings closer than 1e-9 times the mesh's size, as at an edge or a
-      vertex that several triangles share, count once). Where the rays go exactly through
-      mesh vertices (a mesh from :func:`grid_to_mesh` on the same grid, if it is radial
-      about c) those vertices come back to rounding error.
+      sum_T area_T) or ``center``, f(phi_i, theta_j) = c + t_ij A e1(phi_i, theta_j), A the
+      frame's axes, where t_ij > 0 is where the ray from c crosses the mesh. Exact, and it
+      needs the mesh star-shaped about c: every ray must cross the mesh exactly once
+      (crossings closer than 1e-9 times the mesh's size, as at an edge or a vertex that
+      several triangles share, count once).
     - ``"spherical"``: :func:`spherical_parametrization` maps the mesh onto the sphere;
       each grid direction is located in its spherical triangle and the mesh's vertices
-      are interpolated with the same (projective barycentric) weights, so every grid point
-      lies on the mesh. Any closed genus-0 mesh; the map follows rigid motions of the mesh
-      (a rotated mesh gives the rotated surface on the same grid).
+      are interpolated with the same (projective barycentric) weights. Any closed genus-0
+      mesh.
     - ``"auto"`` (default): radial about ``center`` when one is given; otherwise radial
       about the area centroid when the mesh is star-shaped about it, else radial about
       :func:`star_center` when it is star-shaped about some point, else spherical.
     - ``sphere=`` a spherical map the caller has (FreeSurfer's ``?h.sphere``, a
       ``sphere_left.gii``): resampled through it as through the spherical method's own
-      map, after the same checks (no face folded over, the sphere tiled once). Method
-      "auto" or "spherical" only.
+      map, after the same checks (no face folded over, the sphere tiled once). The map
+      is the caller's, in its own axes (a moved mesh with the same map gives the moved
+      grid); method "auto" or "spherical", no ``center`` or ``frame``.
 
     One point per distinct grid point: (m - 2)(n - 1) interior directions and the two
     poles; the pole rows repeat the pole point and the seam column repeats column 0.
@@ -342,6 +415,10 @@ def mesh_to_grid(
         sphere: ``(V, 3)`` the given map: one position per vertex of ``mesh.vertices``, in
             their order (trimesh merges and reorders vertices unless the mesh is built or
             loaded with ``process=False``), on a sphere about the origin (any radius).
+        frame: None (default) or ``"principal"``: the mesh's principal axes (the input's,
+            with a FrameWarning, when undetermined); ``"input"``: the input's coordinate
+            axes (no warning; the grid then follows translations and scalings only); or a
+            ``(3, 3)`` rotation whose columns are the axes.
         progress: called with a line of text during a spherical parametrization.
 
     Returns:
@@ -359,46 +436,90 @@ def mesh_to_grid(
             does not tile the sphere once.
         MeshError: no faces, several connected components, or a scene without meshes.
         TypeError: ``mesh`` is not a trimesh mesh or scene.
-        ValueError: a bad grid size, method or center.
+        ValueError: a bad grid size, method, center or frame.
+
+    Warns:
+        FrameWarning: the principal frame is undetermined and ``frame`` was not given.
     """
     m, n = operator.index(m), operator.index(n)
     check_grid_shape((3, m, n), "the grid (3, m, n)")
     check_choice("method", method, ("auto", "radial", "spherical"))
     if method == "spherical" and center is not None:
         raise InputError("center applies to method='radial' (or 'auto'), not 'spherical'")
-    if sphere is not None and (method == "radial" or center is not None):
-        raise InputError("sphere= is a spherical map: use method 'auto' or 'spherical', no center")
+    if sphere is not None and (method == "radial" or center is not None or frame is not None):
+        raise InputError(
+            "sphere= is a spherical map in its own axes: use method 'auto' or 'spherical', "
+            "no center, no frame"
+        )
     mesh = _as_trimesh(mesh)
     vertices, faces = _checked_mesh(mesh)
     if sphere is not None:
         return given_map(vertices, faces, sphere).to_grid(m, n)
+    where = _grid_frame(vertices, faces, frame)
+    # In the frame the mesh has unit RMS size about the origin: trimesh's absolute
+    # tolerances (1e-6 behind a ray's origin, 1e-8 merges) are then relative ones.
+    local = trimesh.Trimesh(where.to_frame(vertices), faces, process=False)
     if method == "radial" or center is not None:
-        return _radial(mesh, vertices, m, n, center, hint=True)
-    if method == "auto":
+        y = _radial(local, m, n, center, where, hint=True)
+    elif method == "auto":
         try:
-            return _radial(mesh, vertices, m, n, None, hint=False)
+            y = _radial(local, m, n, None, where, hint=False)
         except NotStarShapedError:
-            kernel = star_center(mesh)
-        if kernel is not None:
-            return _radial(mesh, vertices, m, n, kernel, hint=False)
-        if progress is not None:
-            progress("the mesh is star-shaped about no point: spherical parametrization")
-    return parametrize(vertices, faces, progress=progress).to_grid(m, n)
+            kernel = star_center(local)
+            if kernel is None:
+                y = None
+                if progress is not None:
+                    progress("the mesh is star-shaped about no point: spherical parametrization")
+            else:
+                y = _radial(local, m, n, where.from_frame(kernel), where, hint=False)
+        if y is None:
+            return _spherical(local, vertices, faces, progress).to_grid(m, n)
+    else:
+        return _spherical(local, vertices, faces, progress).to_grid(m, n)
+    return np.moveaxis(where.from_frame(np.moveaxis(y, 0, -1)), -1, 0)
 
 
-def _radial(mesh, vertices, m: int, n: int, center, hint: bool) -> np.ndarray:
-    """Radial projection of a checked mesh about ``center`` (None: its area centroid)."""
+def _spherical(local, vertices, faces, progress, **options) -> SphericalParametrization:
+    """The map computed on the mesh in its frame, recorded with the mesh's own vertices (the
+    grid's points are then interpolated from them, on the mesh to rounding)."""
+    y = local.vertices.view(np.ndarray)
+    # The optimizer amplifies rounding: the frame coordinates of a moved copy of the mesh
+    # differ from the original's by 1e-16 to 1e-12 (a translation large against the size)
+    # and the maps then differed by up to 7e-4 of the size (hand4, 2,000 iterations).
+    # Rounded to multiples of 2^-16 (1.5e-5 of the mesh's RMS size) both copies give the
+    # same bits, unless a coordinate sits within that difference of a rounding boundary
+    # (under 1e-7 per coordinate); the map is then a function of the mesh, and the grid's
+    # points still come from the exact vertices. Not where rounding would turn a sliver
+    # face over.
+    snapped = np.round(y * _SNAP) / _SNAP
+    if np.all(np.einsum("ij,ij->i", _normals(snapped, faces), _normals(y, faces)) > 0):
+        y = snapped
+    par = parametrize(y, faces, progress=progress, **options)
+    return par._replace(vertices=vertices)
+
+
+def _normals(y: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    t = y[faces]
+    return np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+
+
+def _radial(local, m: int, n: int, center, where: MeshFrame, hint: bool) -> np.ndarray:
+    """Radial projection of a checked mesh in its frame about ``center`` (in the mesh's
+    coordinates; None: its area centroid, the frame's origin); the grid in frame
+    coordinates."""
     if center is None:
-        origin = _area_centroid(mesh)
+        origin = np.zeros(3)
         about = "its area-weighted centroid"
     else:
-        origin = np.asarray(center, dtype=np.float64)
-        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+        center = np.asarray(center, dtype=np.float64)
+        if center.shape != (3,) or not np.all(np.isfinite(center)):
             raise InputError(f"center must be 3 finite numbers; got {center!r}")
+        origin = where.to_frame(center)
         about = "the given center"
+    vertices = local.vertices.view(np.ndarray)
     scale = float(np.max(np.linalg.norm(vertices - origin, axis=1)))
     directions = grid_directions(m, n)
-    ray, t = _crossings(mesh, origin, directions, _MERGE_RTOL * scale)
+    ray, t = _crossings(local, origin, directions, _MERGE_RTOL * scale)
     count = np.bincount(ray, minlength=len(directions))
 
     bad = np.flatnonzero(count != 1)
@@ -409,33 +530,33 @@ def _radial(mesh, vertices, m: int, n: int, center, hint: bool) -> np.ndarray:
             "misses the mesh"
             if count[k] == 0
             else f"crosses it {count[k]} times, at distances "
-            + ", ".join(f"{d:.4g}" for d in t[ray == k])
+            + ", ".join(f"{d * where.scale:.4g}" for d in t[ray == k])
         )
+        o = where.from_frame(origin)
+        u = directions[k] @ where.axes.T
         raise NotStarShapedError(
             f"the mesh is not star-shaped about {about} "
-            f"({origin[0]:.4g}, {origin[1]:.4g}, {origin[2]:.4g}): of {len(directions)} rays "
+            f"({o[0]:.4g}, {o[1]:.4g}, {o[2]:.4g}): of {len(directions)} rays "
             f"from it, {missed} missed the mesh and {multiple} crossed it more than once "
             f"(up to {int(count.max())} times); the first, in direction "
-            f"{_direction_name(k, m, n, directions[k])}, {found}"
-            + (_star_hint(mesh, center) if hint else "")
+            f"{_direction_name(k, m, n, u)}, {found}"
+            + (_star_hint(local, where, center) if hint else "")
         )
     # One crossing per ray, sorted by ray: t lines up with the directions.
     return from_distinct(origin + t[:, None] * directions, m, n)
 
 
-def _star_hint(mesh: trimesh.Trimesh, center) -> str:
-    kernel = star_center(mesh)
+def _star_hint(local: trimesh.Trimesh, where: MeshFrame, center) -> str:
+    kernel = star_center(local)
     if kernel is None:
         return (
             "; it is star-shaped about no point at all (the inner half-spaces of its faces do "
             "not intersect), so radial projection cannot parametrize it"
         )
+    kernel = np.array2string(where.from_frame(kernel), precision=4)
     if center is not None:
-        return f"; it is star-shaped about {np.array2string(kernel, precision=4)} (star_center)"
-    return (
-        f"; it is star-shaped about {np.array2string(kernel, precision=4)}: pass "
-        "center=star_center(mesh)"
-    )
+        return f"; it is star-shaped about {kernel} (star_center)"
+    return f"; it is star-shaped about {kernel}: pass center=star_center(mesh)"
 
 
 def _grid_faces(m: int, n: int) -> np.ndarray:
@@ -637,6 +758,7 @@ def load_surface(
     n: int | None = None,
     *,
     sphere: str | os.PathLike | np.ndarray | None = None,
+    frame: str | np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> np.ndarray:
     """Read a surface ``(3, m, n)`` from a grid file or a mesh file.
@@ -656,7 +778,9 @@ def load_surface(
     ``sphere``: a spherical map of the mesh to resample through instead of computing one
     (:func:`mesh_to_grid`'s ``sphere=``): an array ``(V, 3)`` or a file of the same mesh's
     sphere (FreeSurfer's ``?h.sphere``, a ``sphere_left.gii``, a mesh file trimesh reads
-    without reordering); meshes only.
+    without reordering); meshes only. ``frame``: the axes a mesh is resampled in
+    (:func:`mesh_to_grid`'s ``frame=``; ``"input"`` gives back the grid a file of
+    :func:`save_surface` was written from).
 
     For grid files, giving m and n that differ from the file's grid resamples bilinearly
     (``elastic_jax.resample``, MATH.md 6) in float64.
@@ -689,8 +813,8 @@ def load_surface(
     neuro = _neuro_kind(path)
     if kind not in _GRID_FORMATS and kind not in mesh_formats and neuro is None:
         raise _unknown_suffix(path, "load", _GRID_FORMATS + mesh_formats + _NEURO_FORMATS)
-    if sphere is not None and kind in _GRID_FORMATS:
-        raise InputError(f"sphere= resamples a mesh; {str(path)!r} is a grid file")
+    if (sphere is not None or frame is not None) and kind in _GRID_FORMATS:
+        raise InputError(f"sphere= and frame= resample a mesh; {str(path)!r} is a grid file")
     _check_exists(path)
 
     if neuro is not None or kind in mesh_formats:
@@ -708,6 +832,7 @@ def load_surface(
                 50 if m is None else m,
                 99 if n is None else n,
                 sphere=sphere,
+                frame=frame,
                 progress=progress,
             )
         except MeshError as err:
@@ -757,9 +882,10 @@ def save_surface(f, path: str | os.PathLike) -> pathlib.Path:
 
     ``.npz``: the array under the key ``f``, exactly. A mesh format (``MESH_FORMATS``:
     ``.ply .obj .off .stl .glb``): the triangulation of :func:`grid_to_mesh` (the grid's
-    vertices, no seam copies), which :func:`load_surface` projects back onto a grid. The
-    mesh writers round coordinates: .ply, .stl and .glb store float32, .obj 8 decimals and
-    .off 10; use .npz to keep float64.
+    vertices, no seam copies), which :func:`load_surface` projects back onto a grid (with
+    ``frame="input"`` the same grid, when it is radial about its area centroid). The mesh
+    writers round coordinates: .ply, .stl and .glb store float32, .obj 8 decimals and .off
+    10; use .npz to keep float64.
 
     Args:
         f: ``(3, m, n)`` surface, checked with ``validate_surface``.

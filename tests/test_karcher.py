@@ -130,6 +130,7 @@ def test_karcher_mean_modulo_diff_reaches_its_fixed_point():
         assert float(d) >= _area_bound(f, res.mean)
 
 
+@pytest.mark.slow  # 83 s on 2 cores
 def test_warm_start_keeps_the_lower_of_two_registrations():
     """warm_start adds, per shape, a solve started from its registration at the previous
     mean (the identity at the first) and keeps the lower distance: at the first mean both

@@ -3,7 +3,8 @@
 Pipeline (each step keeps the map free of folds, the last one repairs what the first ones
 could not):
 
-1. Puncture: remove the mesh's largest face; what is left is a topological disk.
+1. Puncture: remove the mesh's largest face (the first one, up to rounding); what is left
+   is a topological disk.
 2. Tutte map with mean-value weights (Floater 2003): fix the removed face's vertices on an
    equilateral triangle and place every other vertex at the weighted mean of its
    neighbours. The weights are positive, so the planar map is an embedding (Floater's
@@ -21,10 +22,11 @@ could not):
    20,000 vertices in variables preconditioned by a sparse factor of the mesh's graph
    Laplacian (a change of variables: the solver is untouched).
 5. An area-weighted Kabsch rotation that turns the sphere map towards the directions of
-   the mesh's vertices from its area centroid: a rotated mesh gives a rotated map.
+   the mesh's vertices from its area centroid.
 
-Everything is intrinsic (edge lengths and angles) until step 5, so the map is the same for
-a rigidly moved or uniformly scaled mesh up to that rotation.
+Everything is intrinsic (edge lengths and angles) until step 5; the io layer passes the
+mesh in its principal frame (``_meshes.frame``), so the map is attached to the mesh and
+a rigidly moved or scaled copy gets the same one.
 """
 
 from __future__ import annotations
@@ -341,7 +343,10 @@ def _tutte(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     weights = scipy.sparse.csr_matrix(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(nv, nv)
     )
-    hole = faces[int(np.argmax(_face_areas(vertices, faces)))]
+    # The first face within rounding of the largest: a moved copy of the mesh (areas equal
+    # to rounding) removes the same face, so its map is the same.
+    area = _face_areas(vertices, faces)
+    hole = faces[int(np.argmax(area >= area.max() * (1 - 1e-9)))]
     # Removing the face (a, b, c) leaves a disk whose boundary runs a -> c -> b.
     corners = np.array([[np.cos(a), np.sin(a)] for a in 2 * np.pi * np.arange(3) / 3])
     fixed = np.zeros(nv, dtype=bool)
