@@ -199,7 +199,8 @@ PUBLIC = {
         srnf_path_length straight_path surface_area surface_basis tangent_pca
         upsample_coefficients validate_surface vector_field_basis vee""",
     "elastic_jax.io": """MESH_FORMATS DegenerateFaceError FrameWarning InconsistentWindingError
-        MeshError MeshFrame mesh_frame NonManifoldVertexError NotGenusZeroError NotStarShapedError NotWatertightError
+        MeshError MeshFrame mesh_frame NonManifoldVertexError NotGenusZeroError
+        NotStarShapedError NotWatertightError
         ParametrizationError SphericalParametrization grid_to_mesh load_surface mesh_to_grid
         save_path save_surface spherical_parametrization star_center surface_files""",
     "elastic_jax.plot": """parametrization_colors plot_path plot_modes plot_energy
