@@ -607,3 +607,25 @@ def test_fit_metric_refuses_bad_options_before_any_work(tmp_path, capsys, extra,
     assert code == 2
     assert words in err and len(err.strip().splitlines()) == 1, err
     assert not out.exists()
+
+
+def test_mesh_files_are_read_in_the_frame_asked_for(tmp_path):
+    from elastic_jax.cli.common import _load_all
+
+    # bumpy is star-shaped about its centroid and asymmetric: radial projection in a
+    # principal frame that differs from the file's axes.
+    f = np.asarray(shapes.sample(shapes.bumpy, 13, 25))
+    mesh_file = io.save_surface(f, tmp_path / "b.off")
+    grid_file = io.save_surface(f, tmp_path / "b.npz")
+    files = [str(grid_file), str(mesh_file)]  # the first file's grid is the common one
+    for frame in ("principal", "input"):
+        got = _load_all(files, None, "float64", lambda line: None, frame)
+        np.testing.assert_array_equal(got[0], f)  # a grid file keeps its parametrization
+        np.testing.assert_array_equal(got[1], io.load_surface(mesh_file, 13, 25, frame=frame))
+    # the default is the principal frame, another parametrization than the file's axes give
+    principal = _load_all(files, None, "float64", lambda line: None)[1]
+    np.testing.assert_array_equal(principal, io.load_surface(mesh_file, 13, 25))
+    assert np.abs(principal - got[1]).max() > 1e-2
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["geodesic", *files, "--frame", "sideways"])
+    assert exit_.value.code == 2

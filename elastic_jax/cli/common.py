@@ -99,8 +99,11 @@ def environment_record() -> dict:
     }
 
 
-def _load_all(files: Sequence[str], grid, dtype, progress: Progress):
-    """Surfaces as one (K, 3, m, n) array on a common grid; BadInput names the file."""
+def _load_all(files: Sequence[str], grid, dtype, progress: Progress, frame: str = "principal"):
+    """Surfaces as one (K, 3, m, n) array on a common grid; BadInput names the file.
+
+    ``frame``: the axes mesh files are resampled in (io.mesh_to_grid's ``frame``); grid
+    files keep their own parametrization."""
     import numpy as np
 
     from .. import io
@@ -110,7 +113,8 @@ def _load_all(files: Sequence[str], grid, dtype, progress: Progress):
     for name in files:
         progress(f"reading {name}")
         try:
-            f = io.load_surface(name, m=m, n=n, progress=progress)
+            mesh_frame = None if str(name).endswith((".npz", ".mat")) else frame
+            f = io.load_surface(name, m=m, n=n, frame=mesh_frame, progress=progress)
         except (InputError, KeyError) as err:  # their messages name the file
             raise BadInput(err.args[0] if err.args else str(err)) from err
         except (OSError, ValueError) as err:
@@ -221,7 +225,7 @@ def write_path(out: pathlib.Path, path, settings: dict, progress: Progress) -> l
 def prepare(args, progress: Progress, files, options_of: Callable, surfaces=None):
     """The surfaces ``(K, 3, m, n)`` (read unless given), checked degrees, metric, options."""
     if surfaces is None:
-        surfaces = _load_all(files, args.grid, args.dtype, progress)
+        surfaces = _load_all(files, args.grid, args.dtype, progress, args.frame)
     _check_degrees(args, *surfaces.shape[-2:])
     return surfaces, metric_from(args), options_of(args)
 

@@ -50,6 +50,14 @@ def _io_options(parser: argparse.ArgumentParser) -> None:
         "50 99 for meshes)",
     )
     parser.add_argument(
+        "--frame",
+        choices=("principal", "input"),
+        default="principal",
+        help="the axes a mesh file is resampled in: its principal axes, so that a moved mesh "
+        "gives the moved grid (default; a symmetric mesh warns and keeps the input's), or the "
+        "input's coordinate axes",
+    )
+    parser.add_argument(
         "--dtype",
         choices=("float64", "float32"),
         default="float64",
