@@ -12,6 +12,13 @@ max_steps 20000, rtol 1e-5) on the issue's meshes:
   grid and meshed with ``grid_to_mesh`` (77280 faces). It is a finer grid mesh of the same
   cat, with the grid's thin triangles near the poles, not an isotropic remesh.
 
+- FreeSurfer's fsaverage5 left hemisphere (10,242 vertices, 20,480 faces; pial, white and
+  inflated) from the nilearn wheel when nilearn is installed (never copied here): mapped
+  by the package and resampled through fsaverage's own sphere (sphere_left.gii.gz), with
+  the two 50 x 99 grids compared: pointwise (they are different parametrizations, so this
+  is large) and as surfaces (the largest distance from either grid's points to the other
+  grid's triangles, % of the diagonal). Skipped, with a record, without nilearn.
+
 One JSON record per case, its settings next to its figures: faces, vertices, the wall
 time of the call (time.perf_counter around the first call in this process for the mesh's
 size, so JIT compilation included; the cases of one size after the first reuse the
@@ -65,12 +72,36 @@ CASES = {
     "ellipsoid_20k": ("ellipsoid", 5, False),
     "ellipsoid_80k": ("ellipsoid", 6, False),
     "cat1_78k": ("fine_cat", "cat1", False),
+    "fsaverage5_pial": ("fsaverage", "pial", True),
+    "fsaverage5_white": ("fsaverage", "white", True),
+    "fsaverage5_infl": ("fsaverage", "infl", True),
 }
+
+
+def fsaverage_file(name: str):
+    """nilearn's fsaverage5 file ``name`` (e.g. pial_left.gii.gz), or None without nilearn."""
+    import importlib.util
+    import pathlib
+
+    spec = importlib.util.find_spec("nilearn")
+    if spec is None or spec.origin is None:
+        return None
+    path = pathlib.Path(spec.origin).parent / "datasets" / "data" / "fsaverage5" / name
+    return path if path.exists() else None
 
 
 def build(name: str) -> tuple[trimesh.Trimesh | None, dict]:
     """The case's mesh (None when its data is absent) and its settings."""
     kind, parameter, _ = CASES[name]
+    if kind == "fsaverage":
+        path = fsaverage_file(f"{parameter}_left.gii.gz")
+        if path is None:
+            return None, {"source": "nilearn fsaverage5 (nilearn not installed)"}
+        import nibabel
+
+        vertices, faces = nibabel.load(path).agg_data()
+        mesh = trimesh.Trimesh(vertices, faces, process=False)
+        return mesh, {"source": f"nilearn {path.name}", "hemisphere": "left"}
     if kind == "ellipsoid":
         sphere = trimesh.creation.icosphere(subdivisions=parameter)
         mesh = trimesh.Trimesh(
@@ -153,8 +184,42 @@ def run_case(name: str, progress: bool) -> dict:
             "coverage": coverage(mesh, par),
         }
     )
+    if CASES[name][0] == "fsaverage":
+        record["own_sphere"] = own_sphere(mesh, par)
     emit(record)
     return record
+
+
+def own_sphere(mesh: trimesh.Trimesh, par) -> dict:
+    """The mesh resampled through fsaverage's own sphere against the package's map."""
+    import nibabel
+
+    sphere = nibabel.load(fsaverage_file("sphere_left.gii.gz")).agg_data()[0]
+    start = time.perf_counter()
+    theirs = io.mesh_to_grid(mesh, *COVERAGE_GRID, sphere=sphere)
+    seconds = time.perf_counter() - start
+    ours = par.to_grid(*COVERAGE_GRID)
+    diagonal = float(np.linalg.norm(np.ptp(np.asarray(mesh.vertices), axis=0)))
+
+    def one_way(a, b):
+        _, d, _ = trimesh.proximity.closest_point(io.grid_to_mesh(b), a.reshape(3, -1).T)
+        return float(d.max())
+
+    return {
+        "resample_s": seconds,
+        "pointwise_max_pct_diagonal": float(
+            100 * np.linalg.norm(theirs - ours, axis=0).max() / diagonal
+        ),
+        "surface_max_pct_diagonal": 100
+        * max(one_way(ours, theirs), one_way(theirs, ours))
+        / diagonal,
+        "coverage_own_sphere": coverage(mesh, par._replace(sphere=_unit(sphere))),
+    }
+
+
+def _unit(x):
+    x = np.asarray(x, dtype=np.float64)
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
 
 
 def main() -> None:

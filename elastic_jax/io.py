@@ -623,6 +623,8 @@ def _neuro_kind(path: pathlib.Path) -> str | None:
     kind = _suffix(path)
     if kind in _NEURO_FORMATS:
         return kind
+    if path.name.lower().endswith(".gii.gz"):  # nibabel reads compressed GIfTI (nilearn's)
+        return "gii"
     if kind in _FREESURFER_SURFACES and path.name[:3].lower() in ("lh.", "rh."):
         return "freesurfer"
     return None
@@ -771,7 +773,7 @@ def load_surface(
       ``trimesh.load(path, force="mesh")`` and resampled by :func:`mesh_to_grid` (method
       "auto": radial projection when the mesh is star-shaped, else a spherical
       parametrization) on the m x n grid, default 50 x 99.
-    - a GIfTI surface (``.gii``) or a FreeSurfer surface (``lh.white``, ``rh.pial``,
+    - a GIfTI surface (``.gii``, ``.gii.gz``) or a FreeSurfer surface (``lh.white``, ``rh.pial``,
       ``lh.sphere`` ...; by name), read with nibabel (``pip install
       "elastic-jax[neuro]"``) in the file's vertex order and resampled as a mesh.
 

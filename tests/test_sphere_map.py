@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import os
 import pathlib
 import subprocess
@@ -477,7 +478,11 @@ def test_gifti_and_freesurfer_surfaces_round_trip(tmp_path):
     gifti(tmp_path / "sphere.gii", 100.0 * sphere)
     nibabel.freesurfer.write_geometry(tmp_path / "lh.white", vertices, faces)
     nibabel.freesurfer.write_geometry(tmp_path / "lh.sphere", 100.0 * sphere, faces)
-    for name in ("surface.gii", "lh.white"):
+    # nilearn ships fsaverage compressed (pial_left.gii.gz)
+    (tmp_path / "surface.gii.gz").write_bytes(
+        gzip.compress((tmp_path / "surface.gii").read_bytes())
+    )
+    for name in ("surface.gii", "lh.white", "surface.gii.gz"):
         got = io.load_surface(tmp_path / name, 13, 25)
         np.testing.assert_allclose(got, expected, atol=1e-5)
     for name, map_name in (("surface.gii", "sphere.gii"), ("lh.white", "lh.sphere")):
