@@ -17,7 +17,7 @@ Example:
     >>> mesh = io.grid_to_mesh(np.asarray(shapes.sample(shapes.ellipsoid, 13, 25)))
     >>> bool(mesh.is_watertight), int(mesh.euler_number)
     (True, 2)
-    >>> io.mesh_to_grid(mesh, 9, 17).shape
+    >>> io.mesh_to_grid(mesh, 9, 17, frame="input").shape  # symmetric: the input's axes
     (3, 9, 17)
 """
 

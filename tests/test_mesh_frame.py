@@ -109,7 +109,7 @@ def test_a_given_center_moves_with_the_mesh():
 @pytest.mark.parametrize(
     "name, m, n",
     [
-        ("cat1", 25, 49),
+        pytest.param("cat1", 25, 49, marks=pytest.mark.slow),
         ("hand4", 25, 49),
         pytest.param("cat2", 50, 99, marks=pytest.mark.slow),
         pytest.param("horse0", 50, 99, marks=pytest.mark.slow),

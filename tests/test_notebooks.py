@@ -67,6 +67,7 @@ def test_karcher_mean_notebook():
     assert np.all(mean_sv <= 1.03 * input_sv.max(axis=0))
 
 
+@pytest.mark.slow  # 53-69 s on 2 cores
 def test_any_mesh_notebook():
     out, figures = _run("04_any_mesh")
     assert figures == 1

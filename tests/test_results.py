@@ -146,7 +146,11 @@ CASES = {
 }
 
 
-@pytest.mark.parametrize("case", CASES)
+# The transport case (35 s: a configuration of its own) runs in the slow tier.
+@pytest.mark.parametrize(
+    "case",
+    [pytest.param(c, marks=pytest.mark.slow) if c == "parallel_transport" else c for c in CASES],
+)
 def test_every_result_record_follows_the_protocol(case):
     make, expected = CASES[case]
     res, steps = make()
