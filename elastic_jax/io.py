@@ -140,13 +140,6 @@ def _checked_mesh(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
     return vertices, check_mesh(vertices, np.asarray(mesh.faces))
 
 
-def _area_centroid(mesh: trimesh.Trimesh) -> np.ndarray:
-    # Area weights, not trimesh's center_mass (volume weights): the area centroid needs
-    # no consistently oriented faces, only the surface itself.
-    area = np.asarray(mesh.area_faces, dtype=np.float64)
-    return area @ np.asarray(mesh.triangles_center, dtype=np.float64) / area.sum()
-
-
 def _crossings(
     mesh: trimesh.Trimesh, origin: np.ndarray, directions: np.ndarray, atol: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -357,10 +350,9 @@ def spherical_parametrization(
         max_steps = max_iter
     mesh = _as_trimesh(mesh)
     vertices, faces = _checked_mesh(mesh)
-    where = _grid_frame(vertices, faces, frame)
-    local = trimesh.Trimesh(where.to_frame(vertices), faces, process=False)
+    y = _grid_frame(vertices, faces, frame).to_frame(vertices)
     options = {"area_weight": area_weight, "max_steps": max_steps, "rtol": rtol, "init": init}
-    return _spherical(local, vertices, faces, progress, **options)
+    return _spherical(y, vertices, faces, progress, **options)
 
 
 def mesh_to_grid(
@@ -456,33 +448,31 @@ def mesh_to_grid(
     if sphere is not None:
         return given_map(vertices, faces, sphere).to_grid(m, n)
     where = _grid_frame(vertices, faces, frame)
+    y = where.to_frame(vertices)
+    if method == "spherical":
+        return _spherical(y, vertices, faces, progress).to_grid(m, n)
     # In the frame the mesh has unit RMS size about the origin: trimesh's absolute
     # tolerances (1e-6 behind a ray's origin, 1e-8 merges) are then relative ones.
-    local = trimesh.Trimesh(where.to_frame(vertices), faces, process=False)
+    local = trimesh.Trimesh(y, faces, process=False)
     if method == "radial" or center is not None:
-        y = _radial(local, m, n, center, where, hint=True)
-    elif method == "auto":
+        grid = _radial(local, m, n, center, where, hint=True)
+    else:
         try:
-            y = _radial(local, m, n, None, where, hint=False)
+            grid = _radial(local, m, n, None, where, hint=False)
         except NotStarShapedError:
             kernel = star_center(local)
             if kernel is None:
-                y = None
                 if progress is not None:
                     progress("the mesh is star-shaped about no point: spherical parametrization")
-            else:
-                y = _radial(local, m, n, where.from_frame(kernel), where, hint=False)
-        if y is None:
-            return _spherical(local, vertices, faces, progress).to_grid(m, n)
-    else:
-        return _spherical(local, vertices, faces, progress).to_grid(m, n)
-    return np.moveaxis(where.from_frame(np.moveaxis(y, 0, -1)), -1, 0)
+                return _spherical(y, vertices, faces, progress).to_grid(m, n)
+            grid = _radial(local, m, n, where.from_frame(kernel), where, hint=False)
+    return np.moveaxis(where.from_frame(np.moveaxis(grid, 0, -1)), -1, 0)
 
 
-def _spherical(local, vertices, faces, progress, **options) -> SphericalParametrization:
-    """The map computed on the mesh in its frame, recorded with the mesh's own vertices (the
-    grid's points are then interpolated from them, on the mesh to rounding)."""
-    y = local.vertices.view(np.ndarray)
+def _spherical(y, vertices, faces, progress, **options) -> SphericalParametrization:
+    """The map computed on the mesh in its frame (``y``, the vertices in frame coordinates),
+    recorded with the mesh's own vertices (the grid's points are then interpolated from
+    them, on the mesh to rounding)."""
     # The optimizer amplifies rounding: the frame coordinates of a moved copy of the mesh
     # differ from the original's by 1e-16 to 1e-12 (a translation large against the size)
     # and the maps then differed by up to 7e-4 of the size (hand4, 2,000 iterations).
