@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._checks import check_int
 from ._errors import InputError
 from ._geometry.grid import sphere_points
 from ._geometry.reparam import moebius as _moebius_map
@@ -33,6 +34,7 @@ __all__ = [
     "sample",
     "random_rotation",
     "two_classes",
+    "geodesic_sphere",
 ]
 
 
@@ -203,3 +205,52 @@ def two_classes(
             f = size * x * np.array([z**-0.5, z**-0.5, z])[:, None, None]
         out.append(np.asarray(f, np.float64))
     return np.stack(out), labels
+
+
+def geodesic_sphere(frequency: int) -> tuple[np.ndarray, np.ndarray]:
+    """The geodesic sphere of the given frequency: a triangle mesh of S^2 of any size whose
+    triangles are all close to equilateral.
+
+    Each face of the icosahedron is cut into frequency^2 triangles by the lines parallel
+    to its edges, and the points are pushed onto the unit sphere (the class-I geodesic
+    polyhedron {3,5+}_(nu,0)): 20 nu^2 faces, 10 nu^2 + 2 vertices. Evaluate a shape at
+    its points for a mesh of that surface of any size, e.g.
+    ``trimesh.Trimesh(np.asarray(shapes.bent_cylinder(points)).T, faces)``.
+
+    Args:
+        frequency: nu >= 1 (1 is the icosahedron).
+
+    Returns:
+        ``(points (3, V), faces (F, 3))``: unit vectors, component axis first as in the
+        package's layout, and int64 faces wound counterclockwise seen from outside.
+    """
+    import scipy.spatial
+    import trimesh
+
+    nu = check_int("frequency", frequency, 1)
+    ico = trimesh.creation.icosahedron()
+    corners = np.asarray(ico.vertices)[np.asarray(ico.faces)]  # (20, 3, 3)
+    i, j = (a.ravel() for a in np.meshgrid(np.arange(nu + 1), np.arange(nu + 1), indexing="ij"))
+    keep = i + j <= nu
+    i, j = i[keep], j[keep]
+    local = np.full((nu + 2, nu + 2), -1)
+    local[i, j] = np.arange(i.size)
+    up = i + j <= nu - 1
+    down = i + j <= nu - 2
+    triangles = np.concatenate(
+        [
+            np.stack([local[i, j], local[i + 1, j], local[i, j + 1]], axis=1)[up],
+            np.stack([local[i + 1, j], local[i + 1, j + 1], local[i, j + 1]], axis=1)[down],
+        ]
+    )
+    a, b, c = corners[:, 0, None], corners[:, 1, None], corners[:, 2, None]
+    points = a + (b - a) * (i / nu)[:, None] + (c - a) * (j / nu)[:, None]  # (20, K, 3)
+    points = (points / np.linalg.norm(points, axis=-1, keepdims=True)).reshape(-1, 3)
+    faces = (triangles[None] + i.size * np.arange(20)[:, None, None]).reshape(-1, 3)
+    # Points on an edge or a corner of the icosahedron were made by each of its faces
+    # (equal up to rounding); every copy takes the lowest index among them.
+    pairs = scipy.spatial.cKDTree(points).query_pairs(1e-9 / nu, output_type="ndarray")
+    first = np.arange(len(points))
+    np.minimum.at(first, pairs.max(axis=1), pairs.min(axis=1))
+    kept, index = np.unique(first, return_inverse=True)
+    return points[kept].T.copy(), index[faces].astype(np.int64)

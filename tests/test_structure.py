@@ -205,7 +205,8 @@ PUBLIC = {
         save_path save_surface spherical_parametrization star_center surface_files""",
     "elastic_jax.plot": """parametrization_colors plot_path plot_modes plot_energy
         plot_distance_matrix save_figure""",
-    "elastic_jax.shapes": "sphere ellipsoid bumpy bent_cylinder sample random_rotation two_classes",
+    "elastic_jax.shapes": "sphere ellipsoid bumpy bent_cylinder sample random_rotation two_classes "
+    "geodesic_sphere",
 }
 
 
