@@ -45,7 +45,7 @@ the library compiles without the fusion emitters, and reports RESULTS.resolution
         0.8395-0.8588 (grad norms 0.04-0.27); cat1 -> horse0: 0.8526-0.8642 and 1.0400.
     So the search is reproducible for the smooth synthetic pair, and for the real pairs
     up to the choice between nearby minima; the runs that stop at the edge of what the
-    grid resolves say so. The README's "What the distance means" says how to read them.
+    grid resolves say so. docs/guides/settings.md ("What the distance means") says how to read them.
 
 Run: python benchmarks/bench_rounding.py [--rows low,middle] [--pairs cats,horse,synthetic]
 """

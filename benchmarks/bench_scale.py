@@ -77,7 +77,7 @@ units are one program each; exported / plain jit):
         from these by 1e-14 (rounding), and that moved cat1 -> horse0 at 25 x 49 (degree
         5 / 8, N 7) from a coarse registration at energy 0.771 to one at 2.399; the rounds
         then needed more than 10 rounds. Not landed: the start selection amplifies
-        rounding (see README, "What the distance means").
+        rounding (see docs/guides/settings.md, "What the distance means").
 Again after the shape solves compile with XLA:CPU's classic fusion emitters (2026-11-24,
 quiet; the solve's code is also newer: the pole derivative fix and the resolution rule,
 so cats at the middle row take 10 rounds, 0.7718, where they took 2-3; exported / plain

@@ -65,7 +65,7 @@ def pair(name: str, m: int, n: int):
 
 
 def _grid(f):
-    """Pole rows and seam exact after interpolation (MATH.md 1)."""
+    """Pole rows and seam exact after interpolation (docs/math.md §1)."""
     f = f.at[:, 0, :].set(f[:, 0, :1]).at[:, -1, :].set(f[:, -1, :1])
     return f.at[:, :, -1].set(f[:, :, 0])
 

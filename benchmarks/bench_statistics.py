@@ -18,7 +18,7 @@ min / median of ``--repeat`` further calls:
 - ``mode_path``: the first mode, +-2 sigma, 7 time points each way (two shoots).
 
 Part 2, the paper's Table 2 (section "Comparison to the SRNF-framework"): metric
-(0, 1/2, 1, 0), the pull-back of the flat L2 metric of SRNFs (MATH.md 3), degree 7,
+(0, 1/2, 1, 0), the pull-back of the flat L2 metric of SRNFs (docs/math.md §3), degree 7,
 N = 25, pairs cat1 -> horse0 and cat1 -> cat2. L_l: the (0, 1/2, 1, 0) length of the
 straight line f1 + t (f2 - f1) at N time points; L_g: that length of the parametrized
 geodesic (:func:`geodesic`, no registration); L_i: that length of the inverted SRNF
@@ -93,7 +93,7 @@ target by 51 % (25 x 49) and 65 % (50 x 99) relative SRNF residual, and the last
 (node 5 to the horse) carries 0.85 of L_i's 1.48 (forward scheme: 3.0 of 3.6). Isometry
 (relative gap of the (0, 1/2, 1, 0) length of the straight line to the L2 length of its
 SRNF image, midpoint, N = 13 / 25 / 99): cat1-cat2 50 x 99 2.8e-2 / 6.7e-3 / 4.4e-5;
-cat1-horse0 50 x 99 2.9e-3 / 1.7e-2 / 3.7e-3 (not monotone, as MATH.md 3 says of these
+cat1-horse0 50 x 99 2.9e-3 / 1.7e-2 / 3.7e-3 (not monotone, as docs/math.md §3 says of these
 lines); the forward length at N = 13 on the cats, 1.6251290345, is the value pinned in
 tests/test_srnf.py.
 
@@ -194,7 +194,8 @@ def relative(x, y) -> float:
 
 def min_area_ratio(path) -> float:
     """min over the path's frames and interior grid of the area density |q|^2 over its mean
-    (|q|^2 = |f_theta x f_phi| / sin phi, MATH.md 3): near 0, a frame is nearly not immersed."""
+    (|q|^2 = |f_theta x f_phi| / sin phi, docs/math.md §3): near 0, a frame is nearly not
+    immersed."""
     density = jnp.sum(ej.srnf(path)[..., 1:-1, :-1] ** 2, axis=-3)
     return float(jnp.min(density / jnp.mean(density, axis=(-2, -1), keepdims=True)))
 
@@ -270,7 +271,8 @@ def statistics_records(
                 speed_spread=float((sh.speeds.max() - sh.speeds.min()) / sh.speeds.mean()),
                 # Per step of the log's path: the smallest ratio over the cells of the area
                 # at the step's midpoint to the smaller of its areas at the two nodes (the
-                # steps where Newton fails are those where it is far below 1: README).
+                # steps where Newton fails are those where it is far below 1:
+                # docs/guides/limitations.md).
                 midpoint_area_ratio=midpoint_area_ratios(lg.path),
             )
 

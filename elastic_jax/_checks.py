@@ -66,7 +66,7 @@ def check_grid_shape(shape: tuple[int, ...], name: str) -> tuple[int, int]:
     if n % 2 == 0:
         raise InputError(
             f"{name} has an even number of columns n={n}; n must be odd so that "
-            "theta + pi is again a grid column (MATH.md 1)"
+            "theta + pi is again a grid column (documentation: Mathematics, section 1)"
         )
     return m, n
 
@@ -118,7 +118,7 @@ def item_suffix(batch_shape: tuple[int, ...], flat_index: int) -> str:
 
 
 def grid_array(f, name: str) -> jax.Array:
-    """A real ``(..., 3, m, n)`` JAX array whose values fit the grid (MATH.md 1).
+    """A real ``(..., 3, m, n)`` JAX array whose values fit the grid (math §1).
 
     Shape checks always run. Value checks (finite; constant pole rows; seam column equal
     to column 0, to sqrt(eps) times the surface's extent) run only on concrete arrays, so

@@ -44,7 +44,11 @@ class ShapeOptions:
     degree too high for the grid) are checked when it is used. Change fields with
     ``options.replace(...)``.
 
-    The path (parametrized geodesics, paper Algorithm 1, MATH.md 4 and 7):
+    The path fields set the parametrized geodesics (paper Algorithm 1, math §4 and §7),
+    the registration fields the search over reparametrizations and rotations (paper
+    sections 4.2-4.3), the check fields what is verified at the end.
+
+    Path fields:
         degree: spherical-harmonic degree of the path perturbations.
         n_times: N >= 3 time points, end points included.
         solver: ``"bfgs"`` (optimistix) or ``"lbfgs"`` (jaxopt), for every inner solve.
@@ -56,9 +60,9 @@ class ShapeOptions:
             energy of the piecewise-linear path; second order, symmetric, and it cannot
             be lowered by large steps. ``"forward"`` (the paper's) weighs a step at its
             start and ``"central"`` has an odd-even mode: registration exploits both
-            (README, "What the distance means").
+            (:doc:`/guides/settings`, "What the distance means").
 
-    The registration (paper sections 4.2-4.3):
+    Registration fields:
         method: ``"joint"`` (Algorithm 2: path and reparametrization together, default)
             or ``"coordinate"`` (alternate: the reparametrization with the path's
             perturbation held, then the path).
@@ -68,8 +72,8 @@ class ShapeOptions:
         outer_tol: that relative change (E_0: the parametrized energy).
         init: ``"moebius"`` (default): a short search over the Moebius group of S^2
             (rotations and conformal boosts) from each of the 60 icosahedral rotations,
-            ranked by the L2 mismatch int |f1 o gamma - R f2|^2, the best
-            ``init_candidates`` that lie apart refined (docs/registration.md);
+            ranked by the L2 mismatch int ‖f1 o gamma - R f2‖^2, the best
+            ``init_candidates`` that lie apart refined (:doc:`/guides/registration_notes`);
             ``"energy"`` (the default until 2026-11-24): the 60 rotations refined over
             rotations and ranked by straight-line energy, the best ``init_candidates``
             refined over rotations and, as further starts, over the Moebius group;
@@ -80,7 +84,8 @@ class ShapeOptions:
         init_candidates: how many of the ranked searches become starts (with
             "moebius", the best that lie apart: mean distance of their maps above 0.1).
         interpolation: ``"bicubic"`` (default) or ``"bilinear"`` (the paper's) for f o gamma.
-        differential: how the differential of f1 o gamma is taken (docs/registration.md).
+        differential: how the differential of f1 o gamma is taken
+            (:doc:`/guides/registration_notes`).
             ``"grid"`` (default): central differences of f1 o gamma on the grid, as of
             every other surface; an input that is f1 sampled through some gamma is then
             matched exactly (d(f, R f o phi) at most 0.3 % of d(cat1, cat2) at 50 x 99).
@@ -98,7 +103,8 @@ class ShapeOptions:
             reparametrization is itself under-resolved, and this sees that: d(f, R f o phi)
             with abs(a) = 0.5 at 50 x 99 is 47-58 % of an animal-to-animal distance.
             ``energy`` is then not ``path_energy(path)``, which differences path[0].
-    The checks:
+
+    Check fields:
         refinement: re-evaluate the result with every time step halved and on the
             (2m - 1) x (2n - 1) grid (:class:`Refinement`).
         saddle_checks: at most this many escapes from saddle points of the final

@@ -1,6 +1,6 @@
 """Reading and writing surfaces: grids (.npz, .mat) and triangle meshes (.ply, .obj, ...).
 
-A surface is an array ``(3, m, n)`` on the spherical grid (MATH.md 1). A closed genus-0
+A surface is an array ``(3, m, n)`` on the spherical grid (math §1). A closed genus-0
 mesh becomes such an array through a map of the mesh onto the unit sphere: by radial
 projection when the mesh is star-shaped (one ray per grid direction from a centre of the
 mesh, the surface point is where the ray leaves the mesh; exact, and checked rather than
@@ -291,7 +291,7 @@ def spherical_parametrization(
     For meshes that are not star-shaped (animals, hands, bent tubes): a mean-value Tutte
     map of the mesh with one face removed, inverse stereographic projection and a Moebius
     centring give a fold-free start; the foldover-free energy of Garanzha et al. (ACM TOG
-    2021), per face A_T ((1 - w) |J|^2 + w (det J^2 + 1)) / chi(det J, eps) with J the map's
+    2021), per face A_T ((1 - w) ‖J‖_F^2 + w (det J^2 + 1)) / chi(det J, eps) with J the map's
     Jacobian from the mesh triangle (scaled to total area 4 pi) to its chord triangle on the
     sphere and chi(D, eps) = (D + sqrt(eps^2 + D^2)) / 2, is minimized by optimistix L-BFGS
     for decreasing eps. ``w = area_weight`` trades angle distortion (w -> 0, conformal) for
@@ -369,7 +369,7 @@ def mesh_to_grid(
     """A closed genus-0 triangle mesh as a surface on the m x n grid.
 
     Every method works in the mesh's frame (:func:`mesh_frame`): the grid direction
-    e1(phi_i, theta_j) of MATH.md 1 is read in the mesh's principal axes, so a rigidly
+    e1(phi_i, theta_j) of :ref:`math §1 <math-1>` is read in the mesh's principal axes, so a rigidly
     moved or uniformly scaled mesh gives the moved grid (to rounding), and where the
     surface's symmetry leaves the axes undetermined a FrameWarning says so and the input's
     axes are used (``frame=`` chooses them). Every grid point lies on the mesh (to
@@ -775,7 +775,7 @@ def load_surface(
     :func:`save_surface` was written from).
 
     For grid files, giving m and n that differ from the file's grid resamples bilinearly
-    (``elastic_jax.resample``, MATH.md 6) in float64.
+    (``elastic_jax.resample``, :ref:`math §6 <math-6>`) in float64.
 
     Args:
         path: the file; the suffix picks the format.

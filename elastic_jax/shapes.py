@@ -108,10 +108,10 @@ def sample(
 
     Args:
         shape: one of this module's surfaces (or any F: S^2 -> R^3 with the same layout).
-        m, n: grid size (MATH.md 1).
+        m, n: grid size (:ref:`math §1 <math-1>`).
         rotation: optional ``(3, 3)`` rotation R; the result is F(R e1(phi_i, theta_j)).
         dtype: floating dtype of the result.
-        moebius: optional ``(3,)`` a, |a| < 1: the Moebius map phi_a
+        moebius: optional ``(3,)`` a, ‖a‖ < 1: the Moebius map phi_a
             (:func:`elastic_jax.moebius`) is applied before the rotation, so that
             F(R phi_a(x)) is sampled exactly.
         **params: passed to ``shape``.

@@ -76,7 +76,7 @@ def relerr(x, y) -> float:
 
 
 def assert_area_bound(distance, f1, f2, metric, slack: float = 0.01, areas=None) -> float:
-    """MATH.md 9: d(f1, f2) >= sqrt(2 b) |sqrt(A(f2)) - sqrt(A(f1))| for every quotient.
+    """docs/math.md §9: d(f1, f2) >= sqrt(2 b) |sqrt(A(f2)) - sqrt(A(f1))| for every quotient.
 
     Area is invariant under reparametrization and rigid motion; Cauchy-Schwarz on the
     b-term of the energy gives the bound. The areas are the continuum's, estimated on the

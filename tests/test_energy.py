@@ -10,7 +10,7 @@ from elastic_jax._geometry.energy import _path_energy
 
 from .conftest import load_shape, relerr
 
-# MATH.md 2: exact discretization, straight line cat1 -> cat2, N = 13, 50 x 99.
+# docs/math.md §2: exact discretization, straight line cat1 -> cat2, N = 13, 50 x 99.
 CAT_REFERENCE = [
     ((1.0, 1.0, 0.1, 0.0), 9.9263523348, 3.1433333512),
     ((0.0, 0.5, 1.0, 0.0), 2.6979328566, 1.6251290345),
@@ -23,7 +23,7 @@ CAT_REFERENCE = [
 def test_exact_discretization_values_on_the_cats(cats, abcd, energy, length):
     path = ej.straight_path(*cats, 13)
     metric = ej.SplitMetric(*abcd)
-    # MATH.md 2's table is the forward scheme of MATH.md 4.
+    # docs/math.md §2's table is the forward scheme of docs/math.md §4.
     assert float(ej.path_energy(metric, path, "forward")) == pytest.approx(energy, rel=1e-8)
     assert float(ej.path_length(metric, path, "forward")) == pytest.approx(length, rel=1e-8)
 

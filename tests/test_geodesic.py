@@ -40,7 +40,7 @@ def test_concentric_spheres():
     res = ej.geodesic(f1, f2, METRIC, **SETTINGS)
     exact = np.sqrt(8 * np.pi * b) * (r2 - r1)
     assert bool(res.converged)
-    # MATH.md 3: the discretization error of the straight line is 7.1e-3 in energy at 25 x 49.
+    # docs/math.md §3: the discretization error of the straight line is 7.1e-3 in energy at 25 x 49.
     assert abs(float(res.distance) - exact) / exact < 5e-3
     assert float(res.energy) <= float(res.straight_energy) * (1 + 1e-12)
     assert float(jnp.abs(res.coefficients).max()) < 1e-3 * r2
@@ -125,7 +125,7 @@ def test_warm_start_and_multiresolution(cylinders, forward):
 
 
 # Mirror-symmetric pair: BFGS from the straight line stays in the symmetric subspace and,
-# under the forward scheme, stops at a saddle of the discrete energy (MATH.md 9).
+# under the forward scheme, stops at a saddle of the discrete energy (docs/math.md §9).
 SADDLE = {"degree": 3, "n_times": 5}
 
 

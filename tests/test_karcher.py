@@ -49,7 +49,7 @@ def _moved_spheres():
 
 
 def _area_bound(f, g):
-    """98 % of sqrt(2 b) |sqrt(A(g)) - sqrt(A(f))| (MATH.md 9): no shape distance lies
+    """98 % of sqrt(2 b) |sqrt(A(g)) - sqrt(A(f))| (docs/math.md §9): no shape distance lies
     below the bound; at 13 x 25 the discrete distance of concentric spheres is 1.4 % under
     it, registration that exploits the grid goes tens of percent under (issue 10)."""
     areas = np.sqrt(np.asarray(ej.surface_area(jnp.stack([f, g]))))

@@ -131,7 +131,7 @@ def test_scale_homogeneity(s):
 
 
 def test_concentric_spheres_closed_form():
-    # Energy of the straight line between concentric spheres: 8 pi b (r2 - r1)^2 (MATH.md 3).
+    # Energy of the straight line between concentric spheres: 8 pi b (r2 - r1)^2 (docs/math.md §3).
     r1, r2 = 0.8, 1.9
     errors = []
     for m, n in [(25, 49), (50, 99)]:

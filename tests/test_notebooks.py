@@ -27,21 +27,53 @@ _KERNEL_ENV = {
 }
 
 
-def _run(name: str) -> tuple[dict, int]:
-    """Execute a notebook in a fresh kernel; return its JSON results and the figures shown."""
-    nb = nbformat.read(NOTEBOOKS / f"{name}.ipynb", as_version=4)
-    nbclient.NotebookClient(nb, timeout=900, kernel_name="python3").execute(env=_KERNEL_ENV)
+def _results(nb) -> tuple[dict, int]:
+    """The JSON line a notebook's last cell printed, and the number of figures it shows."""
     outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs]
     figures = sum("image/png" in o.get("data", {}) for o in outputs)
     text = [o["text"] for o in outputs if o["output_type"] == "stream" and o["name"] == "stdout"]
     return json.loads(text[-1].strip().splitlines()[-1]), figures
 
 
+def _agree(fresh, stored, path="") -> list[str]:
+    """Where the fresh results differ from the stored ones (floats to 2 % relative: other
+    machines round otherwise and iterate a step more or less)."""
+    if isinstance(stored, dict):
+        return [d for k in stored for d in _agree(fresh.get(k), stored[k], f"{path}.{k}")]
+    if isinstance(stored, list):
+        if not isinstance(fresh, list) or len(fresh) != len(stored):
+            return [f"{path}: {fresh!r} != {stored!r}"]
+        return [
+            d
+            for i, (a, b) in enumerate(zip(fresh, stored, strict=True))
+            for d in _agree(a, b, f"{path}[{i}]")
+        ]
+    if isinstance(stored, float) and isinstance(fresh, (int, float)):
+        ok = abs(fresh - stored) <= 0.02 * abs(stored) + 1e-9
+        return [] if ok else [f"{path}: {fresh!r} != {stored!r}"]
+    return [] if fresh == stored else [f"{path}: {fresh!r} != {stored!r}"]
+
+
+def _run(name: str) -> tuple[dict, int]:
+    """Execute a notebook in a fresh kernel; return its JSON results and the figures shown.
+
+    The notebook is stored with its outputs (the site renders them): the fresh results must
+    agree with the stored ones, or the stored figures are out of date (rerun
+    docs/execute_notebooks.py)."""
+    nb = nbformat.read(NOTEBOOKS / f"{name}.ipynb", as_version=4)
+    stored, stored_figures = _results(nb)
+    nbclient.NotebookClient(nb, timeout=900, kernel_name="python3").execute(env=_KERNEL_ENV)
+    out, figures = _results(nb)
+    assert figures == stored_figures
+    assert _agree(out, stored) == []
+    return out, figures
+
+
 @pytest.mark.slow
 def test_parametrized_geodesic_notebook():
     out, figures = _run("01_parametrized_geodesic")
     assert figures == 1
-    # 13 x 25 quadrature error of the concentric-spheres closed form (MATH.md 3).
+    # 13 x 25 quadrature error of the concentric-spheres closed form (docs/math.md §3).
     assert out["sphere_distance"] == pytest.approx(out["closed_form"], rel=2e-2)
     assert out["energy"] < 0.9 * out["straight_energy"]
     assert out["stiff"] > out["soft"]  # bending costs more when c is larger
@@ -74,7 +106,7 @@ def test_any_mesh_notebook():
     assert out["star_center"] is None  # radial projection cannot parametrize the U-tube
     assert out["flipped"] == 0 and abs(out["tiles_minus_4pi"]) < 1e-8
     assert out["min_jacobian"] > 0
-    # MATH.md 9: the area bound holds for every quotient; registration lowers the distance.
+    # docs/math.md §9: the area bound holds for every quotient; registration lowers the distance.
     assert out["area_bound"] <= out["shape"] < out["parametrized"]
 
 

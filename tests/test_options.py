@@ -22,7 +22,8 @@ M, N = 13, 25
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 FAST = ej.ShapeOptions(degree=3, n_times=5)
 FIELDS = {f.name for f in dataclasses.fields(ej.ShapeOptions)}
-# Limits and settings that belong to one algorithm and keep their own meaning (README,
+# Limits and settings that belong to one algorithm and keep their own meaning
+# (docs/guides/settings.md,
 # "Example"): Newton's tolerance and iterations, the Karcher iteration's.
 OWN = {
     # geodesic's init is a warm start (coefficients), not the registration's search.

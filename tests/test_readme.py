@@ -1,4 +1,5 @@
-"""README's example runs and prints the closed form; README and CI run the same test command."""
+"""README's example runs and prints the closed form; README and CI run the same test command;
+the site's front page shows README's commands and example; every command line shown parses."""
 
 import pathlib
 import re
@@ -15,7 +16,9 @@ def test_readme_example_prints_the_closed_form(capsys):
     distance, closed = map(
         float, re.search(r"distance ([\d.]+), closed form ([\d.]+)", out).groups()
     )
-    assert abs(distance - closed) / closed < 5e-3  # the 25 x 49 discretization error (MATH.md 3)
+    assert (
+        abs(distance - closed) / closed < 5e-3
+    )  # the 25 x 49 discretization error (docs/math.md §3)
     energy, straight = map(
         float, re.search(r"energy ([\d.]+) < straight line ([\d.]+)", out).groups()
     )
@@ -51,10 +54,11 @@ def test_readme_command_lines_parse():
 
     from elastic_jax import cli
 
-    readme = (ROOT / "README.md").read_text()
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
     lines = [
         line.split("#")[0]
-        for block in re.findall(r"```bash\n(.*?)```", readme, re.S)
+        for page in pages
+        for block in re.findall(r"```bash\n(.*?)```", page.read_text(), re.S)
         for line in block.splitlines()
         if line.startswith("elastic-jax ")
     ]
@@ -64,3 +68,16 @@ def test_readme_command_lines_parse():
     for line in lines:
         args = parser.parse_args(shlex.split(line)[1:])
         assert args.command in cli.COMMANDS, line
+
+
+def test_readme_is_short_and_the_site_front_page_repeats_it():
+    readme = (ROOT / "README.md").read_text()
+    assert len(readme) <= 8000  # the pitch, the commands, the example; the rest is the site
+    index = (ROOT / "docs" / "index.md").read_text()
+    for fence in ("```bash\n", "```python\n"):
+        block = readme.split(fence)[1].split("```")[0]
+        assert block in index, fence
+    # README's links into the site point at pages that exist.
+    links = re.findall(r"\]\((docs/[^)#]+)", readme)
+    assert len(links) >= 8
+    assert [link for link in links if not (ROOT / link).is_file()] == []

@@ -30,7 +30,7 @@ def _check_gamma(res):
 
 def _solve(f1, f2, areas=None, **kw):
     res = ej.shape_geodesic(f1, f2, METRIC, options=OPTIONS, **kw)
-    assert_area_bound(res.distance, f1, f2, METRIC, areas=areas)  # MATH.md 9, on every one
+    assert_area_bound(res.distance, f1, f2, METRIC, areas=areas)  # docs/math.md §9, on every one
     _check_gamma(res)
     return res
 
@@ -47,7 +47,7 @@ def _diff_composition(m, n, steps=2, degree=3, fraction=0.9, seed=7):
 
 
 def _grid_surface(f):
-    """Pole rows and seam made exact after sampling at arbitrary points (MATH.md 1)."""
+    """Pole rows and seam made exact after sampling at arbitrary points (docs/math.md §1)."""
     f = f.at[:, 0, :].set(f[:, 0, :1]).at[:, -1, :].set(f[:, -1, :1])
     return f.at[:, :, -1].set(f[:, :, 0])
 
@@ -61,7 +61,7 @@ def bumpy_pair():
 @pytest.mark.slow  # 76 s (diff) on 2 cores
 @pytest.mark.parametrize("modulo", ["diff", "rigid"])
 def test_concentric_spheres_modulo_shape(modulo):
-    # MATH.md 9: d = sqrt(8 pi b) |r2 - r1| modulo anything. The forward scheme gave 7.17
+    # docs/math.md §9: d = sqrt(8 pi b) |r2 - r1| modulo anything. The forward scheme gave 7.17
     # (-29 %) here and 6.18 at 13 x 25: the registration exploited large time steps.
     exact = np.sqrt(8 * np.pi) * 2.0
     unit = shapes.sample(shapes.sphere, M, N)
@@ -128,7 +128,7 @@ def test_refinement_of_a_synthetic_pair(bumpy_pair):
     ],
 )
 def test_self_recovery_on_a_synthetic_shape(bumpy_pair, phi):
-    # MATH.md 9: d(f, f o phi) = 0. Registration must find phi from scratch: a Moebius
+    # docs/math.md §9: d(f, f o phi) = 0. Registration must find phi from scratch: a Moebius
     # map (areas stretched up to 16 times at |a| = 0.6) or two large Diff steps
     # (Jacobian from 0.13 to 3.0). The old registration gave d(cat1, cat1 o phi) of
     # 1.4-1.7 times d(cat1, cat2).
@@ -168,7 +168,7 @@ def test_self_recovery_on_cat1(phi):
 
 @pytest.mark.slow
 def test_a_reparametrization_the_grid_cannot_resolve_is_not_called_converged():
-    # MATH.md 9: d(f, f o phi) = 0. At 13 x 25 the grid resolves Moebius maps up to |a| =
+    # docs/math.md §9: d(f, f o phi) = 0. At 13 x 25 the grid resolves Moebius maps up to |a| =
     # 0.65 (_resolution_np); past that the registration stops at the area floor with the
     # distance far from 0, and must say so instead of reporting a converged minimum. The
     # configuration of tests/test_cli.py, whose solves this shares.
@@ -253,7 +253,7 @@ def test_shape_distance_is_below_the_parametrized_one_on_real_shapes(other):
     with warnings.catch_warnings():
         # cat1 -> horse0 at 25 x 49 ends converged (0.873) with one thread and at the
         # area floor (0.894, resolution_limited) with two: the grid does not resolve this
-        # pair (docs/registration.md), so which ending is reached depends on rounding.
+        # pair (docs/guides/registration_notes.md), so which ending is reached depends on rounding.
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
         res = _solve(f1, f2)
     assert float(res.distance) < 0.6 * float(res.parametrized_distance)
@@ -372,7 +372,7 @@ _COMPANION = {"cat1": "cat2", "cat2": "cat1", "horse0": "cat1", "hand4": "horse0
 # four measured: cat1 0.0008, cat2 0.0045, horse0 0.0017, hand4 0.0000 (benchmarks/bench_real.py).
 @pytest.mark.parametrize("name", ["cat2", "horse0"])
 def test_self_recovery_on_the_shared_shapes_at_their_grid(name):
-    # MATH.md 9 on shapes the start search was not designed on: d(f, R f o phi) for a
+    # docs/math.md §9 on shapes the start search was not designed on: d(f, R f o phi) for a
     # random rotation R and a Moebius map phi with |a| = 0.5, f read through phi from its
     # own 50 x 99 data (bicubic), modulo rigid motion. With the energy-ranked search
     # (init="energy", the default before) the starts were half a turn wrong:
@@ -397,7 +397,7 @@ def test_self_recovery_on_the_shared_shapes_at_their_grid(name):
 
 @pytest.mark.slow
 def test_the_start_search_finds_a_rotation_and_a_moebius_map():
-    # MATH.md 9 on the synthetic shape at 13 x 25 (the configuration of tests/test_cli.py):
+    # docs/math.md §9 on the synthetic shape at 13 x 25 (the configuration of tests/test_cli.py):
     # f against f o h o phi_a (h a rotation of the parameter sphere, |a| = 0.37), modulo
     # rigid motion. The energy-ranked search (init="energy", the default before) ended
     # converged at 0.290, 10.8 % of the parametrized distance; this one at 0.0077 (0.29 %).
@@ -416,7 +416,7 @@ def test_the_start_search_finds_a_rotation_and_a_moebius_map():
 
 def _exact_frame(shape, a, m, n):
     """The differential of shape o phi_a at the interior grid points, by jax's own
-    derivatives of the closed form (an independent computation of MATH.md 2's frame)."""
+    derivatives of the closed form (an independent computation of docs/math.md §2's frame)."""
     phi, theta = np.meshgrid(
         np.pi * np.arange(1, m - 1) / (m - 1), 2 * np.pi * np.arange(n - 1) / (n - 1), indexing="ij"
     )
@@ -441,7 +441,7 @@ def _frame_error(frame, exact):
 
 
 def test_the_chain_rule_differential_converges_where_grid_differences_cut_corners():
-    # MATH.md 2 on f o phi_a (|a| = 0.5, areas stretched up to 9 times), the bumpy surface
+    # docs/math.md §2 on f o phi_a (|a| = 0.5, areas stretched up to 9 times), the bumpy surface
     # sampled on its own grid. Measured errors (chain / grid differences): 13 x 25
     # 4.9 % / 9.8 %, 25 x 49 1.25 % / 3.1 %, 49 x 97 0.32 % / 0.83 %: both second order,
     # the chords 2-2.6 times farther off.
@@ -467,7 +467,7 @@ def test_the_chain_rule_differential_converges_where_grid_differences_cut_corner
 
 @pytest.mark.slow
 def test_chain_differential_keeps_the_spheres_closed_form_and_identity():
-    # MATH.md 9 under differential="chain": the moved unit sphere against the translated
+    # docs/math.md §9 under differential="chain": the moved unit sphere against the translated
     # radius-3 sphere, modulo rigid: sqrt(8 pi b) |r2 - r1| within 2 %;
     # identical inputs at distance 0 (the ends' frames are the same computation).
     options = OPTIONS.replace(differential="chain")
@@ -549,7 +549,7 @@ def test_a_bad_start_is_named(start, words):
 
 
 def test_the_inverse_of_a_moebius_map_is_the_opposite_map():
-    # phi_a^-1 = phi_-a (MATH.md 9). Newton's method solves gamma(x) = p on gamma's
+    # phi_a^-1 = phi_-a (docs/math.md §9). Newton's method solves gamma(x) = p on gamma's
     # interpolant to rounding; against the closed form what is left is the interpolation
     # of gamma, measured 3.1e-3, 3.1e-4, 3.6e-5 at 13 x 25, 25 x 49, 49 x 97.
     from elastic_jax._registration.starts import inverse_gamma as _inverse_gamma

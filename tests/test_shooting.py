@@ -53,7 +53,7 @@ def test_shooting_the_log_gives_the_geodesic_back_node_by_node():
 def test_concentric_spheres_are_shot_exactly():
     # Radial scaling: every term of G_{rS}(h S, h S) is a ratio of derivatives times the
     # area element, so the energy is C sum (r_{k+1} - r_k)^2 and the geodesic is linear
-    # in r (MATH.md 9): shooting v = 0.8 S from S reaches 1.8 S through r_k = 1 + 0.8 t_k.
+    # in r (docs/math.md §9): shooting v = 0.8 S from S reaches 1.8 S through r_k = 1 + 0.8 t_k.
     f = ej.sphere_points(M, N_GRID)
     shot = shoot(f, 0.8 * f, METRIC, degree=DEGREE, n_times=N_TIMES)
     t = jnp.linspace(0.0, 1.0, N_TIMES)

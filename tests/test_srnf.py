@@ -88,7 +88,7 @@ def test_table1_on_the_cats(cats, capsys):
         print("\nTable 1, cat1 -> cat2 (50 x 99): N, (0,1/2,1,0) length, SRNF L2 length, rel. gap")
         for row in rows:
             print(f"  {row[0]:3d}  {row[1]:.8f}  {row[2]:.8f}  {row[3]:.2e}")
-    # MATH.md 3: such lines pass near non-immersed surfaces, so the gap need not shrink;
+    # docs/math.md §3: such lines pass near non-immersed surfaces, so the gap need not shrink;
     # the authors' code gives 6.4e-3, 2.4e-2, 6.6e-3.
     assert all(row[3] < 3e-2 for row in rows)
     assert rows[0][1] == pytest.approx(1.6251290345, rel=1e-8)

@@ -1,8 +1,8 @@
 """Geodesics between parametrized surfaces: path straightening with BFGS (paper Algorithm 1).
 
 The path is f_k = (1 - t_k) f1 + t_k f2 + sum_j C[k, j] S_j for interior k, end points
-fixed, with S_j the spherical-harmonic surface basis (MATH.md 5, 7); the discrete energy
-of MATH.md 4 is minimized over C. The basis enters through its finite-difference
+fixed, with S_j the spherical-harmonic surface basis (math §5, 7); the discrete energy
+of math §4 is minimized over C. The basis enters through its finite-difference
 differential, precomputed once per grid and degree, so that the objective is one matmul
 plus the energy kernel, and the energy of the returned path equals path_energy exactly
 (the differential is linear).
@@ -57,7 +57,7 @@ class GeodesicResult(NamedTuple):
     Attributes:
         path: ``(N, 3, m, n)`` the optimal path, f1 and f2 at its ends.
         distance: ``()`` sqrt(energy), the geodesic distance.
-        energy: ``()`` the path energy (MATH.md 4) of ``path``.
+        energy: ``()`` the path energy (:ref:`math §4 <math-4>`) of ``path``.
         straight_energy: ``()`` the energy of the straight line (the starting point).
         coefficients: ``(N - 2, L)`` C of the interior frames in :func:`surface_basis` order.
         num_steps: ``()`` solver steps taken, over all minimizations (the first and
@@ -273,7 +273,7 @@ def solve_path(
     objective at the result (Lanczos). k >= 1 then, while that estimate is below
     ``saddle_threshold`` and fewer than k escapes were made, steps along its eigenvector
     (the lowest of f(x), f(x +- s v) over a few lengths s) and minimizes again: a start in
-    a symmetric subspace keeps BFGS there, where it can stop at a saddle (MATH.md 9).
+    a symmetric subspace keeps BFGS there, where it can stop at a saddle (math §9).
     """
     scaling = solver_scaling(metric, f1, f2, dframe, n_times, scheme, frames)
     straight = _straight_frames(f1, f2, n_times, frames)
@@ -513,9 +513,10 @@ def geodesic(
 ) -> GeodesicResult:
     """Geodesic between two parametrized surfaces under a split metric (paper Algorithm 1).
 
-    Minimizes the discrete energy (MATH.md 4) of f_k = (1 - t_k) f1 + t_k f2 + sum_j C[k, j] S_j
-    over the coefficients C of the surface basis of the given degree (MATH.md 5), starting
-    from the straight line (or ``init``), with gradients by autodiff through the energy.
+    Minimizes the discrete energy (:ref:`math §4 <math-4>`) of
+    f_k = (1 - t_k) f1 + t_k f2 + sum_j C[k, j] S_j over the coefficients C of the surface
+    basis of the given degree (:ref:`math §5 <math-5>`), starting from the straight line (or
+    ``init``), with gradients by autodiff through the energy.
     The whole solve is one jitted call; batch over targets with ``jax.vmap``.
 
     The path and solver settings (degree, n_times, solver, max_steps, tol, scheme,
@@ -536,7 +537,7 @@ def geodesic(
         tol: converged means the 2-norm of the gradient of the scaled objective (energy /
             straight-line energy in whitened coefficients, Hessian ~2 I) is at most tol,
             for either solver; default (None) 1e-6 in float64, 3e-3 in float32
-            (:func:`default_tol`).
+            (``default_tol()``).
         init: ``(N - 2, L)`` coefficients of an earlier solve (warm start); zeros by default.
         scheme: ``"midpoint"`` (default), ``"forward"`` (the paper's) or ``"central"``
             (see :func:`path_energy`). The forward scheme's discrete energy has minima
@@ -563,7 +564,7 @@ def geodesic(
             (``min_curvature`` is NaN): the 24 products cost about as much as 35 to 70
             BFGS steps at degree 7, N = 13 on 25 x 49 and 50 x 99. A start in a
             symmetric subspace (mirror-symmetric pairs) keeps BFGS in it, where it can
-            stop at a saddle (MATH.md 9).
+            stop at a saddle (:ref:`math §9 <math-9>`).
         options: a :class:`ShapeOptions` whose path and solver fields are the settings
             not given as keywords (None: its defaults). A keyword that disagrees with the
             record is an InputError.

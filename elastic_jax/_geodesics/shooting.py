@@ -3,7 +3,7 @@
 The paper poses the initial value problem next to the boundary value one (Introduction;
 Appendix, the geodesic equation). Discretely (Rumpf and Wirth's discrete exponential map)
 a geodesic is a path whose energy is stationary in every interior node: for the midpoint
-and forward schemes (MATH.md 4) the energy couples f_k only to f_{k-1} and f_{k+1}, so
+and forward schemes (math §4) the energy couples f_k only to f_{k-1} and f_{k+1}, so
 
     d/d f_k [ G_{b_{k-1}}(T (f_k - f_{k-1})) + G_{b_k}(T (f_{k+1} - f_k)) ] = 0
 
@@ -259,7 +259,7 @@ def shoot(
     f_0 = f, f_1 = f + v / T (T = N - 1), then for k = 1 .. N - 2 the node f_{k+1} =
     2 f_k - f_{k-1} + sum_j c_j S_j whose c makes the path energy stationary in f_k,
     projected on the surface basis of ``degree`` (module docstring; the Euler-Lagrange
-    equation of MATH.md 4's energy, paper Appendix). The scheme is first order in 1/N
+    equation of :ref:`math §4 <math-4>`'s energy, paper Appendix). The scheme is first order in 1/N
     (the start f + v / T); a path of :func:`geodesic` with the same degree, N and scheme
     is reproduced node by node from its T (f_1 - f_0) (see :func:`log`).
 
@@ -270,7 +270,7 @@ def shoot(
         n_times: N >= 3 time points, f and the endpoint included; default 13.
         degree: the surface basis' degree, default 7 (limit: min(m - 3, (n - 3) // 2)).
         scheme: ``"midpoint"`` (default) or ``"forward"``; ``"central"`` is refused.
-        tol: each Newton solve's tolerance (:func:`default_newton_tol`); a limit of
+        tol: each Newton solve's tolerance (``default_newton_tol()``); a limit of
             shooting's own, not the record's minimization tol.
         max_newton: Newton iterations per step (shooting's own limit).
         options: a :class:`ShapeOptions` whose n_times, degree and scheme are the ones
@@ -341,7 +341,7 @@ def _failure_message(result: ShootingResult, tol: float, max_newton: int) -> str
         f"still {residual:.3g} in units of f's size, tol={tol:g}); nodes {k}..{last} are "
         f"NaN, path[:{k}] is the solved part. Measured on real surfaces: Newton fails at a "
         "step that makes a grid cell's area at the step's midpoint fall well below its "
-        "area at the nodes (README, Known failures); more time points do not avoid it."
+        "area at the nodes (docs/guides/limitations.md); more time points do not avoid it."
     )
 
 

@@ -1,11 +1,11 @@
 """Inversion of the square root normal function map, and inverted SRNF straight lines.
 
 Given q, find a surface f with Q(f) ~ q by minimizing ||Q(f0 + sum_j c_j S_j) - q||^2 over
-the coefficients c of the spherical-harmonic surface basis S_j (MATH.md 5), coarse to fine
+the coefficients c of the spherical-harmonic surface basis S_j (math §5), coarse to fine
 in the degree: Laga, Xie, Jermyn, Srivastava, "Numerical inversion of SRNF maps for
 elastic shape analysis of genus-zero surfaces", IEEE TPAMI 39(12), 2017. Q(f) is the SRNF
-of MATH.md 3 (:func:`elastic_jax.srnf`) and the norm the L2 norm over S^2 with the
-quadrature of MATH.md 2, as in :func:`elastic_jax.srnf_distance`.
+of math §3 (:func:`elastic_jax.srnf`) and the norm the L2 norm over S^2 with the
+quadrature of math §2, as in :func:`elastic_jax.srnf_distance`.
 
 Q sees only df, so it is blind to translations: every inverted surface is returned
 centred (area-weighted centroid at the origin, :func:`elastic_jax.center`).
@@ -52,7 +52,8 @@ class SrnfInversion(NamedTuple):
 
     Attributes:
         surface: ``(3, m, n)`` center(f0 + sum_j c_j S_j), the inverted surface, centred.
-        residual: ``()`` ||Q(surface) - q||, the L2 norm over S^2 (MATH.md 2 quadrature).
+        residual: ``()`` ||Q(surface) - q||, the L2 norm over S^2 (the quadrature of
+            :ref:`math §2 <math-2>`).
         relative_residual: ``()`` residual / ||q||.
         coefficients: ``(L,)`` c over f0 in :func:`elastic_jax.surface_basis` order at the
             last degree, L = 3((degree + 1)^2 - 1), in the surface's units.
@@ -90,7 +91,7 @@ class SrnfGeodesic(NamedTuple):
         residuals: ``(N,)`` ||Q(path[k]) - ((1 - t_k) q1 + t_k q2)|| (0 at the ends).
         relative_residuals: ``(N,)`` residuals over ||(1 - t_k) q1 + t_k q2||.
         srnf_length: ``()`` sum_k ||Q(path[k + 1]) - Q(path[k])||, the L2 length of the
-            path's SRNF image (= its (0, 1/2, 1, 0) split-metric length, MATH.md 3).
+            path's SRNF image (= its (0, 1/2, 1, 0) split-metric length, :ref:`math §3 <math-3>`).
         srnf_distance: ``()`` ||q1 - q2||, the length of the straight line being inverted;
             srnf_distance <= srnf_length <= srnf_distance + 2 sum(residuals).
         node_steps: ``(N,)`` solver steps of each node's inversion (0 at the ends).
@@ -139,7 +140,7 @@ def _invert_level(q_inner, norm2, f0_frames, c0, dframe, *, solver, max_steps, t
     The objective is divided by ||q||^2 and solved in coordinates z with c = c0 + A z,
     A = G^(-1/2), G = J^T W J / ||q||^2 the Gauss-Newton matrix at c0 (J = dQ/dc, W the
     quadrature weights). G is also the Gram matrix of the basis under the SRNF metric
-    (0, 1/2, 1, 0) (MATH.md 3), and its condition grows like l^2 with the degree; in z
+    (0, 1/2, 1, 0) (math §3), and its condition grows like l^2 with the degree; in z
     the Hessian is ~2 I near a small residual, so one gradient tolerance means the same
     at every degree, size and shape (the geodesic solver's convention).
     """
@@ -152,7 +153,7 @@ def _invert_level(q_inner, norm2, f0_frames, c0, dframe, *, solver, max_steps, t
         pert = c.reshape(3, k) @ dframe
         a1 = b1 + pert[:, :points].reshape(b1.shape)
         a2 = b2 + pert[:, points:].reshape(b2.shape)
-        # MATH.md 3: a1 x a2 points inward for the identity; Q uses the outward normal.
+        # docs/math.md §3: a1 x a2 points inward for the identity; Q uses the outward normal.
         return sqrt_normal(cross(a2, a1))
 
     m, n = b1.shape[-2] + 2, b1.shape[-1] + 1
@@ -329,15 +330,16 @@ def srnf_invert(
     tol: float | None | FromOptions = FROM_OPTIONS,
     solver: str | FromOptions = FROM_OPTIONS,
 ) -> SrnfInversion:
-    """A surface whose SRNF is closest to q: min_c ||Q(f0 + sum_j c_j S_j) - q|| (Laga et al.).
+    """A surface whose SRNF is closest to q: min_c ‖Q(f0 + sum_j c_j S_j) - q‖ (Laga et al.).
 
-    Q is the SRNF map of MATH.md 3 and S_j the surface basis of degree 1..d (MATH.md 5,
-    3((d + 1)^2 - 1) fields). The degrees are solved coarse to fine, each level starting
+    Q is the SRNF map of :ref:`math §3 <math-3>` and S_j the surface basis of degree 1..d
+    (:ref:`math §5 <math-5>`, 3((d + 1)^2 - 1) fields). The degrees are solved coarse to fine,
+    each level starting
     from the previous level's surface (Laga, Xie, Jermyn, Srivastava, "Numerical
     inversion of SRNF maps for elastic shape analysis of genus-zero surfaces", IEEE
     TPAMI 39(12), 2017). Each level is a BFGS solve in coefficients whitened by the
     Gauss-Newton matrix at its start (Hessian ~2 I, as in :func:`elastic_jax.geodesic`),
-    on the problem divided by ||q||^2 and in units of the size q encodes, so that tol
+    on the problem divided by ‖q‖^2 and in units of the size q encodes, so that tol
     means the same at every scale. The whole solve is one jitted call.
 
     Q is invariant under translations, so the translation of f is not determined: the
@@ -346,10 +348,10 @@ def srnf_invert(
     straight line between SRNFs, a q beyond the basis' resolution) leaves a residual.
 
     Args:
-        q: ``(3, m, n)`` the target SRNF on the grid (MATH.md 1); the pole rows and the
-            seam column carry no quadrature weight and are not used.
+        q: ``(3, m, n)`` the target SRNF on the grid (:ref:`math §1 <math-1>`); the pole rows
+            and the seam column carry no quadrature weight and are not used.
         f0: ``(3, m, n)`` the start; default: the unit-sphere grid scaled so that its area
-            (on the grid) equals ||q||^2, the area q encodes (|Q(f)|^2 is f's area element).
+            (on the grid) equals ‖q‖^2, the area q encodes (‖Q(f)‖^2 is f's area element).
         degrees: strictly increasing degrees of the levels, each at most
             min(m - 3, (n - 3) // 2).
         options: a :class:`ShapeOptions` whose ``solver``, ``max_steps`` and ``tol`` this
@@ -358,7 +360,7 @@ def srnf_invert(
         tol: converged means the 2-norm of the gradient of the last level's scaled
             objective is at most tol (:func:`elastic_jax.geodesic`'s convention). None
             (the record's default) is this objective's precision default, 1e-8 in float64
-            and 1e-4 in float32 (:func:`inversion_tol`), tighter than a geodesic's. Near a
+            and 1e-4 in float32 (``inversion_tol()``), tighter than a geodesic's. Near a
             zero residual the surface is then accurate to about tol / 2 relative.
         solver: ``"bfgs"`` (optimistix.BFGS) or ``"lbfgs"`` (jaxopt.LBFGS); default the
             record's.
@@ -425,14 +427,14 @@ def srnf_geodesic(
 ) -> SrnfGeodesic:
     """The inverted SRNF straight line: f_k = Q^-1((1 - t_k) q1 + t_k q2) (paper, Table 2: L_i).
 
-    q1 = Q(f1), q2 = Q(f2) (MATH.md 3) and t_k = k / (N - 1). The straight line is the
+    q1 = Q(f1), q2 = Q(f2) (:ref:`math §3 <math-3>`) and t_k = k / (N - 1). The straight line is the
     geodesic of the flat L2 metric on SRNFs, but it leaves the image of Q, so its
     inversion (:func:`srnf_invert` at each interior time, the inversion method of Laga
     et al., IEEE TPAMI 2017) is a path of surfaces whose SRNF image only approximates
     it; the residuals say by how much. Node k starts from node k - 1's surface (node 1
     from f1), so that the path follows one branch of the inverse. Its length under the
     split metric (0, 1/2, 1, 0) is ``srnf_length``, the paper's L_i, and ||q1 - q2|| is
-    a lower bound of the geodesic distance (MATH.md 3).
+    a lower bound of the geodesic distance (:ref:`math §3 <math-3>`).
 
     Args:
         f1, f2: ``(3, m, n)`` immersions on the same grid.

@@ -1,4 +1,4 @@
-"""The differential df as a field of 3 x 2 matrices (MATH.md 2)."""
+"""The differential df as a field of 3 x 2 matrices (math §2)."""
 
 from __future__ import annotations
 
@@ -67,7 +67,7 @@ def _differential(f: Array) -> Array:
 
 
 def differential(f: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array, "*batch 3 2 m n"]:
-    """The differential of a surface in the orthonormal frame of the round sphere (MATH.md 2).
+    """The differential of a surface in the orthonormal frame of the round sphere (math §2).
 
     df = [f_theta / sin(phi), f_phi], a field of 3 x 2 matrices. Reference discretization
     (the paper's code): central differences in theta with periodic wrap; central
@@ -76,7 +76,7 @@ def differential(f: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array, "*batch 3 
     column is undefined and set to zero (those rows carry zero quadrature weight).
 
     Args:
-        f: ``(..., 3, m, n)`` surface(s) on the grid of MATH.md 1.
+        f: ``(..., 3, m, n)`` surface(s) on the grid of :ref:`math §1 <math-1>`.
 
     Returns:
         ``(..., 3, 2, m, n)``; ``[..., :, 0]`` is f_theta / sin(phi), ``[..., :, 1]`` is f_phi.

@@ -1,4 +1,4 @@
-"""Discrete path energy and length under the split metric (MATH.md 4)."""
+"""Discrete path energy and length under the split metric (math §4)."""
 
 from __future__ import annotations
 
@@ -86,13 +86,14 @@ def check_scheme(scheme: str) -> None:
 def path_energy(
     metric: SplitMetric, path: Float[ArrayLike, "*batch N 3 m n"], scheme: str = "midpoint"
 ) -> Float[Array, "*batch"]:
-    """Discrete energy of a path of surfaces (MATH.md 4; paper eq. (4.4)).
+    """Discrete energy of a path of surfaces (math §4; paper eq. (4.4)).
 
     midpoint (default): E = (1/T) sum_{k=0}^{T-1} G_{(f_k + f_{k+1})/2}(T (f_{k+1} - f_k)),
     T = N - 1: the midpoint rule for the energy of the piecewise-linear path through the
-    frames; second order and symmetric under reversal. forward (MATH.md 4, the paper's):
-    the metric at f_k instead; first order, and its minimizers exploit large steps
-    (README, "What the distance means"). central: velocities by central differences at
+    frames; second order and symmetric under reversal. forward (:ref:`math §4 <math-4>`,
+    the paper's): the metric at f_k instead; first order, and its minimizers exploit large
+    steps (:doc:`/guides/settings`, "What the distance means"). central: velocities by
+    central differences at
     interior times (one-sided at the ends) and the trapezoid rule in time; it cannot see
     an odd-even zigzag of the frames. The geodesic distance is sqrt(min E).
 
@@ -118,7 +119,7 @@ def path_energy(
 def path_length(
     metric: SplitMetric, path: Float[ArrayLike, "*batch N 3 m n"], scheme: str = "midpoint"
 ) -> Float[Array, "*batch"]:
-    """Discrete length of a path of surfaces (MATH.md 4).
+    """Discrete length of a path of surfaces (math §4).
 
     L = (1/T) sum_{k=0}^{T-1} sqrt(G_{b_k}(T (f_{k+1} - f_k))) with b_k = (f_k + f_{k+1})/2
     (midpoint, default) or f_k (forward); central as in :func:`path_energy`.

@@ -1,4 +1,4 @@
-"""The spherical grid: angles, quadrature weights and the identity immersion (MATH.md 1, 2)."""
+"""The spherical grid: angles, quadrature weights and the identity immersion (math §1, 2)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ def angles_np(m: int, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def grid_angles(m: int, n: int, dtype=None) -> tuple[Float[Array, " m"], Float[Array, " n"]]:
-    """Polar angles and azimuths of the m x n spherical grid (MATH.md 1).
+    """Polar angles and azimuths of the m x n spherical grid (math §1).
 
     phi_i = i pi / (m - 1) (row 0 is the north pole, row m - 1 the south pole) and
     theta_j = 2 pi j / (n - 1) (column n - 1 repeats column 0).
@@ -52,7 +52,7 @@ def interior_weights(m: int, n: int, dtype) -> Float[Array, "mi ni"]:
 
 
 def quadrature_weights(m: int, n: int, dtype=None) -> Float[Array, "m n"]:
-    """Weights w_ij of the quadrature over S^2 on the inclusive grid (MATH.md 2).
+    """Weights w_ij of the quadrature over S^2 on the inclusive grid (math §2).
 
     Trapezoid rule in phi and in theta times sin(phi_i):
     w_ij = sin(phi_i) dphi dtheta c_j with c_0 = c_{n-1} = 1/2 and c_j = 1 otherwise.
@@ -70,7 +70,7 @@ def quadrature_weights(m: int, n: int, dtype=None) -> Float[Array, "m n"]:
 
 
 def integrate(values: Float[ArrayLike, "*batch m n"]) -> Float[Array, "*batch"]:
-    """Integral over S^2 of a function sampled on the grid (MATH.md 2 quadrature).
+    """Integral over S^2 of a function sampled on the grid (math §2 quadrature).
 
     Args:
         values: ``(..., m, n)`` samples, seam column included.
@@ -95,7 +95,7 @@ def sphere_points(m: int, n: int, dtype=None) -> Float[Array, "3 m n"]:
     Pole rows are exactly constant and the seam column exactly repeats column 0.
 
     Args:
-        m, n: the grid (MATH.md 1): m >= 5 rows, n >= 5 columns, n odd.
+        m, n: the grid (:ref:`math §1 <math-1>`): m >= 5 rows, n >= 5 columns, n odd.
         dtype: the array's dtype (JAX's default float when None).
 
     Returns:
@@ -111,7 +111,7 @@ def sphere_points_np(m: int, n: int) -> np.ndarray:
     sp, cp = np.sin(phi)[:, None], np.cos(phi)[:, None]
     ct, st = np.cos(theta)[None, :], np.sin(theta)[None, :]
     x = np.stack([sp * ct, sp * st, np.broadcast_to(cp, (m, n))])
-    # Make the pole rows and the seam bitwise consistent, as MATH.md 1 requires of input.
+    # Make the pole rows and the seam bitwise consistent, as docs/math.md §1 requires of input.
     x[:, 0, :] = np.array([0.0, 0.0, 1.0])[:, None]
     x[:, -1, :] = np.array([0.0, 0.0, -1.0])[:, None]
     x[:, :, -1] = x[:, :, 0]

@@ -1,4 +1,4 @@
-"""Real spherical harmonics on the grid and the two bases built from them (MATH.md 5)."""
+"""Real spherical harmonics on the grid and the two bases built from them (math §5)."""
 
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ class SphericalHarmonics(NamedTuple):
 def max_degree(m: int, n: int) -> int:
     """The highest degree whose harmonics stay linearly independent on the m x n grid.
 
-    Order k needs |k| < (n - 1) / 2 distinct azimuths and degree l <= m - 3 interior rows
+    Order k needs abs(k) < (n - 1) / 2 distinct azimuths and degree l <= m - 3 interior rows
     for order 0, so deg <= min(m - 3, (n - 3) // 2): 9 at 12 x 25, 22 at 25 x 49, 47 at 50 x 99.
     """
     return min(m - 3, (n - 3) // 2)
@@ -96,7 +96,7 @@ def harmonics_np(m: int, n: int, degree: int):
 
 
 def real_sph_harm(m: int, n: int, degree: int, dtype=None) -> SphericalHarmonics:
-    """Orthonormal real spherical harmonics of degree 0..degree on the grid (MATH.md 5).
+    """Orthonormal real spherical harmonics of degree 0..degree on the grid (math §5).
 
     Y_l0 = Re Y_l0, Y_lk = sqrt2 (-1)^k Re Y_lk (k > 0), Y_lk = sqrt2 (-1)^k Im Y_l|k| (k < 0),
     from scipy's normalized associated Legendre functions (stable recurrences, fine to
@@ -159,7 +159,7 @@ def vector_fields_np(m: int, n: int, degree: int) -> np.ndarray:
 
 
 def vector_field_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, "Lbar 3 m n"]:
-    """Tangent vector fields on S^2: grad Y_lk and e1 x grad Y_lk over sqrt(l(l+1)) (MATH.md 5).
+    """Tangent vector fields on S^2: grad Y_lk and e1 x grad Y_lk over sqrt(l(l+1)) (math §5).
 
     grad Y = Y_phi e_phi + (Y_theta / sin phi) e_theta with e_phi, e_theta the unit
     coordinate vectors; on the pole rows the limit of Y_theta / sin phi is used, so the

@@ -1,4 +1,4 @@
-"""Reparametrizations of S^2: Proj(Id + U), Theorem 3's bound, Jacobians, f o gamma (MATH.md 6)."""
+"""Reparametrizations of S^2: Proj(Id + U), Theorem 3's bound, Jacobians, f o gamma (math §6)."""
 
 from __future__ import annotations
 
@@ -40,9 +40,9 @@ def _diffeomorphism(x, fields, e1):
 def diffeomorphism(
     x: Float[ArrayLike, "*batch Lbar"], m: int, n: int, degree: int
 ) -> Float[Array, "*batch 3 m n"]:
-    """gamma_x = Proj(Id + sum_k x_k v_k) sampled on the grid (paper eq. (4.6), MATH.md 6).
+    """gamma_x = Proj(Id + sum_k x_k v_k) sampled on the grid (paper eq. (4.6), math §6).
 
-    v_k is :func:`vector_field_basis`; Proj(y) = y / |y|. A diffeomorphism for x inside
+    v_k is :func:`vector_field_basis`; Proj(y) = y / ‖y‖. A diffeomorphism for x inside
     :func:`diffeomorphism_bound` (Theorem 3); larger deformations are compositions.
 
     Args:
@@ -115,7 +115,7 @@ def diffeomorphism_bound(
 ) -> Float[Array, "*batch"]:
     """The largest t for which gamma_{t x} is guaranteed a diffeomorphism (paper Theorem 3).
 
-    t_max = -1 / inf_p lambda_-(sym grad U), U = sum_k x_k v_k, lambda_- the smaller
+    t_max = -1 / inf_p lambda_min(sym grad U), U = sum_k x_k v_k, lambda_min the smaller
     eigenvalue (a + d - sqrt((a - d)^2 + (b + c)^2)) / 2 with a = u_phi, b = v_phi,
     c = (u_theta - v cos phi) / sin phi, d = (v_theta + u cos phi) / sin phi for
     U = u e_phi + v e_theta. Derivatives are exact; the infimum is over the grid's
@@ -123,7 +123,7 @@ def diffeomorphism_bound(
     Sufficient, not necessary: maps beyond it may still be diffeomorphisms.
 
     Returns:
-        ``(...)``; +inf when lambda_- >= 0 everywhere (only for U = 0).
+        ``(...)``; +inf when lambda_min >= 0 everywhere (only for U = 0).
     """
     check_grid_shape((3, m, n), "the grid")
     check_degree(degree, m, n)
@@ -157,8 +157,9 @@ def jacobian_determinant_unchecked(gamma):
 def jacobian_determinant(gamma: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array, "*batch m n"]:
     """Signed Jacobian determinant of gamma: S^2 -> S^2 on the grid (area ratio, 1 for Id).
 
-    J = gamma . (gamma_phi x gamma_theta / sin phi) with the differential of MATH.md 2;
-    on the pole rows the tangent plane fitted to the pole row's phi derivatives is used.
+    J = gamma . (gamma_phi x gamma_theta / sin phi) with the differential of
+    :ref:`math §2 <math-2>`; on the pole rows the tangent plane fitted to the pole row's phi
+    derivatives is used.
     gamma is an orientation-preserving diffeomorphism iff J > 0 everywhere.
 
     Args:
@@ -185,11 +186,11 @@ def _angles_of(points: Array) -> tuple[Array, Array]:
 
 
 def moebius(x: Float[ArrayLike, "3 ..."], a: Float[ArrayLike, " 3"]) -> Float[Array, "3 ..."]:
-    """The Moebius map phi_a(x) = (1 - |a|^2)(x - a) / |x - a|^2 - a of S^2 (MATH.md 9).
+    """The Moebius map phi_a(x) = (1 - ‖a‖^2)(x - a) / ‖x - a‖^2 - a of S^2 (math §9).
 
-    |a| < 1; a = 0 is the identity and phi_a's inverse is phi_{-a}. It fixes +-a/|a|,
-    stretches areas near a/|a| by ((1 + |a|) / (1 - |a|))^2 and shrinks them near -a/|a|
-    by the inverse (16x both ways at |a| = 0.6); with the rotations these maps are the
+    ‖a‖ < 1; a = 0 is the identity and phi_a's inverse is phi_{-a}. It fixes +-a/‖a‖,
+    stretches areas near a/‖a‖ by ((1 + ‖a‖) / (1 - ‖a‖))^2 and shrinks them near -a/‖a‖
+    by the inverse (16x both ways at ‖a‖ = 0.6); with the rotations these maps are the
     whole Moebius (conformal) group of the sphere. d(f, f o phi_a) = 0 for every shape f.
 
     Args:
@@ -306,7 +307,7 @@ def reparametrize_unchecked(f, gamma, *, method):
 def reparametrize(
     f: Float[ArrayLike, "*batch 3 m n"], gamma: Float[ArrayLike, "3 p q"], method: str = "bilinear"
 ) -> Float[Array, "*batch 3 p q"]:
-    """f o gamma by interpolation on the grid (MATH.md 6), differentiable in f and gamma.
+    """f o gamma by interpolation on the grid (math §6), differentiable in f and gamma.
 
     gamma gives, at every point of a (p, q) grid, the point of S^2 where f is read. The
     interpolation is periodic in theta and crosses the poles by the half-turn rule.
@@ -332,7 +333,7 @@ def reparametrize(
 def rotate_parametrization(
     f: Float[ArrayLike, "*batch 3 m n"], rotation: Float[ArrayLike, "3 3"], method: str = "bilinear"
 ) -> Float[Array, "*batch 3 m n"]:
-    """f o R: the surface reparametrized by the rotation x -> R x of the sphere (MATH.md 6).
+    """f o R: the surface reparametrized by the rotation x -> R x of the sphere (math §6).
 
     Args:
         f: ``(..., 3, m, n)``; rotation: ``(3, 3)``; method: as in :func:`reparametrize`.

@@ -1,4 +1,4 @@
-"""Rotations: the SO(3) exponential and logarithm, and the icosahedral group (MATH.md 6)."""
+"""Rotations: the SO(3) exponential and logarithm, and the icosahedral group (math §6)."""
 
 from __future__ import annotations
 
@@ -46,13 +46,13 @@ def so3_exp_unchecked(w):
 
 
 def so3_exp(w: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
-    """Rotation matrices exp(hat(w)) by Rodrigues' formula (MATH.md 6).
+    """Rotation matrices exp(hat(w)) by Rodrigues' formula (math §6).
 
-    R = I + sin(t)/t K + (1 - cos t)/t^2 K^2, K = hat(w), t = |w|; below t^2 = sqrt(eps)
+    R = I + sin(t)/t K + (1 - cos t)/t^2 K^2, K = hat(w), t = ‖w‖; below t^2 = sqrt(eps)
     the coefficients use their Taylor series, so value and gradient are exact at w = 0.
 
     Args:
-        w: ``(..., 3)`` axis-angle vectors (angle |w| about w / |w|).
+        w: ``(..., 3)`` axis-angle vectors (angle ‖w‖ about w / ‖w‖).
 
     Returns:
         ``(..., 3, 3)``.
@@ -98,9 +98,9 @@ def _so3_log(r):
 
 
 def so3_log(r: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
-    """The axis-angle vector w with exp(hat(w)) = R, |w| in [0, pi] (inverse of :func:`so3_exp`).
+    """The axis-angle vector w with exp(hat(w)) = R, ‖w‖ in [0, pi] (inverse of :func:`so3_exp`).
 
-    theta = atan2(|v|, (tr R - 1)/2) with v = vee(R - R^T)/2 = sin(theta) n; a Taylor
+    theta = atan2(‖v‖, (tr R - 1)/2) with v = vee(R - R^T)/2 = sin(theta) n; a Taylor
     branch near 0 and the symmetric part of R near pi keep value and gradient finite.
 
     Args:

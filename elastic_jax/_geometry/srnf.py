@@ -1,4 +1,4 @@
-"""Square root normal functions (MATH.md 3; Jermyn et al. 2012) and surface-level quantities."""
+"""Square root normal functions (math §3; Jermyn et al. 2012) and surface-level quantities."""
 
 from __future__ import annotations
 
@@ -44,10 +44,11 @@ def srnf_unchecked(f: Array) -> Array:
 
 
 def srnf(f: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array, "*batch 3 m n"]:
-    """The square root normal function q(f) = sqrt(|f_theta x f_phi| / sin phi) n (MATH.md 3).
+    """The square root normal function q(f) = sqrt(‖f_theta x f_phi‖ / sin phi) n (math §3).
 
     n is the unit normal pointing outward for the identity parametrization
-    (f_phi x f_theta direction), so q(r e1) = r e1. The differential is that of MATH.md 2.
+    (f_phi x f_theta direction), so q(r e1) = r e1. The differential is that of
+    :ref:`math §2 <math-2>`.
     On the pole rows (zero quadrature weight) q is taken from the tangent plane fitted
     to the pole row's phi derivatives, so it is the pole value to discretization order.
 
@@ -70,7 +71,7 @@ def _srnf_distance(f1, f2):
 def srnf_distance(
     f1: Float[ArrayLike, "*batch 3 m n"], f2: Float[ArrayLike, "*batch 3 m n"]
 ) -> Float[Array, "*batch"]:
-    """L2 distance over S^2 of the SRNFs, ||q(f1) - q(f2)|| (MATH.md 3; paper Table 2).
+    """L2 distance over S^2 of the SRNFs, ||q(f1) - q(f2)|| (math §3; paper Table 2).
 
     A lower bound of the geodesic distance under the split metric (0, 1/2, 1, 0).
 
@@ -112,7 +113,7 @@ def surface_area_unchecked(f):
 
 
 def surface_area(f: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array, "*batch"]:
-    """Area of the surface, integral over S^2 of sqrt(det g) (MATH.md 2 quadrature).
+    """Area of the surface, integral over S^2 of sqrt(det g) (math §2 quadrature).
 
     Args:
         f: ``(..., 3, m, n)``.
@@ -134,7 +135,7 @@ def center_unchecked(f):
 
 
 def center(f: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array, "*batch 3 m n"]:
-    """Translate the surface so that its area-weighted centroid is at the origin (MATH.md 7).
+    """Translate the surface so that its area-weighted centroid is at the origin (math §7).
 
     centroid = integral of f sqrt(det g) / integral of sqrt(det g). The metric sees only
     df, so centering changes no energy; it is for display and rigid alignment.

@@ -2,7 +2,7 @@
 
 The path energy is invariant under translation and homogeneous of degree 2 under scaling
 (every term of the split metric is a ratio of first derivatives times the area element,
-MATH.md 3), so E(s f + c) = s^2 E(f) and the geodesic between s f1 + c and s f2 + c is
+math §3), so E(s f + c) = s^2 E(f) and the geodesic between s f1 + c and s f2 + c is
 s times the geodesic between f1 and f2, plus c. Solving on surfaces of size ~1 centred
 at the origin keeps float32 away from underflow (det g ~ size^4: 1e-24 for a surface
 1e-6 across) and overflow, and its rounding away from a large offset.

@@ -171,7 +171,7 @@ class SphericalParametrization(NamedTuple):
     def to_grid(self, m: int = 50, n: int = 99) -> np.ndarray:
         """The mesh resampled on the m x n spherical grid through this map.
 
-        Each grid direction u (MATH.md 1) is located in the spherical triangle that
+        Each grid direction u (math §1) is located in the spherical triangle that
         contains it, u = sum_k lam_k sphere[c_k] with lam_k >= 0, and the surface point is
         the same combination of the mesh's vertices, sum_k lam_k vertices[c_k] / sum lam:
         a point on the mesh, continuous across edges.

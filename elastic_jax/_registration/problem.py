@@ -1,8 +1,8 @@
 """The registration problem and the arithmetic its phases share.
 
 One record holds the metric, the two surfaces and the bases; the functions here step a
-reparametrization gamma (MATH.md 6), turn f2 by R, take the frames of f1 o gamma and R f2,
-and evaluate the matching criteria and the path energy (MATH.md 4) the phases minimize.
+reparametrization gamma (math §6), turn f2 by R, take the frames of f1 o gamma and R f2,
+and evaluate the matching criteria and the path energy (math §4) the phases minimize.
 """
 
 from __future__ import annotations
@@ -123,7 +123,7 @@ def compose(gamma, step, interpolation):
 
 
 def _step_field(y, fields, scale, e1):
-    """Proj(Id + sum_k y_k s_k v_k) (MATH.md 6), s_k = 1 / sqrt(l(l+1))."""
+    """Proj(Id + sum_k y_k s_k v_k) (math §6), s_k = 1 / sqrt(l(l+1))."""
     w = e1 + jnp.einsum("k,kimn->imn", y * scale, fields)
     return w / jnp.linalg.norm(w, axis=-3, keepdims=True)
 
@@ -227,7 +227,7 @@ def _chord_correction_np(m: int, n: int) -> tuple[float, float]:
 
 
 def _chain_frame(f, gamma, interpolation):
-    """The differential of f o gamma on the interior points by the chain rule (MATH.md 2's
+    """The differential of f o gamma on the interior points by the chain rule (math §2's
     frame): (df at gamma) applied to gamma's frame.
 
     df is the exact derivative of f's interpolant (at grid points, for bicubic, the

@@ -16,7 +16,7 @@ MODULI = ("diff", "rigid")
 
 
 class Refinement(NamedTuple):
-    """The distance of a result re-evaluated at a finer discretization (MATH.md 9).
+    """The distance of a result re-evaluated at a finer discretization (math §9).
 
     Nothing is optimized again: the registered ends and the path are carried over, so a
     discretization the solve exploited shows as a jump here.
@@ -27,7 +27,7 @@ class Refinement(NamedTuple):
         distance_grid: ``()`` the same path on the (2m - 1) x (2n - 1) grid: gamma and
             f2 interpolated there, f1 o gamma read from f1's own grid, the path's
             spherical-harmonic perturbation evaluated on the finer grid.
-        relative_change: ``()`` max(|distance_time - d|, |distance_grid - d|) / d.
+        relative_change: ``()`` max(abs(distance_time - d), abs(distance_grid - d)) / d.
     """
 
     distance_time: Float[Array, ""]

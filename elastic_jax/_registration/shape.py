@@ -1,6 +1,6 @@
 """Geodesics between shapes: registration modulo reparametrization and rigid motion.
 
-Paper sections 4.2-4.3 (Algorithms 2 and 3, Remark 4), MATH.md 6, 7 and 9. f1 is
+Paper sections 4.2-4.3 (Algorithms 2 and 3, Remark 4), math §6, 7 and 9. f1 is
 reparametrized by gamma (f1 o gamma), f2 is rotated in R^3 by R for modulo="rigid";
 translations cost nothing (the metric sees only df), so both surfaces are centered for
 modulo="rigid".
@@ -138,8 +138,8 @@ def shape_geodesic(
 ) -> ShapeGeodesicResult:
     """Geodesic between the shapes of f1 and f2, modulo reparametrization (and rigid motion).
 
-    Minimizes the path energy (MATH.md 4; the options' scheme, midpoint by default) over
-    paths from f1 o gamma to R f2 and over gamma in Diff+(S^2) (and R in SO(3) for
+    Minimizes the path energy (:ref:`math §4 <math-4>`; the options' scheme, midpoint by
+    default) over paths from f1 o gamma to R f2 and over gamma in Diff+(S^2) (and R in SO(3) for
     modulo="rigid"); paper sections 4.2-4.3.
 
     1. The parametrized geodesic f1 -> f2 (``parametrized_distance``).
@@ -153,8 +153,9 @@ def shape_geodesic(
        together, Algorithm 2; ``"coordinate"``: alternately). Each Diff step
        Proj(Id + sum x_k v_k) of degree vf_degree is composed onto gamma and shrunk (by
        halves, down to no step) until the composed gamma has a positive Jacobian at every
-       grid point and keeps the area the grid can resolve (MATH.md 9); rounds never raise
-       the energy and stop when one changes it by at most outer_tol, or after outer_steps.
+       grid point and keeps the area the grid can resolve (:ref:`math §9 <math-9>`); rounds
+       never raise the energy and stop when one changes it by at most outer_tol, or after
+       outer_steps.
        Rounds whose last step had to shrink stopped at that edge, not at a minimum:
        ``RESULTS.resolution_limited``, not converged.
     4. The final geodesic, its status, and the refinement check (:class:`Refinement`).

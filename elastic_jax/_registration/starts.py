@@ -1,4 +1,4 @@
-"""Phase 1, the starts (paper Remark 4, MATH.md 7): the 60 icosahedral rotations ranked
+"""Phase 1, the starts (paper Remark 4, math §7): the 60 icosahedral rotations ranked
 on the straight line's energy, the best refined over rotations and over the Moebius
 group; a caller's own start; and the inverse of a reparametrization.
 """
@@ -99,7 +99,7 @@ def _start(prob, cfg, rigid, q, vb):
 
 
 def _initialize_moebius(prob, cfg, rigid):
-    """The starts of the registration for init="moebius" (docs/registration.md).
+    """The starts of the registration for init="moebius" (docs/guides/registration_notes.md).
 
     Returns (gammas ``(S, 3, m, n)``, rotations ``(S, 3, 3)``, solver steps). Each of the
     60 icosahedral rotations starts a short BFGS over the Moebius group of the parameter

@@ -1,6 +1,6 @@
 """Batches of inner solves for Karcher means and distance matrices: one geodesic per
 shape or pair, run by lax.map, vmap (sharded over devices) or a loop, chunk by chunk,
-each chunk padded to the compiled batch shape (MATH.md 7).
+each chunk padded to the compiled batch shape (math §7).
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def initial_velocity(path: Float[ArrayLike, "N 3 m n"]) -> Float[Array, "3 m n"]
     The second-order one-sided difference. The forward difference T (f_1 - f_0) is the
     velocity at t = 1 / (2T), off by f''(0) / (2T); the Karcher iteration's fixed point
     moves with it, away from the minimum of the (second-order, midpoint) discrete sum of
-    squared distances, and the line search stalls there (README, "Karcher means").
+    squared distances, and the line search stalls there (docs/guides/collections.md).
     """
     t = path.shape[0] - 1
     return t * (-3.0 * path[0] + 4.0 * path[1] - path[2]) / 2.0

@@ -2,7 +2,7 @@
 the constants of the metric in a data driven way").
 
 The distances d_ij(a, b, c, d) of a collection are minima over paths (and
-registrations) of an energy that is linear in the coefficients (MATH.md 3, 4):
+registrations) of an energy that is linear in the coefficients (math §3, 4):
 E_ij(w) = sum_k w_k E_ij^k at the optimal path, where E_ij^k is the energy of that path
 under the k-th coefficient alone. By the envelope theorem the derivative of d_ij in w is
 that of sqrt(E_ij(w)) with the path and registration held, so one batched solve of all
@@ -214,7 +214,7 @@ def energy_parts(first, second, gammas, rotations, coefficients, bases, *, cfg, 
     first, second ``(b, 3, m, n)``; gammas ``(b, 3, m, n)``, rotations ``(b, 3, 3)``,
     coefficients ``(b, N - 2, L)`` the solutions (in the surfaces' own units). modulo
     "none": the path from first to second perturbed by C (as geodesic evaluates it);
-    else the path from first o gamma to R second (as shape_geodesic does, MATH.md 4).
+    else the path from first o gamma to R second (as shape_geodesic does, math §4).
     The energy is linear in the metric, so E(w) = parts @ w for every w.
     """
     units = SplitMetric(*jnp.eye(4, dtype=first.dtype))
@@ -269,11 +269,11 @@ def fit_metric(
     Objectives (both invariant under scaling the distances, so under scaling the shapes
     and the metric):
 
-    - ``"nca"`` (with ``labels``): soft nearest neighbours (:func:`nca_loss`): makes each
+    - ``"nca"`` (with ``labels``): soft nearest neighbours (``nca_loss()``): makes each
       shape's nearest shapes its classmates, the differentiable surrogate of
       leave-one-out nearest-neighbour classification.
     - ``"stress"`` (with ``targets``, e.g. expert ratings): 1 - cos^2 between the
-      distances and the targets over the pairs i < j (:func:`stress_loss`).
+      distances and the targets over the pairs i < j (``stress_loss()``).
 
     Normalization: distances scale with the square root of the metric, so only the
     coefficients' ratios are learned; the result has a + b + c + d = 1. The coefficients

@@ -1,4 +1,4 @@
-"""Karcher means and distance matrices of shape collections (paper section 4.1, MATH.md 7).
+"""Karcher means and distance matrices of shape collections (paper section 4.1, math §7).
 
 Batch jobs: every step solves K independent geodesics, batched by one of three
 strategies ("vmap", "map": lax.map in one jit, "loop": a Python loop of jitted solves),
@@ -79,7 +79,7 @@ class KarcherResult(NamedTuple):
         distances: ``(K,)`` distances from the mean to each shape.
         registered: ``(K, 3, m, n)`` each shape reparametrized (and rotated) onto the mean.
         velocities: ``(K, 3, m, n)`` initial velocities of the geodesics at the mean
-            (second-order one-sided differences, :func:`initial_velocity`).
+            (second-order one-sided differences, ``initial_velocity()``).
         geodesics_converged: ``(K,)`` whether each inner solve at the mean converged.
         history: ``(steps + 1, 3)`` per mean visited (the start first): sum of squared
             distances (non-increasing), norm of the mean velocity sqrt(G_mean(v, v)), and
@@ -308,16 +308,16 @@ def karcher_mean(
     client=None,
     warm_start: bool = False,
 ) -> KarcherResult:
-    """Karcher (Frechet) mean of a collection of surfaces (paper section 4.1, MATH.md 7).
+    """Karcher (Frechet) mean of a collection of surfaces (paper section 4.1, math §7).
 
     Minimizes the sum of squared distances SSD(mu) = sum_k d(mu, f_k)^2 by gradient
     steps with backtracking. At the current mean every shape is registered to it (the
     shape is reparametrized and, for modulo="rigid", rotated; the mean keeps its
     parametrization) and the K geodesics from the shapes to the mean are solved. Their
     initial velocities at the mean, v_k = T (-3 f_0 + 4 f_1 - f_2) / 2 read from the mean
-    (second order, :func:`initial_velocity`), average to v = -grad SSD / (2K); modulo
+    (second order, ``initial_velocity()``), average to v = -grad SSD / (2K); modulo
     "rigid" or "diff" v loses its vertical part (G_mu-orthogonal projection off the
-    directions that only reparametrize or rotate the mean, :func:`_horizontal_part`).
+    directions that only reparametrize or rotate the mean, ``_horizontal_part()``).
     A trial mean mu + s v (s = step_size first) is accepted only if its SSD, from K new
     solves, is finite and not larger; otherwise s is halved, at most 4 times. The
     accepted trial's geodesics serve the next step, so a step that does not backtrack
@@ -358,7 +358,7 @@ def karcher_mean(
         tol: the two convergence tests above.
         step_size: the first trial step, in units of the mean velocity.
         batch_size: shapes per batched call (bounds memory); default all.
-        strategy: ``"vmap"``, ``"map"``, ``"loop"`` or ``"auto"`` (:func:`default_strategy`).
+        strategy: ``"vmap"``, ``"map"``, ``"loop"`` or ``"auto"`` (``default_strategy()``).
         checkpoint: path of an .npz written atomically after the first solves and after
             every accepted step (the mean and its geodesics).
         resume: continue from ``checkpoint`` (refused if it belongs to other inputs).

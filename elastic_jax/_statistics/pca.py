@@ -2,7 +2,7 @@
 
 The shapes' initial velocities v_i at the mean mu (:class:`KarcherResult`'s velocities,
 the logs of the shapes at mu) live in one tangent space, whose inner product is the
-metric G_mu (MATH.md 3), not the Euclidean one of the grid's coordinates: a coordinate
+metric G_mu (math §3), not the Euclidean one of the grid's coordinates: a coordinate
 PCA would weigh a bending mode against a stretching mode by how far the grid points move,
 not by their elastic cost. With K shapes the modes lie in the span of the centred
 velocities w_i = v_i - mean(v), so PCA is the eigen-decomposition of the K x K Gram matrix

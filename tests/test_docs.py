@@ -1,0 +1,184 @@
+"""The documentation site builds with warnings as errors and holds what it promises.
+
+One build per test session (about 10-20 s): every public name has an API entry, every
+notebook page shows a figure, every link inside the site resolves (file and anchor), the
+command-line reference lists every option of the parser, and the gallery's tables carry
+the stored benchmark numbers.
+"""
+
+import html.parser
+import json
+import pathlib
+import subprocess
+import sys
+import urllib.parse
+
+import pytest
+
+pytest.importorskip("sphinx")
+pytest.importorskip("myst_nb")
+pytest.importorskip("pydata_sphinx_theme")
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+sys.path.insert(0, str(DOCS))
+import _generate  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory) -> pathlib.Path:
+    out = tmp_path_factory.mktemp("site")
+    # The command README and docs/contributing.md give, into a temporary folder.
+    command = [sys.executable, "-m", "sphinx", "-W", "--keep-going", "-q", "-b", "html"]
+    done = subprocess.run(
+        [*command, str(DOCS), str(out)], capture_output=True, text=True, cwd=ROOT, timeout=600
+    )
+    assert done.returncode == 0, done.stderr[-4000:]
+    assert done.stderr.strip() == "", done.stderr[-4000:]
+    return out
+
+
+class _Links(html.parser.HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.ids, self.links, self.images = set(), [], []
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        if "id" in attrs:
+            self.ids.add(attrs["id"])
+        if tag == "a" and attrs.get("href"):
+            self.links.append(attrs["href"])
+        if tag in ("img", "script") and attrs.get("src"):
+            self.links.append(attrs["src"])
+            if tag == "img":
+                self.images.append(attrs["src"])
+        if tag == "link" and attrs.get("href"):
+            self.links.append(attrs["href"])
+
+
+def _parse(page: pathlib.Path) -> _Links:
+    parser = _Links()
+    parser.feed(page.read_text())
+    return parser
+
+
+def test_every_public_name_has_an_api_entry(site):
+    from sphinx.util.inventory import InventoryFile
+
+    with open(site / "objects.inv", "rb") as f:
+        inventory = InventoryFile.load(f, "", posixpath_join)
+    documented = {
+        name for kind, entries in inventory.items() if kind.startswith("py:") for name in entries
+    }
+    names = _generate.public_names()
+    assert len(names) >= 100  # 71 in elastic_jax, the rest in io, plot and shapes
+    assert [n for n in names if n not in documented] == []
+    # ...and each entry is on the API page, with its anchor.
+    api = _parse(site / "api.html")
+    assert [n for n in names if n not in api.ids] == []
+
+
+def posixpath_join(*parts):
+    return "/".join(p.strip("/") for p in parts if p)
+
+
+def test_every_notebook_page_shows_a_figure(site):
+    notebooks = sorted((ROOT / "notebooks").glob("*.ipynb"))
+    assert len(notebooks) == 6
+    for notebook in notebooks:
+        page = site / "examples" / "notebooks" / f"{notebook.stem}.html"
+        images = [s for s in _parse(page).images if not s.startswith(("http", "data:"))]
+        images += [s for s in _parse(page).images if s.startswith("data:image/png")]
+        assert images, f"{page.name} shows no figure"
+        for src in images:
+            if not src.startswith("data:"):
+                assert (page.parent / urllib.parse.unquote(src)).is_file(), (page.name, src)
+
+
+def test_no_link_inside_the_site_is_broken(site):
+    # _static holds the theme's templates, not pages of the site.
+    pages = sorted(p for p in site.rglob("*.html") if "_static" not in p.parts)
+    ids = {page: None for page in pages}
+    broken, checked = [], 0
+    for page in pages:
+        for link in _parse(page).links:
+            parsed = urllib.parse.urlsplit(link)
+            if parsed.scheme or link.startswith(("//", "mailto:", "data:", "javascript:")):
+                continue
+            target = (
+                (page.parent / urllib.parse.unquote(parsed.path)).resolve() if parsed.path else page
+            )
+            if target.is_dir():
+                target = target / "index.html"
+            checked += 1
+            if not target.exists():
+                broken.append(f"{page.relative_to(site)} -> {link}")
+                continue
+            if parsed.fragment and target.suffix == ".html":
+                if ids.get(target) is None:
+                    ids[target] = _parse(target).ids
+                if parsed.fragment not in ids[target]:
+                    broken.append(f"{page.relative_to(site)} -> {link} (no such anchor)")
+    assert checked > 1000
+    assert broken == []
+
+
+def test_the_cli_reference_lists_every_command_and_option(site):
+    import argparse
+
+    from elastic_jax import cli
+
+    text = (site / "guides" / "cli.html").read_text()
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    missing = []
+    for name, command in sub.choices.items():
+        if f"elastic-jax {name}" not in text:
+            missing.append(name)
+        for action in command._actions:
+            missing += [f"{name} {o}" for o in action.option_strings if o not in text]
+    assert len(sub.choices) >= 9
+    assert missing == []
+
+
+def test_the_gallery_tables_carry_the_stored_benchmark_numbers(site):
+    text = (site / "gallery.html").read_text()
+    records = [
+        json.loads(line)
+        for line in (DOCS / "gallery" / "bench" / "bench_shape.jsonl").read_text().splitlines()
+    ]
+    solves = [r for r in records if r.get("benchmark") == "shape_geodesic"]
+    assert len(solves) >= 6  # three rows, two pairs
+    for r in solves:
+        assert f"d {r['distance']:.4g}" in text, r["settings"]
+    tables = [
+        json.loads(line)
+        for line in (DOCS / "gallery" / "bench" / "bench_statistics_tables.jsonl")
+        .read_text()
+        .splitlines()
+    ]
+    table2 = [r for r in tables if r.get("benchmark") == "statistics.table2"]
+    assert len(table2) >= 2
+    for r in table2:
+        assert f"{r['lengths']['L_g']:.4f}" in text
+        assert f"{r['lengths']['L2']:.4f}" in text
+    # The paper's values stand beside them (Tables 1, 2 and 3).
+    for paper in ("0.8932", "0.7948", "1.1442", "0.6130", "0.00502", "39.7", "842"):
+        assert paper in text
+    figures = json.loads((DOCS / "gallery" / "figures.json").read_text())
+    for part in ("geodesics", "multires", "karcher"):
+        assert figures[part]["measured"]
+    gallery = _parse(site / "gallery.html")
+    assert sum(src.startswith("_images/") for src in gallery.images) >= 10
+
+
+def test_docstrings_cite_the_site_not_a_missing_file():
+    # Every "math §N" in the package is a link into docs/math.md, whose labels exist.
+    package = ROOT / "elastic_jax"
+    sources = "".join(p.read_text() for p in package.rglob("*.py"))
+    assert "MATH.md" not in sources
+    math = (DOCS / "math.md").read_text()
+    for n in range(1, 10):
+        assert f"(math-{n})=" in math
+    assert sources.count("<math-") >= 20  # the public docstrings' references
