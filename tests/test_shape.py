@@ -250,12 +250,17 @@ def test_recovers_a_rigid_motion_and_a_reparametrization(bumpy_pair):
 def test_shape_distance_is_below_the_parametrized_one_on_real_shapes(other):
     f1 = ej.resample(load_shape("cat1"), M, N)
     f2 = ej.resample(load_shape(other), M, N)
+    # cat1 -> horse0 at 25 x 49 ends converged (0.873) with one thread and at the area
+    # floor (0.894, resolution_limited) with two on one machine; on an AMD EPYC machine
+    # (2026-11-27) the three default starts led to the area floor at 1.385 (0.70 of the
+    # parametrized 1.966), while 6 starts reach 0.883, converged, and init="energy" 0.860.
+    # The grid does not resolve this pair (docs/guides/registration_notes.md): which
+    # ending the default reaches depends on rounding (docs/guides/limitations.md). The
+    # property tested is that registration finds the shape distance given enough starts.
+    starts = {"init_candidates": 6} if other == "horse0" else {}
     with warnings.catch_warnings():
-        # cat1 -> horse0 at 25 x 49 ends converged (0.873) with one thread and at the
-        # area floor (0.894, resolution_limited) with two: the grid does not resolve this
-        # pair (docs/guides/registration_notes.md), so which ending is reached depends on rounding.
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
-        res = _solve(f1, f2)
+        res = _solve(f1, f2, **starts)
     assert float(res.distance) < 0.6 * float(res.parametrized_distance)
     assert bool(res.converged) or res.result == ej.RESULTS.resolution_limited
     assert float(res.refinement.distance_grid) < float(res.parametrized_distance)
