@@ -2,7 +2,7 @@
 
     python docs/gallery/make_gallery.py [--parts geodesics,multires,karcher] [--quick]
 
-Reads the shared real surfaces (``../shared/data``, cat1, cat2, horse0, hand4 on the
+Reads the shared real surfaces (``../shared/data``, cat1, cat2, horse0 on the
 50 x 99 grid; never copied into the project); writes ``docs/gallery/figures/*.png`` and
 ``docs/gallery/figures.json``. The paper's tables come from the benchmark harness
 (``benchmarks/bench_shape.py`` and ``bench_statistics.py --only-table``), whose JSON lines
@@ -12,12 +12,12 @@ tables at every build, so the site never solves anything. ``--quick`` runs every
 
 Settings (float64, metric (1, 1, 0.1, 0), the paper's examples section):
 - geodesics: ``shape_geodesic`` modulo rigid motion at 25 x 49 with the package's default
-  ``ShapeOptions``, for cat1 -> cat2, cat1 -> horse0 and horse0 -> hand4; each path and
+  ``ShapeOptions``, for cat1 -> cat2, cat1 -> horse0 and cat2 -> horse0; each path and
   the energy of the parametrized geodesic before registration and after each round;
 - multires: the parametrized geodesic cat1 -> horse0 solved at 13 x 25 (degree 4, N 5),
   then 25 x 49 (degree 7, N 9), then 50 x 99 (degree 9, N 13), each warm-started from the
   previous (``schedule``), the paper's remark after Table 3;
-- karcher: the Karcher mean of the four shapes modulo rigid motion at 25 x 49 (degree 5,
+- karcher: the Karcher mean of the three animals modulo rigid motion at 25 x 49 (degree 5,
   vf degree 5, N 7), its history, and the tangent PCA's first two modes at +-1 sigma.
 """
 
@@ -44,8 +44,10 @@ HERE = pathlib.Path(__file__).resolve().parent
 DATA = pathlib.Path(os.environ.get("ELASTIC_JAX_DATA", HERE.parents[2] / "shared" / "data"))
 FIGURES = HERE / "figures"
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
-NAMES = ("cat1", "cat2", "horse0", "hand4")
-PAIRS = (("cat1", "cat2"), ("cat1", "horse0"), ("horse0", "hand4"))
+# The animals only: the shared hand4 is stored about 100 times smaller (area 1.0e-4
+# against 0.92-1.87), so a path to it is mostly a change of size.
+NAMES = ("cat1", "cat2", "horse0")
+PAIRS = (("cat1", "cat2"), ("cat1", "horse0"), ("cat2", "horse0"))
 
 
 def load(name: str, m: int, n: int) -> np.ndarray:
