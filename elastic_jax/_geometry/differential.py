@@ -67,7 +67,8 @@ def _differential(f: Array) -> Array:
 
 
 def differential(f: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array, "*batch 3 2 m n"]:
-    """The differential of a surface in the orthonormal frame of the round sphere (math §2).
+    """The differential of a surface in the orthonormal frame of the round sphere
+    (:ref:`math §2 <math-2>`).
 
     df = [f_theta / sin(phi), f_phi], a field of 3 x 2 matrices. Reference discretization
     (the paper's code): central differences in theta with periodic wrap; central

@@ -86,7 +86,7 @@ def check_scheme(scheme: str) -> None:
 def path_energy(
     metric: SplitMetric, path: Float[ArrayLike, "*batch N 3 m n"], scheme: str = "midpoint"
 ) -> Float[Array, "*batch"]:
-    """Discrete energy of a path of surfaces (math §4; paper eq. (4.4)).
+    """Discrete energy of a path of surfaces (:ref:`math §4 <math-4>`; paper eq. (4.4)).
 
     midpoint (default): E = (1/T) sum_{k=0}^{T-1} G_{(f_k + f_{k+1})/2}(T (f_{k+1} - f_k)),
     T = N - 1: the midpoint rule for the energy of the piecewise-linear path through the
@@ -119,7 +119,7 @@ def path_energy(
 def path_length(
     metric: SplitMetric, path: Float[ArrayLike, "*batch N 3 m n"], scheme: str = "midpoint"
 ) -> Float[Array, "*batch"]:
-    """Discrete length of a path of surfaces (math §4).
+    """Discrete length of a path of surfaces (:ref:`math §4 <math-4>`).
 
     L = (1/T) sum_{k=0}^{T-1} sqrt(G_{b_k}(T (f_{k+1} - f_k))) with b_k = (f_k + f_{k+1})/2
     (midpoint, default) or f_k (forward); central as in :func:`path_energy`.

@@ -18,7 +18,7 @@ def angles_np(m: int, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def grid_angles(m: int, n: int, dtype=None) -> tuple[Float[Array, " m"], Float[Array, " n"]]:
-    """Polar angles and azimuths of the m x n spherical grid (math §1).
+    """Polar angles and azimuths of the m x n spherical grid (:ref:`math §1 <math-1>`).
 
     phi_i = i pi / (m - 1) (row 0 is the north pole, row m - 1 the south pole) and
     theta_j = 2 pi j / (n - 1) (column n - 1 repeats column 0).
@@ -52,7 +52,7 @@ def interior_weights(m: int, n: int, dtype) -> Float[Array, "mi ni"]:
 
 
 def quadrature_weights(m: int, n: int, dtype=None) -> Float[Array, "m n"]:
-    """Weights w_ij of the quadrature over S^2 on the inclusive grid (math §2).
+    """Weights w_ij of the quadrature over S^2 on the inclusive grid (:ref:`math §2 <math-2>`).
 
     Trapezoid rule in phi and in theta times sin(phi_i):
     w_ij = sin(phi_i) dphi dtheta c_j with c_0 = c_{n-1} = 1/2 and c_j = 1 otherwise.
@@ -70,7 +70,7 @@ def quadrature_weights(m: int, n: int, dtype=None) -> Float[Array, "m n"]:
 
 
 def integrate(values: Float[ArrayLike, "*batch m n"]) -> Float[Array, "*batch"]:
-    """Integral over S^2 of a function sampled on the grid (math §2 quadrature).
+    """Integral over S^2 of a function sampled on the grid (:ref:`math §2 <math-2>` quadrature).
 
     Args:
         values: ``(..., m, n)`` samples, seam column included.

@@ -96,7 +96,8 @@ def harmonics_np(m: int, n: int, degree: int):
 
 
 def real_sph_harm(m: int, n: int, degree: int, dtype=None) -> SphericalHarmonics:
-    """Orthonormal real spherical harmonics of degree 0..degree on the grid (math §5).
+    """Orthonormal real spherical harmonics of degree 0..degree on the grid
+    (:ref:`math §5 <math-5>`).
 
     Y_l0 = Re Y_l0, Y_lk = sqrt2 (-1)^k Re Y_lk (k > 0), Y_lk = sqrt2 (-1)^k Im Y_l|k| (k < 0),
     from scipy's normalized associated Legendre functions (stable recurrences, fine to
@@ -159,7 +160,8 @@ def vector_fields_np(m: int, n: int, degree: int) -> np.ndarray:
 
 
 def vector_field_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, "Lbar 3 m n"]:
-    """Tangent vector fields on S^2: grad Y_lk and e1 x grad Y_lk over sqrt(l(l+1)) (math §5).
+    """Tangent vector fields on S^2: grad Y_lk and e1 x grad Y_lk over sqrt(l(l+1))
+    (:ref:`math §5 <math-5>`).
 
     grad Y = Y_phi e_phi + (Y_theta / sin phi) e_theta with e_phi, e_theta the unit
     coordinate vectors; on the pole rows the limit of Y_theta / sin phi is used, so the

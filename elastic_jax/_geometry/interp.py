@@ -46,7 +46,7 @@ def _resample(f, phi, theta):
 
 
 def resample(f: Float[ArrayLike, "*batch 3 m0 n0"], m: int, n: int) -> Float[Array, "*batch 3 m n"]:
-    """The surface on another m x n grid, by bilinear interpolation (math §6).
+    """The surface on another m x n grid, by bilinear interpolation (:ref:`math §6 <math-6>`).
 
     For multiresolution and for bringing shapes to a common grid; error O(h^2) in the
     source grid's spacing. Pole rows stay constant and the seam column exact.

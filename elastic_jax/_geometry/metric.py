@@ -39,7 +39,8 @@ def _coefficient(name: str, value):
 @jax.tree_util.register_pytree_node_class
 @dataclasses.dataclass(frozen=True)
 class SplitMetric:
-    """Coefficients (a, b, c, d) >= 0 of the split metric (paper eq. (3.4), math §3).
+    """Coefficients (a, b, c, d) >= 0 of the split metric (paper eq. (3.4),
+    :ref:`math §3 <math-3>`).
 
     G = a <xi_m, xi_m> + b <xi_vol, xi_vol> + c <xi_perp, xi_perp> + d <xi_0, xi_0>:
     a weighs shearing (change of the metric at fixed volume), b the change of volume
@@ -138,7 +139,7 @@ def split_bilinear(metric: SplitMetric, a1, a2, x1, x2, y1, y2) -> Array:
 def split_parts(
     alpha: Float[ArrayLike, "*batch 3 2"], xi: Float[ArrayLike, "*batch 3 2"]
 ) -> tuple[Array, Array, Array, Array]:
-    """The orthogonal decomposition xi = xi_m + xi_vol + xi_perp + xi_0 (math §3).
+    """The orthogonal decomposition xi = xi_m + xi_vol + xi_perp + xi_0 (:ref:`math §3 <math-3>`).
 
     With g = alpha^T alpha, alpha^+ = g^-1 alpha^T, P = alpha alpha^+:
     xi_vol = 1/2 tr(alpha^+ xi) alpha; xi_m = 1/2 alpha g^-1 (alpha^T xi + xi^T alpha) - xi_vol;
@@ -208,7 +209,8 @@ def split_inner(
     xi: Float[ArrayLike, "*batch 3 2"],
     eta: Float[ArrayLike, "*batch 3 2"],
 ) -> Float[Array, "*batch"]:
-    """The split metric G^{a,b,c,d}_alpha(xi, eta) at one point (paper eq. (3.4), math §3).
+    """The split metric G^{a,b,c,d}_alpha(xi, eta) at one point (paper eq. (3.4),
+    :ref:`math §3 <math-3>`).
 
     Args:
         metric: the coefficients.
@@ -251,7 +253,8 @@ def metric_inner(
     u: Float[ArrayLike, "*batch 3 m n"],
     v: Float[ArrayLike, "*batch 3 m n"],
 ) -> Float[Array, "*batch"]:
-    """The split metric of a surface, G_f(u, v) = integral over S^2 of G_{df}(du, dv) (math §3).
+    """The split metric of a surface, G_f(u, v) = integral over S^2 of G_{df}(du, dv)
+    (:ref:`math §3 <math-3>`).
 
     The integrand uses the differential and the quadrature of :ref:`math §2 <math-2>`
     (trapezoid in phi and theta, times sin phi). Exactly invariant under rotations and
@@ -318,7 +321,8 @@ def elastic_metric_inner(
     u: Float[ArrayLike, "*batch 3 m n"],
     v: Float[ArrayLike, "*batch 3 m n"],
 ) -> Float[Array, "*batch"]:
-    """The general elastic metric of Jermyn et al., written from dg and dn (math §3).
+    """The general elastic metric of Jermyn et al., written from dg and dn
+    (:ref:`math §3 <math-3>`).
 
     integral of [ae tr(g^-1 dg_u g^-1 dg_v) + be tr(g^-1 dg_u) tr(g^-1 dg_v) + ce <dn_u, dn_v>]
     sqrt(det g), with dg = alpha^T xi + xi^T alpha and

@@ -40,7 +40,8 @@ def _diffeomorphism(x, fields, e1):
 def diffeomorphism(
     x: Float[ArrayLike, "*batch Lbar"], m: int, n: int, degree: int
 ) -> Float[Array, "*batch 3 m n"]:
-    """gamma_x = Proj(Id + sum_k x_k v_k) sampled on the grid (paper eq. (4.6), math §6).
+    """gamma_x = Proj(Id + sum_k x_k v_k) sampled on the grid (paper eq. (4.6),
+    :ref:`math §6 <math-6>`).
 
     v_k is :func:`vector_field_basis`; Proj(y) = y / ‖y‖. A diffeomorphism for x inside
     :func:`diffeomorphism_bound` (Theorem 3); larger deformations are compositions.
@@ -307,7 +308,8 @@ def reparametrize_unchecked(f, gamma, *, method):
 def reparametrize(
     f: Float[ArrayLike, "*batch 3 m n"], gamma: Float[ArrayLike, "3 p q"], method: str = "bilinear"
 ) -> Float[Array, "*batch 3 p q"]:
-    """f o gamma by interpolation on the grid (math §6), differentiable in f and gamma.
+    """f o gamma by interpolation on the grid (:ref:`math §6 <math-6>`), differentiable in f and
+    gamma.
 
     gamma gives, at every point of a (p, q) grid, the point of S^2 where f is read. The
     interpolation is periodic in theta and crosses the poles by the half-turn rule.
@@ -333,7 +335,8 @@ def reparametrize(
 def rotate_parametrization(
     f: Float[ArrayLike, "*batch 3 m n"], rotation: Float[ArrayLike, "3 3"], method: str = "bilinear"
 ) -> Float[Array, "*batch 3 m n"]:
-    """f o R: the surface reparametrized by the rotation x -> R x of the sphere (math §6).
+    """f o R: the surface reparametrized by the rotation x -> R x of the sphere
+    (:ref:`math §6 <math-6>`).
 
     Args:
         f: ``(..., 3, m, n)``; rotation: ``(3, 3)``; method: as in :func:`reparametrize`.

@@ -46,7 +46,7 @@ def so3_exp_unchecked(w):
 
 
 def so3_exp(w: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
-    """Rotation matrices exp(hat(w)) by Rodrigues' formula (math §6).
+    """Rotation matrices exp(hat(w)) by Rodrigues' formula (:ref:`math §6 <math-6>`).
 
     R = I + sin(t)/t K + (1 - cos t)/t^2 K^2, K = hat(w), t = ‖w‖; below t^2 = sqrt(eps)
     the coefficients use their Taylor series, so value and gradient are exact at w = 0.

@@ -71,7 +71,8 @@ def _srnf_distance(f1, f2):
 def srnf_distance(
     f1: Float[ArrayLike, "*batch 3 m n"], f2: Float[ArrayLike, "*batch 3 m n"]
 ) -> Float[Array, "*batch"]:
-    """L2 distance over S^2 of the SRNFs, ||q(f1) - q(f2)|| (math §3; paper Table 2).
+    """L2 distance over S^2 of the SRNFs, ||q(f1) - q(f2)|| (:ref:`math §3 <math-3>`; paper Table
+    2).
 
     A lower bound of the geodesic distance under the split metric (0, 1/2, 1, 0).
 
@@ -113,7 +114,7 @@ def surface_area_unchecked(f):
 
 
 def surface_area(f: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array, "*batch"]:
-    """Area of the surface, integral over S^2 of sqrt(det g) (math §2 quadrature).
+    """Area of the surface, integral over S^2 of sqrt(det g) (:ref:`math §2 <math-2>` quadrature).
 
     Args:
         f: ``(..., 3, m, n)``.
@@ -135,7 +136,8 @@ def center_unchecked(f):
 
 
 def center(f: Float[ArrayLike, "*batch 3 m n"]) -> Float[Array, "*batch 3 m n"]:
-    """Translate the surface so that its area-weighted centroid is at the origin (math §7).
+    """Translate the surface so that its area-weighted centroid is at the origin
+    (:ref:`math §7 <math-7>`).
 
     centroid = integral of f sqrt(det g) / integral of sqrt(det g). The metric sees only
     df, so centering changes no energy; it is for display and rigid alignment.

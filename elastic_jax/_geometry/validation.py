@@ -53,7 +53,8 @@ def as_surface(f, name: str, *, check_immersion: bool = True) -> jax.Array:
 
 
 def validate_surface(f, name: str = "f") -> jax.Array:
-    """Check that ``f`` is a well-formed surface ``(..., 3, m, n)`` on the grid (math §1).
+    """Check that ``f`` is a well-formed surface ``(..., 3, m, n)`` on the grid
+    (:ref:`math §1 <math-1>`).
 
     Raises :class:`elastic_jax.InputError` (a ValueError) naming the problem and the grid
     point for: a wrong shape, an even n, fewer than 5 rows or columns, complex or float16

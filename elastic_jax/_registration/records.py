@@ -16,7 +16,7 @@ MODULI = ("diff", "rigid")
 
 
 class Refinement(NamedTuple):
-    """The distance of a result re-evaluated at a finer discretization (math §9).
+    """The distance of a result re-evaluated at a finer discretization (:ref:`math §9 <math-9>`).
 
     Nothing is optimized again: the registered ends and the path are carried over, so a
     discretization the solve exploited shows as a jump here.

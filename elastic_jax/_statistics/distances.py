@@ -170,7 +170,7 @@ def distance_matrix(
     progress: Callable[[dict], None] | None = None,
     client=None,
 ) -> DistanceMatrixResult:
-    """Pairwise shape distances: K(K-1)/2 geodesics, batched (math §7).
+    """Pairwise shape distances: K(K-1)/2 geodesics, batched (:ref:`math §7 <math-7>`).
 
     Pair (i, j), i < j, uses shape_geodesic(shapes[i], shapes[j]) (or geodesic for
     modulo="none"); the record is symmetrized from the upper triangle. With

@@ -308,7 +308,8 @@ def karcher_mean(
     client=None,
     warm_start: bool = False,
 ) -> KarcherResult:
-    """Karcher (Frechet) mean of a collection of surfaces (paper section 4.1, math §7).
+    """Karcher (Frechet) mean of a collection of surfaces (paper section 4.1,
+    :ref:`math §7 <math-7>`).
 
     Minimizes the sum of squared distances SSD(mu) = sum_k d(mu, f_k)^2 by gradient
     steps with backtracking. At the current mean every shape is registered to it (the
