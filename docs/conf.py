@@ -33,7 +33,6 @@ nitpicky = True
 # Types in signatures are jaxtyping shapes; the docstrings state shapes in words.
 autodoc_typehints = "none"
 autodoc_member_order = "bysource"
-autodoc_default_options = {"members": False}
 napoleon_google_docstring = True
 napoleon_numpy_docstring = False
 napoleon_use_rtype = False
@@ -54,8 +53,6 @@ nb_execution_mode = "off"
 html_theme = "pydata_sphinx_theme"
 html_title = "elastic_jax"
 html_theme_options = {"navigation_with_keys": False, "show_toc_level": 2}
-html_static_path = []
-suppress_warnings = []
 
 
 def _copy_notebooks() -> None:

@@ -16,9 +16,8 @@ def test_readme_example_prints_the_closed_form(capsys):
     distance, closed = map(
         float, re.search(r"distance ([\d.]+), closed form ([\d.]+)", out).groups()
     )
-    assert (
-        abs(distance - closed) / closed < 5e-3
-    )  # the 25 x 49 discretization error (docs/math.md §3)
+    # the 25 x 49 discretization error (docs/math.md §3)
+    assert abs(distance - closed) / closed < 5e-3
     energy, straight = map(
         float, re.search(r"energy ([\d.]+) < straight line ([\d.]+)", out).groups()
     )

@@ -38,6 +38,7 @@ import numpy as np  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import plot  # noqa: E402
+from elastic_jax._runtime.atomic import write_text_atomic  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
 # ELASTIC_JAX_DATA points elsewhere (a machine without the shared folder beside the repo).
@@ -56,7 +57,7 @@ def load(name: str, m: int, n: int) -> np.ndarray:
 
 
 def save(fig, name: str) -> str:
-    plot.save_figure(fig, FIGURES / name)  # FIGURES: --figures
+    plot.save_figure(fig, FIGURES / name)
     import matplotlib.pyplot as plt
 
     plt.close(fig)
@@ -179,10 +180,18 @@ def karcher(quick: bool) -> dict:
 PARTS = {"geodesics": geodesics, "multires": multires, "karcher": karcher}
 
 
+def _parts(text: str) -> list[str]:
+    parts = text.split(",")
+    unknown = [p for p in parts if p not in PARTS]
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown parts {unknown}; choose from {list(PARTS)}")
+    return parts
+
+
 def main() -> None:
-    global FIGURES
+    global FIGURES  # save() writes there; --figures moves it
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--parts", default=",".join(PARTS))
+    parser.add_argument("--parts", type=_parts, default=list(PARTS))
     parser.add_argument("--quick", action="store_true", help="13 x 25, small settings")
     parser.add_argument("--out", type=pathlib.Path, default=HERE / "figures.json")
     parser.add_argument("--figures", type=pathlib.Path, default=FIGURES, help="PNG folder")
@@ -190,7 +199,7 @@ def main() -> None:
     FIGURES = args.figures
     FIGURES.mkdir(parents=True, exist_ok=True)
     stored = json.loads(args.out.read_text()) if args.out.exists() else {}
-    for part in args.parts.split(","):
+    for part in args.parts:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ej.ConvergenceWarning)
             stored[part] = PARTS[part](args.quick)
@@ -198,9 +207,7 @@ def main() -> None:
         stored[part]["jax"] = jax.__version__
         stored[part]["measured"] = time.strftime("%Y-%m-%d")
         # One part at a time, atomically: a later part's failure keeps the earlier ones.
-        tmp = args.out.with_suffix(".tmp")
-        tmp.write_text(json.dumps(stored, indent=1) + "\n")
-        tmp.replace(args.out)
+        write_text_atomic(args.out, json.dumps(stored, indent=1) + "\n")
 
 
 if __name__ == "__main__":
