@@ -70,19 +70,27 @@ class ShapeOptions:
         outer_steps: most registration rounds; the loop stops earlier once a round
             changes the energy by at most outer_tol (E + outer_tol E_0).
         outer_tol: that relative change (E_0: the parametrized energy).
-        init: ``"moebius"`` (default): a short search over the Moebius group of S^2
-            (rotations and conformal boosts) from each of the 60 icosahedral rotations,
-            ranked by the L2 mismatch int ‖f1 o gamma - R f2‖^2, the best
-            ``init_candidates`` that lie apart refined (:doc:`/guides/registration_notes`);
-            ``"energy"`` (the default until 2026-11-24): the 60 rotations refined over
-            rotations and ranked by straight-line energy, the best ``init_candidates``
-            refined over rotations and, as further starts, over the Moebius group;
-            ``"icosahedral"``: the same over rotations only (the paper's Remark 4);
-            ``"none"``. Every start goes through registration rounds on the straight
-            line (coarse in time: an L2 match, then the energy); the lowest goes on to
-            the rounds with the whole path.
+        init: ``"moebius"`` (default): from each of the 60 icosahedral rotations a short
+            search over the Moebius group of S^2 (rotations and conformal boosts) on the
+            L2 mismatch int ‖f1 o gamma - R f2‖^2, the 60 ranked by that mismatch, the best
+            ``init_candidates`` that lie apart refined to the tolerance: these are the
+            starts (:doc:`/guides/registration_notes`); ``"energy"`` (the default until
+            2026-11-24): the 60 rotations refined over rotations and ranked by
+            straight-line energy, the best ``init_candidates`` refined over rotations and,
+            as that many more starts, over the Moebius group; ``"icosahedral"``: the
+            same over rotations only (the paper's Remark 4); ``"none"``: the identity
+            alone. Every start then gets registration rounds on the L2 mismatch; the pair
+            as given (the identity gamma and, modulo rigid, also its Procrustes-best
+            rotation) is ranked beside them as one more candidate, unmatched; the
+            candidate whose straight line then has the lowest energy gets rounds on that
+            energy and goes on to the rounds with the whole path. The result is never
+            above the parametrized geodesic: it is that geodesic, with
+            ``RESULTS.not_registered``, when the registered one ended above it by more
+            than outer_tol.
         init_candidates: how many of the ranked searches become starts (with
-            "moebius", the best that lie apart: mean distance of their maps above 0.1).
+            "moebius", the best that lie apart: mean distance of their maps above 0.1;
+            with "energy", twice as many starts: each refined over rotations and over
+            the Moebius group).
         interpolation: ``"bicubic"`` (default) or ``"bilinear"`` (the paper's) for f o gamma.
         differential: how the differential of f1 o gamma is taken
             (:doc:`/guides/registration_notes`).

@@ -9,6 +9,8 @@ converged, except for a Karcher mean, which says which criterion stopped it) and
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -81,6 +83,13 @@ class RESULTS(optx.RESULTS, metaclass=_NamedEnumeration):  # pyright: ignore
         "elsewhere."
     )
 
+    not_registered = (
+        "The registration ended above the pair as given: the registered geodesic's energy "
+        "was higher than the parametrized geodesic's (identity reparametrization and "
+        "rotation), so the result is the parametrized geodesic, an upper bound of the shape "
+        "distance. The rounds ended in a worse basin than the identity's; more "
+        "init_candidates, init='energy' or a start of your own may find a lower one."
+    )
     saddle_point = (
         "The solver met its tolerance at a saddle point of the energy (a negative Hessian "
         "eigenvalue), not a minimum: raise saddle_checks to escape along it."
@@ -121,3 +130,163 @@ def unsolved_message(record, kind: str, k: int, last: int) -> str:
     if bool(record.converged):
         return ""
     return f"{kind} {k} of {last} did not solve: {result_message(record.result)}"
+
+
+# How a result record prints (issue 48): Equinox's short form, arrays as dtype[shape].
+_WIDTH = 100  # one line when it fits, else one field per line
+_MAX_CHARS = 2000  # the most any record prints
+_MAX_ITEMS = 6  # items shown of a tuple, list or dict field
+_MAX_TEXT = 60  # characters shown of a string or another object's repr
+_MAX_DEPTH = 3  # records nested deeper print as their class name
+_DTYPES = {"float": "f", "int": "i", "uint": "u", "complex": "c", "bfloat": "bf"}
+
+
+def record_repr(self) -> str:
+    """A result record in at most 2,000 characters: each field by name, arrays as their
+    dtype and shape (``path=f64[13,3,25,49]``), scalars by value (``distance=0.735123``,
+    ``converged=True``), the result code by name (``result=successful``), nested records
+    alike. Batches (vmap) print as summaries (``converged=bool[3](2 of 3 True)``), traced
+    records as shapes; nothing is computed and nothing fails on a tracer.
+
+    Example:
+        >>> import numpy as np
+        >>> from elastic_jax import Refinement
+        >>> Refinement(np.array(0.7351234), np.array(True), np.zeros((2, 3)))
+        Refinement(distance_time=0.735123, distance_grid=True, relative_change=f64[2,3])
+    """
+    text = _pformat(self, 0, 0)
+    if len(text) > _MAX_CHARS:
+        text = text[: _MAX_CHARS - 5] + " ...)"
+    return text
+
+
+def _pformat(value, indent: int, depth: int, lead: int = 0) -> str:
+    """``value`` printed at ``indent`` spaces, after ``lead`` characters of its line (a
+    field's name and '=')."""
+    if _is_result(value):
+        return _result_text(value)
+    fields = _fields(value)
+    if fields is not None:
+        name = type(value).__name__
+        if depth >= _MAX_DEPTH:
+            return f"{name}(...)"
+        parts = [f"{k}={_pformat(v, indent + 2, depth + 1, len(k) + 1)}" for k, v in fields]
+        return _wrap(name + "(", parts, ")", indent, lead)
+    if isinstance(value, (list, tuple)):
+        parts = [_pformat(v, indent + 2, depth + 1) for v in value[:_MAX_ITEMS]]
+        if len(value) > _MAX_ITEMS:
+            parts.append(f"... ({len(value)} items)")
+        return _wrap("[", parts, "]", indent, lead)
+    if isinstance(value, dict):
+        items = [(_cut(repr(k)), v) for k, v in value.items()]
+        parts = [
+            f"{k}: {_pformat(v, indent + 2, depth + 1, len(k) + 2)}" for k, v in items[:_MAX_ITEMS]
+        ]
+        if len(items) > _MAX_ITEMS:
+            parts.append(f"... ({len(items)} items)")
+        return _wrap("{", parts, "}", indent, lead)
+    if isinstance(value, str):
+        return repr(value) if len(value) <= _MAX_TEXT else repr(value[: _MAX_TEXT - 3] + "...")
+    if value is None or isinstance(value, (bool, int, float, complex, np.generic)):
+        return _scalar_text(value)
+    if isinstance(value, (jax.Array, np.ndarray)):  # tracers included
+        return _array_text(value)
+    return _cut(repr(value))
+
+
+def _fields(value) -> list | None:
+    """A record's (name, value) pairs: a NamedTuple's or a dataclass's (a SplitMetric). A
+    record whose ``result`` is a property (SphericalParametrization) shows it last."""
+    if isinstance(value, tuple) and hasattr(type(value), "_fields"):
+        fields = list(zip(type(value)._fields, value, strict=True))
+        if "result" not in type(value)._fields and isinstance(
+            getattr(type(value), "result", None), property
+        ):
+            try:
+                fields.append(("result", value.result))
+            except Exception:  # a property that needs concrete values; leave it out
+                pass
+        return fields
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return [(f.name, getattr(value, f.name)) for f in dataclasses.fields(value) if f.repr]
+    return None
+
+
+def _wrap(opening: str, parts: list[str], closing: str, indent: int, lead: int) -> str:
+    """One line when it fits in _WIDTH (with a trailing comma), else one part per line."""
+    line = opening + ", ".join(parts) + closing
+    if indent + lead + len(line) + 1 <= _WIDTH and "\n" not in line:
+        return line
+    pad = " " * (indent + 2)
+    return opening + "\n" + "".join(f"{pad}{p},\n" for p in parts) + " " * indent + closing
+
+
+def _cut(text: str) -> str:
+    return text if len(text) <= _MAX_TEXT else text[: _MAX_TEXT - 3] + "..."
+
+
+def _is_result(value) -> bool:
+    return isinstance(getattr(value, "_enumeration", None), type) and hasattr(value, "_value")
+
+
+def _short_dtype(dtype) -> str:
+    dtype = np.dtype(dtype)
+    if dtype == np.bool_:
+        return "bool"
+    for kind, short in _DTYPES.items():
+        if dtype.name.startswith(kind):
+            return short + dtype.name[len(kind) :]
+    return dtype.name
+
+
+def _shape_text(value) -> str:
+    return f"{_short_dtype(value.dtype)}[{','.join(str(s) for s in np.shape(value))}]"
+
+
+def _concrete(value) -> bool:
+    return not isinstance(value, jax.core.Tracer)
+
+
+def _scalar_text(value) -> str:
+    """A concrete scalar's value: True, 7, 0.735123 (6 significant digits), nan."""
+    if value is None or isinstance(value, (bool, np.bool_)):
+        return str(None if value is None else bool(value))
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        return f"{float(value):.6g}"
+    return _cut(repr(value))
+
+
+def _array_text(value) -> str:
+    """An array: its dtype and shape, a concrete scalar its value, a concrete boolean
+    array how many are True (``bool[3](2 of 3 True)``)."""
+    if not _concrete(value):
+        return _shape_text(value)
+    try:  # a donated (deleted) or not fully addressable array has no values to read
+        if np.ndim(value) == 0:
+            return _scalar_text(np.asarray(value)[()])
+        if value.dtype == np.bool_ and np.size(value) > 0:
+            true, size = int(np.count_nonzero(np.asarray(value))), int(np.size(value))
+            count = "all" if true == size else "none" if true == 0 else f"{true} of {size}"
+            return f"{_shape_text(value)}({count} True)"
+    except Exception:
+        pass
+    return _shape_text(value)
+
+
+def _result_text(item) -> str:
+    """A result code by name (``successful``); a batch (vmap) as its names and counts
+    (``RESULTS[3](2 successful, 1 stalled)``); a traced code as ``RESULTS(traced)``."""
+    code = item._value
+    shape = ",".join(str(s) for s in np.shape(code))
+    if not _concrete(code):
+        return f"RESULTS[{shape}](traced)" if shape else "RESULTS(traced)"
+    codes = np.asarray(code)
+    table = getattr(item._enumeration, "_name_to_item", {})  # equinox's items by name
+    by_code = {int(i._value): name for name, i in table.items()}
+    if codes.ndim == 0:
+        return by_code.get(int(codes), f"code {int(codes)}")
+    values, counts = np.unique(codes, return_counts=True)
+    names = [f"{c} {by_code.get(int(v), f'code {v}')}" for v, c in zip(values, counts, strict=True)]
+    return f"RESULTS[{shape}]({', '.join(names)})"

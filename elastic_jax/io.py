@@ -109,6 +109,9 @@ _FREESURFER_SURFACES = (
 # an edge or a vertex is reported once by each triangle there.
 _MERGE_RTOL = 1e-9
 
+# The decimals trimesh's text writers give coordinates of size 1 (fixed point).
+_DECIMALS = {"obj": 8, "off": 10}
+
 # Bounds the (ray, candidate triangle) pairs that trimesh materialises per call: a ray
 # from the centre has a few percent (up to a third) of the faces as candidates.
 _PAIRS_PER_CHUNK = 5_000_000
@@ -179,7 +182,9 @@ def star_center(mesh: trimesh.Trimesh | trimesh.Scene) -> np.ndarray | None:
     side of every face's plane: n_T . (p - v_T) < 0 for each face T with outward normal n_T
     and a vertex v_T. The linear program max s subject to n_T . (p - v_T) + s <= 0
     (scipy.optimize.linprog, HiGHS) finds the point deepest inside that intersection of
-    half-spaces; the kernel is non-empty exactly when the optimal s is positive.
+    half-spaces; the kernel is non-empty exactly when the optimal s is positive (above
+    1e-9 of the mesh's size). It is solved in the mesh's own units (coordinates over its
+    largest extent), so the answer does not depend on the unit the mesh is given in.
 
     Args:
         mesh: a closed, consistently oriented ``trimesh.Trimesh`` (or a Scene of one).
@@ -191,22 +196,36 @@ def star_center(mesh: trimesh.Trimesh | trimesh.Scene) -> np.ndarray | None:
     import scipy.optimize
 
     mesh = _as_trimesh(mesh)
-    normals = np.asarray(mesh.face_normals, dtype=np.float64)
-    if mesh.volume < 0:  # inward-wound faces: their normals point inside
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    # Solved in the mesh's own units (its bounding box's middle and largest extent): HiGHS's
+    # feasibility tolerances (1e-7) are absolute, and so is trimesh's cut-off below which
+    # face_normals are zero (a cross product under 1e-13, i.e. edges under ~3e-7): a hand
+    # of 1.4 cm scaled by 1e-6 was called star-shaped, a bumpy sphere so scaled was not.
+    used = vertices[np.unique(faces)]
+    middle = (used.min(axis=0) + used.max(axis=0)) / 2
+    size = float(np.ptp(used, axis=0).max())
+    if size == 0:
+        return None
+    t = (vertices[faces] - middle) / size
+    normals = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    volume = np.einsum("ij,ij->", t[:, 0], normals)
+    if volume < 0:  # inward-wound faces: their normals point inside
         normals = -normals
-    corner = np.asarray(mesh.triangles[:, 0], dtype=np.float64)
-    size = float(np.ptp(np.asarray(mesh.vertices), axis=0).max())
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    # A face of zero area has no side to be on: its constraint s <= 0 leaves no kernel.
+    normals = normals / np.where(length > 0, length, 1.0)
     res = scipy.optimize.linprog(
         c=[0.0, 0.0, 0.0, -1.0],
         A_ub=np.hstack([normals, np.ones((len(normals), 1))]),
-        b_ub=np.einsum("ij,ij->i", normals, corner),
-        bounds=[(None, None)] * 3 + [(None, size)],
+        b_ub=np.einsum("ij,ij->i", normals, t[:, 0]),
+        bounds=[(None, None)] * 3 + [(None, 1.0)],
         method="highs",
     )
     # A margin relative to the mesh's size, so that rays from the point cross cleanly.
-    if res.status != 0 or res.x[3] <= 1e-9 * size:
+    if res.status != 0 or res.x[3] <= 1e-9:
         return None
-    return np.asarray(res.x[:3], dtype=np.float64)
+    return middle + size * np.asarray(res.x[:3], dtype=np.float64)
 
 
 def _direction_name(k: int, m: int, n: int, u: np.ndarray) -> str:
@@ -374,6 +393,13 @@ def mesh_to_grid(
     surface's symmetry leaves the axes undetermined a FrameWarning says so and the input's
     axes are used (``frame=`` chooses them). Every grid point lies on the mesh (to
     rounding: 1e-15 of the mesh's size measured).
+
+    Everything is computed in the mesh's own units: in its frame the mesh has unit RMS
+    size about its area centroid (:class:`MeshFrame`'s ``scale``), and every tolerance
+    (ray hits, merges, the snapping of the spherical map's input, :func:`star_center`'s
+    linear program) is relative to that size, so a mesh in metres, millimetres or
+    kilometres gives the same grid up to the scale (measured at scales 1e-3 and 1e3, every
+    method: the same to 2e-15 of the size, on the mesh to 4e-16).
 
     Methods:
 
@@ -732,6 +758,29 @@ def surface_files(directory: str | os.PathLike) -> list[pathlib.Path]:
     return found
 
 
+def _load_mesh(path: pathlib.Path, merge: bool) -> trimesh.Trimesh:
+    """``trimesh.load(path, force="mesh", process=merge)``, the merge in the mesh's units.
+
+    trimesh's process=True merges the vertices of each of the file's meshes that round
+    alike at 1e-8 (tol.merge), an absolute distance: every vertex of a surface a few
+    micrometres across given in metres became one. Here each mesh's vertices are merged at
+    1e-9 to 1e-8 of its largest extent (the same digits as trimesh's for extents from 1 to
+    10), after dropping non-finite values as process=True does.
+    """
+    scene = trimesh.load(path, force="scene", process=False)
+    if merge:
+        for geometry in scene.geometry.values():
+            if isinstance(geometry, trimesh.Trimesh) and len(geometry.vertices):
+                geometry.remove_infinite_values()
+                vertices = geometry.vertices.view(np.ndarray)
+                extent = float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
+                digits = None
+                if extent > 0:
+                    digits = -int(np.floor(np.log10(trimesh.tol.merge * extent)))
+                geometry.merge_vertices(digits_vertex=digits)
+    return scene.to_mesh()
+
+
 def _map_positions(path: pathlib.Path) -> np.ndarray:
     """The vertex positions of a sphere map's file (GIfTI, FreeSurfer or a mesh file)."""
     if _neuro_kind(path) is not None:
@@ -774,6 +823,11 @@ def load_surface(
     (:func:`mesh_to_grid`'s ``frame=``; ``"input"`` gives back the grid a file of
     :func:`save_surface` was written from).
 
+    A mesh is read and resampled in its own units: the vertices merged on loading (those
+    that round alike at 1e-8 of the mesh's largest extent, where trimesh's own merge is at
+    1e-8 in any unit) and every step of :func:`mesh_to_grid` are relative to the mesh's
+    size, so the grid does not depend on the file's unit.
+
     For grid files, giving m and n that differ from the file's grid resamples bilinearly
     (``elastic_jax.resample``, :ref:`math §6 <math-6>`) in float64.
 
@@ -814,8 +868,8 @@ def load_surface(
             mesh = trimesh.Trimesh(*_neuro_mesh(path), process=False)
         else:
             # Keep the file's vertices as they are when a map of them is given.
-            process = sphere is None
-            mesh = _read(path, kind, lambda: trimesh.load(path, force="mesh", process=process))
+            merge = sphere is None
+            mesh = _read(path, kind, lambda: _load_mesh(path, merge))
         if sphere is not None and not isinstance(sphere, np.ndarray):
             sphere = _map_positions(pathlib.Path(sphere))
         try:
@@ -864,8 +918,17 @@ def _checked_surfaces(x, name: str, layout: str) -> np.ndarray:
 
 
 def _export_mesh(mesh: trimesh.Trimesh, path: pathlib.Path) -> pathlib.Path:
+    kind = _suffix(path)
+    options = {}
+    if kind in _DECIMALS:
+        # Fixed-point text: trimesh's decimals (8 for .obj, 10 for .off) are absolute; a
+        # mesh smaller than 1 across gets as many more as keep its precision relative to
+        # its size (.obj kept 3 digits of a 14 um surface given in metres).
+        extent = float(np.ptp(mesh.vertices, axis=0).max())
+        extra = max(0, -int(np.floor(np.log10(extent)))) if extent > 0 else 0
+        options["digits"] = _DECIMALS[kind] + extra
     with atomic_path(path) as tmp:
-        mesh.export(tmp, file_type=_suffix(path))
+        mesh.export(tmp, file_type=kind, **options)
     return path
 
 
@@ -877,7 +940,8 @@ def save_surface(f, path: str | os.PathLike) -> pathlib.Path:
     vertices, no seam copies), which :func:`load_surface` projects back onto a grid (with
     ``frame="input"`` the same grid, when it is radial about its area centroid). The mesh
     writers round coordinates: .ply, .stl and .glb store float32, .obj 8 decimals and .off
-    10; use .npz to keep float64.
+    10 (more for a surface smaller than 1 across: as many as keep that precision relative
+    to its size); use .npz to keep float64.
 
     Args:
         f: ``(3, m, n)`` surface, checked with ``validate_surface``.

@@ -2,6 +2,8 @@
 place the library touches JAX's configuration."""
 
 import json
+import os
+import pathlib
 import subprocess
 import sys
 
@@ -108,6 +110,62 @@ def test_an_exported_program_is_the_jitted_one_and_is_not_traced_again(tmp_path,
     assert key != _cache._key("solve", static, treedef, [target, jnp.asarray(0.5, target.dtype)])
     monkeypatch.setattr(_cache, "_source_digest", lambda: "another version")
     assert key != _cache._key("solve", static, treedef, leaves)
+
+
+EDITED = """
+import json, pathlib, sys
+import jax
+import jax.numpy as jnp
+import elastic_jax as ej
+from elastic_jax._runtime import cache as _cache
+
+ej.enable_compilation_cache(sys.argv[1])
+program = lambda x: {"y": jnp.sin(x) * 2.0}
+out = _cache.exported_call("edit", program, _cache.solver_jit(program), (jnp.ones(3),), {},
+                           {"y": 0})
+files = sorted(p.name for p in (pathlib.Path(sys.argv[1]) / "exported").iterdir())
+print(json.dumps({"package": ej.__file__, "y": float(out["y"][0]), "files": files}))
+"""
+
+
+def test_an_edit_anywhere_in_the_package_gives_new_exported_programs(tmp_path):
+    """A copy of the package, edited in a subpackage the runtime never imports directly
+    (the registration's coarse phase): a new process exports under a new key, while an
+    unedited copy finds its own programs again (the key is the source, not the process)."""
+    import shutil
+
+    import elastic_jax
+
+    copy = tmp_path / "site"
+    shutil.copytree(
+        pathlib.Path(elastic_jax.__file__).parent,
+        copy / "elastic_jax",
+        ignore=shutil.ignore_patterns("__pycache__"),
+    )
+    env = {**os.environ, "PYTHONPATH": str(copy)}
+
+    def run():
+        done = subprocess.run(
+            [sys.executable, "-c", EDITED, str(tmp_path / "cache")],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            env=env,
+            cwd=tmp_path,  # not the repository, whose elastic_jax would come first
+        )
+        assert done.returncode == 0, done.stderr[-2000:]
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    first, again = run(), run()
+    assert first["package"] == str(copy / "elastic_jax" / "__init__.py")
+    keys = {name.split("-")[1].split(".")[0] for name in first["files"]}
+    assert len(keys) == 1 and again["files"] == first["files"]  # the same key, found again
+    with open(copy / "elastic_jax" / "_registration" / "coarse.py", "a") as source:
+        source.write("# an edit that changes no program\n")
+    edited = run()
+    new = {name.split("-")[1].split(".")[0] for name in edited["files"]} - keys
+    assert len(new) == 1 and set(first["files"]) < set(edited["files"])
+    assert edited["y"] == first["y"]
 
 
 WARM = """

@@ -7,10 +7,13 @@ the stored benchmark numbers.
 """
 
 import html.parser
+import io
 import json
 import pathlib
+import re
 import subprocess
 import sys
+import tokenize
 import urllib.parse
 
 import pytest
@@ -182,3 +185,65 @@ def test_docstrings_cite_the_site_not_a_missing_file():
     for n in range(1, 10):
         assert f"(math-{n})=" in math
     assert sources.count("<math-") >= 20  # the public docstrings' references
+
+
+# A file of the repository named in prose: a path under one of its folders, or a top-level
+# Markdown file (MATH.md was one, before docs/math.md). Sphinx's output (docs/_build) is
+# made by the build, not stored.
+_REPO_PATH = re.compile(
+    r"(?<![\w./-])((?:docs|benchmarks|elastic_jax|tests|notebooks|\.ci|shared)/[\w./-]*?\w"
+    r"\.(?:md|py|ipynb|json|npz|npy|toml|ya?ml|txt|csv|png|html))(?![\w/])"
+    r"|(?<![\w./-])([A-Z][A-Z_]*\.md)(?![\w/])"
+)
+# A Markdown link to a file by a relative address: [text](guides/settings.md#anchor).
+_LINK = re.compile(r"\]\((?![a-z]+:|#|/)([^)\s#]+)(?:#[^)\s]*)?\)")
+
+
+def _python_texts(path: pathlib.Path):
+    """(line, text) of every comment and string (docstrings included) of a Python file."""
+    kinds = {tokenize.COMMENT, tokenize.STRING, getattr(tokenize, "FSTRING_MIDDLE", None)}
+    for token in tokenize.generate_tokens(io.StringIO(path.read_text()).readline):
+        if token.type in kinds:
+            yield token.start[0], token.string
+
+
+def _prose():
+    """(file, where in it, text, links relative to the file?) of the package's, the docs' and the
+    benchmarks' comments and strings, every Markdown page of docs/ and README.md, and the
+    notebooks' Markdown cells (rendered from a copy under docs/: their links not checked)."""
+    for folder in ("elastic_jax", "docs", "benchmarks"):
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            for line, text in _python_texts(path):
+                yield path, f"line {line}", text, False
+    for path in [ROOT / "README.md", *sorted(DOCS.rglob("*.md"))]:
+        for line, text in enumerate(path.read_text().splitlines(), 1):
+            yield path, f"line {line}", text, True
+    for path in sorted((ROOT / "notebooks").glob("*.ipynb")):
+        cells = json.loads(path.read_text())["cells"]
+        for k, cell in enumerate(cells):
+            if cell["cell_type"] == "markdown":
+                yield path, f"cell {k}", "".join(cell["source"]), False
+
+
+def test_every_file_path_in_the_prose_exists():
+    """Docstrings, comments and pages name files that exist (issue 48: the settings guide
+    cited docs/registration.md, renamed docs/guides/registration_notes.md long before)."""
+    missing, checked = [], 0
+    for path, place, text, links in _prose():
+        where = f"{path.relative_to(ROOT)}, {place}"
+        for match in _REPO_PATH.finditer(text):
+            name = match.group(1) or match.group(2)
+            if "/_build/" in f"/{name}":
+                continue
+            checked += 1
+            if not (ROOT / name).exists():
+                missing.append(f"{where}: {name}")
+        for match in _LINK.finditer(text) if links else ():
+            target = urllib.parse.unquote(match.group(1))
+            if "." not in pathlib.PurePosixPath(target).name:
+                continue  # a Sphinx reference (a label or a page without suffix)
+            checked += 1
+            if not (path.parent / target).exists():
+                missing.append(f"{where}: {target} (relative to {path.parent.name}/)")
+    assert checked >= 50  # the scan sees the references it is meant to
+    assert not missing, "paths that do not exist:\n" + "\n".join(missing)

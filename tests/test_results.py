@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import warnings
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -173,3 +174,253 @@ def test_every_result_record_follows_the_protocol(case):
     assert int(res.num_steps) >= (1 if name == "successful" and not karcher else 0)
     if steps is not None:
         assert int(res.num_steps) == steps
+
+
+# --- How records print (issue 48): at most 2,000 characters, arrays as dtype[shape] -------
+
+
+def _f64(*shape):
+    return jnp.linspace(0.0, 1.0, int(np.prod(shape))).reshape(shape)
+
+
+def _scalar(value):
+    return jnp.asarray(value)
+
+
+def _shape_geodesic_record():
+    """A ShapeGeodesicResult with the arrays of a solve at 25 x 49 with N = 13 (the size of
+    the issue's 40k-character repr), built without a solve."""
+    refinement = ej.Refinement(_scalar(0.7366), _scalar(0.7412), _scalar(0.0083))
+    return ej.ShapeGeodesicResult(
+        _f64(13, 3, 25, 49),
+        _scalar(0.7351234),
+        _scalar(0.7351234**2),
+        _scalar(1.2034),
+        _f64(3, 25, 49),
+        _f64(3, 25, 49),
+        jnp.eye(3),
+        _f64(11, 3 * ((4 + 1) ** 2 - 1)),
+        _f64(12),
+        _scalar(7),
+        _scalar(412),
+        _scalar(True),
+        ej.RESULTS.successful,
+        _scalar(3.1e-9),
+        _scalar(0.42),
+        refinement,
+    )
+
+
+def _metric_fit():
+    metric, start = ej.SplitMetric(0.4, 0.3, 0.2, 0.1), ej.SplitMetric(0.25, 0.25, 0.25, 0.25)
+    k = 4
+    return ej.MetricFit(
+        metric,
+        start,
+        _scalar(0.61),
+        _scalar(0.4321),
+        _f64(21),
+        _scalar(2e-7),
+        _f64(4),
+        _f64(k, k),
+        _f64(k, k),
+        jnp.ones((k, k), bool),
+        _scalar(True),
+        ej.RESULTS.successful,
+        _scalar(9),
+        _scalar(10),
+    )
+
+
+def _mesh_records():
+    from elastic_jax._meshes.frame import MeshFrame
+    from elastic_jax._meshes.sphere_map import SphericalParametrization
+
+    v, f = np.linspace(0.0, 1.0, 642 * 3).reshape(642, 3), np.zeros((1280, 3), np.int64)
+    frame = MeshFrame(np.zeros(3), 1.25, np.eye(3), np.full(3, 1 / 3), np.zeros(3), "x" * 300)
+    sphere_map = SphericalParametrization(v, f, v, 0, 1.84, 1.52, 6.25, 2.0871, 311, True, 4.2)
+    return {"MeshFrame": frame, "SphericalParametrization": sphere_map}
+
+
+def _records():
+    """Every public result record: real solves where they are cheap (the 13 x 25 geodesic
+    of the protocol test above: compiled once), else built with realistic arrays. Each with
+    the texts its repr must show."""
+    n = (M, N)
+    geodesic = _geodesic()[0]
+    surface, path5 = _f64(3, *n), _f64(5, 3, *n)
+    ok, successful = _scalar(True), ej.RESULTS.successful
+    records = {
+        "GeodesicResult": (geodesic, ["f64[5,3,13,25]", f"{float(geodesic.distance):.6g}"]),
+        "ShapeGeodesicResult": (_shape_geodesic_record(), ["f64[13,3,25,49]", "0.735123"]),
+        "Refinement": (
+            ej.Refinement(_scalar(0.7366), _scalar(0.7412), _f64(3)),
+            ["distance_time=0.7366", "relative_change=f64[3]"],
+        ),
+        "ShootingResult": (
+            ej.ShootingResult(
+                path5,
+                surface,
+                surface,
+                _f64(4),
+                _f64(3),
+                _f64(3, 45),
+                jnp.full(3, 4),
+                _scalar(5),
+                ok,
+                successful,
+                _scalar(12),
+            ),
+            ["path=f64[5,3,13,25]", "newton_steps=i64[3]", "n_valid=5"],
+        ),
+        "TransportResult": (
+            ej.TransportResult(
+                surface,
+                path5,
+                _f64(5),
+                _scalar(-1.5e-4),
+                _f64(4, 2),
+                _scalar(5),
+                ok,
+                successful,
+                _scalar(17),
+            ),
+            ["vectors=f64[5,3,13,25]", "norm_drift=-0.00015"],
+        ),
+        "LogResult": (
+            ej.LogResult(surface, surface, _scalar(0.5123), path5, ok, successful, _scalar(30)),
+            ["path=f64[5,3,13,25]", "distance=0.5123"],
+        ),
+        "SrnfInversion": (
+            ej.SrnfInversion(
+                surface,
+                _scalar(0.0123),
+                _scalar(0.004),
+                _f64(45),
+                _scalar(80),
+                ok,
+                successful,
+                _scalar(1e-8),
+                _f64(2),
+            ),
+            ["surface=f64[3,13,25]", "residual=0.0123"],
+        ),
+        "SrnfGeodesic": (
+            ej.SrnfGeodesic(
+                path5,
+                _f64(5),
+                _f64(5),
+                _scalar(1.234),
+                _scalar(1.2),
+                jnp.zeros(5, int),
+                jnp.array([True, True, False, True, True]),
+                _scalar(False),
+                ej.RESULTS.nonlinear_max_steps_reached,
+                _scalar(40),
+            ),
+            [
+                "srnf_distance=1.2",
+                "nodes_converged=bool[5](4 of 5 True)",
+                "result=nonlinear_max_steps_reached",
+            ],
+        ),
+        "KarcherResult": (
+            ej.KarcherResult(
+                surface,
+                _f64(3),
+                _f64(3, 3, *n),
+                _f64(3, 3, *n),
+                jnp.ones(3, bool),
+                np.zeros((5, 3)),
+                True,
+                4,
+                6,
+                ej.RESULTS.mean_velocity_small,
+            ),
+            ["history=f64[5,3]", "num_steps=4", "result=mean_velocity_small"],
+        ),
+        "DistanceMatrixResult": (
+            ej.DistanceMatrixResult(
+                _f64(30, 30),
+                jnp.ones((30, 30), bool),
+                _f64(30, 30),
+                ok,
+                successful,
+                _scalar(9000),
+            ),
+            ["distances=f64[30,30]", "pairs_converged=bool[30,30](all True)"],
+        ),
+        "TangentPCA": (
+            ej.TangentPCA(surface, _f64(4, 3, *n), _f64(4), _f64(4), _f64(6, 4), surface),
+            ["modes=f64[4,3,13,25]", "scores=f64[6,4]"],
+        ),
+        "MetricFit": (_metric_fit(), ["metric=SplitMetric(a=0.4", "objective_after=0.4321"]),
+        "RetrievalScores": (
+            ej.RetrievalScores(2 / 3, 0.48333333333333334, 0.9333333333333335),
+            ["nearest_neighbour=0.666667", "second_tier=0.933333"],
+        ),
+    }
+    for name, record in _mesh_records().items():
+        records[name] = (record, ["f64[642,3]" if name != "MeshFrame" else "scale=1.25"])
+    return records
+
+
+def _bespoke_repr(name: str) -> bool:
+    """Whether the class prints the package's way (its __repr__ is record_repr)."""
+    import elastic_jax._meshes.frame
+    import elastic_jax._meshes.sphere_map
+    from elastic_jax._results import record_repr
+
+    for module in (ej, elastic_jax._meshes.frame, elastic_jax._meshes.sphere_map):
+        if hasattr(module, name):
+            return getattr(module, name).__repr__ is record_repr
+    return False
+
+
+RECORDS = [
+    "GeodesicResult", "ShapeGeodesicResult", "Refinement", "ShootingResult", "TransportResult",
+    "LogResult", "SrnfInversion", "SrnfGeodesic", "KarcherResult", "DistanceMatrixResult",
+    "TangentPCA", "MetricFit", "RetrievalScores", "MeshFrame", "SphericalParametrization",
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("name", RECORDS)
+def test_every_result_record_prints_briefly(name):
+    assert _bespoke_repr(name), f"{name} does not set __repr__ = record_repr"
+    record, expected = _records()[name]
+    text = repr(record)
+    assert len(text) <= 2000, (len(text), text[:300])
+    assert text.startswith(f"{name}("), text[:100]
+    assert str(record) == text  # print() shows the same
+    for field in type(record)._fields:
+        assert f"{field}=" in text, (field, text)
+    if hasattr(record, "result"):  # the result protocol: both, the code by its name
+        assert "converged=" in text and f"result={ej.RESULTS.name(record.result)}" in text
+    for part in expected:
+        assert part in text, (part, text)
+    # Scalars by value, the distance-like ones included.
+    for field in ("distance", "energy", "parametrized_distance", "objective_after"):
+        if field in type(record)._fields:
+            assert f"{field}={float(getattr(record, field)):.6g}" in text, text
+
+
+def test_batched_and_traced_records_print_as_summaries():
+    """A vmapped record prints its codes and flags as counts; a traced one its shapes."""
+
+    def solved(ok):
+        res = _shape_geodesic_record()
+        code = ej.RESULTS.where(ok, ej.RESULTS.successful, ej.RESULTS.resolution_limited)
+        return res._replace(converged=ok, result=code)
+
+    batch = jax.vmap(solved)(jnp.array([True, False, True]))
+    text = repr(batch)
+    assert len(text) <= 2000
+    assert "path=f64[3,13,3,25,49]" in text and "distance=f64[3]" in text
+    assert "converged=bool[3](2 of 3 True)" in text
+    assert "result=RESULTS[3](2 successful, 1 resolution_limited)" in text
+    traced = []
+    jax.vmap(lambda res: traced.append(repr(res)) or res.distance)(batch)
+    jax.jit(lambda res: traced.append(repr(res)) or res.distance)(batch)
+    assert "path=f64[13,3,25,49]" in traced[0] and "converged=bool[]" in traced[0]
+    assert "result=RESULTS(traced)" in traced[0] and "refinement=Refinement(" in traced[0]
+    assert "result=RESULTS[3](traced)" in traced[1] and "distance=f64[3]" in traced[1]

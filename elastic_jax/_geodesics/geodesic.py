@@ -46,7 +46,7 @@ from .._options import (
     ShapeOptions,
     settings_from,
 )
-from .._results import RESULTS, result_message
+from .._results import RESULTS, record_repr, result_message
 from .._runtime.cache import cached, solver_jit
 from .solvers import Minimum, lanczos_smallest, minimize
 
@@ -88,6 +88,8 @@ class GeodesicResult(NamedTuple):
     grad_norm: Float[Array, ""]
     min_curvature: Float[Array, ""]
 
+    __repr__ = record_repr
+
     @property
     def message(self) -> str:
         """Why the solver stopped, in its own words ('' when it converged)."""
@@ -102,7 +104,7 @@ def basis_np(m: int, n: int, degree: int) -> tuple[np.ndarray, np.ndarray]:
     """Harmonics of degree 1..deg as ``(K, m n)`` and their differentials as ``(K, 2 P)``.
 
     P = (m - 2)(n - 1) interior points. One matmul with the second gives the
-    perturbation of every frame's differential (STACK.md: faster than an einsum).
+    perturbation of every frame's differential (measured faster than an einsum).
     """
     y = harmonics_np(m, n, degree)[0][1:]
     a1, a2 = interior_frame(y)

@@ -43,7 +43,7 @@ from .._options import (
     ShapeOptions,
     settings_from,
 )
-from .._results import RESULTS, first_failure, unsolved_message
+from .._results import RESULTS, first_failure, record_repr, unsolved_message
 from .._runtime.cache import solver_jit
 from .geodesic import basis_np, safe_sqrt
 
@@ -82,6 +82,8 @@ class ShootingResult(NamedTuple):
     converged: Array
     result: RESULTS
     num_steps: Int[Array, ""]
+
+    __repr__ = record_repr
 
     @property
     def message(self) -> str:

@@ -39,7 +39,7 @@ from .._geometry.harmonics import check_degree
 from .._geometry.srnf import center_unchecked, sqrt_normal, srnf_unchecked, surface_area_unchecked
 from .._geometry.validation import as_surface
 from .._options import FROM_OPTIONS, SOLVERS, FromOptions, ShapeOptions, settings_from
-from .._results import RESULTS, first_failure, result_message
+from .._results import RESULTS, first_failure, record_repr, result_message
 from .._runtime.cache import cached, solver_jit
 from .geodesic import basis_np, check_pair, sqrt_inverse_pair
 from .solvers import minimize
@@ -74,6 +74,8 @@ class SrnfInversion(NamedTuple):
     result: RESULTS
     grad_norm: Float[Array, ""]
     level_residuals: Float[Array, " levels"]
+
+    __repr__ = record_repr
 
     @property
     def message(self) -> str:
@@ -112,6 +114,8 @@ class SrnfGeodesic(NamedTuple):
     converged: Bool[Array, ""]
     result: RESULTS
     num_steps: Int[Array, ""]
+
+    __repr__ = record_repr
 
     @property
     def message(self) -> str:

@@ -33,7 +33,7 @@ from .._geometry.harmonics import check_degree
 from .._geometry.metric import SplitMetric, metric_inner
 from .._geometry.units import units_of
 from .._options import FROM_OPTIONS, FromOptions, ShapeOptions, settings_from
-from .._results import RESULTS, first_failure, unsolved_message
+from .._results import RESULTS, first_failure, record_repr, unsolved_message
 from .._runtime.cache import solver_jit
 from .geodesic import basis_np
 from .shooting import as_velocity, check_scheme, default_newton_tol, node_solve
@@ -66,6 +66,8 @@ class TransportResult(NamedTuple):
     converged: Array
     result: RESULTS
     num_steps: Int[Array, ""]
+
+    __repr__ = record_repr
 
     @property
     def message(self) -> str:

@@ -19,6 +19,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .._results import record_repr
+
 # The frame counts as determined when the second-moment eigenvalues differ by more than
 # this fraction of the largest and the two largest third moments (skewnesses) exceed it:
 # below it, rounding or a mesh's symmetry decides the axes.
@@ -39,6 +41,8 @@ class MeshFrame(NamedTuple):
         undetermined: empty when the axes are fixed by the surface; otherwise why not
             (equal second moments, or third moments that vanish: a symmetry).
     """
+
+    __repr__ = record_repr
 
     center: np.ndarray
     scale: float

@@ -54,7 +54,7 @@ import scipy.spatial
 from .._checks import check_grid_shape, check_int, check_positive
 from .._errors import ConvergenceWarning, InputError
 from .._geometry.grid import from_distinct, grid_directions
-from .._results import RESULTS, result_message
+from .._results import RESULTS, record_repr, result_message
 from .._runtime.cache import cached
 
 # Faces whose area is below this fraction of the mean face area count as zero-area.
@@ -134,6 +134,8 @@ class SphericalParametrization(NamedTuple):
             over a round of iterations) before ``max_steps``.
         seconds: wall-clock time of the whole parametrization.
     """
+
+    __repr__ = record_repr
 
     vertices: np.ndarray
     faces: np.ndarray

@@ -108,16 +108,38 @@ def geodesics_phase(metric, f1, f2, bases, rounds: Rounds, cfg, rigid):
 
 
 def end_phase(metric, f1, f2, bases, solved, cfg, rigid) -> ShapeGeodesicResult:
-    """Phase 5: the result from the rounds and the geodesics (status, refinement)."""
+    """Phase 5: the result from the rounds and the geodesics (status, refinement).
+
+    The shape distance is an infimum over reparametrizations (and rotations), so the
+    pair as given is always a candidate: when the registered geodesic ends above the
+    parametrized one, the result is the parametrized geodesic (identity gamma and
+    rotation), with ``RESULTS.not_registered`` when the gap exceeds outer_tol relative
+    (and sqrt(eps) absolute, in the solve's unit-size units): a gap within it is the same
+    minimum reached two ways, and keeps the rounds' status.
+    """
     prob = make_problem(metric, f1, f2, bases, rigid)
     dtype = prob.f1.dtype
     rounds, both = solved
-    parametrized, final = (jax.tree_util.tree_map(lambda x, i=i: x[i], both) for i in (0, 1))
+    parametrized, registered = (jax.tree_util.tree_map(lambda x, i=i: x[i], both) for i in (0, 1))
     state, history = rounds.state, rounds.history
     history = history.at[0].set(parametrized.energy)
     steps = state.steps + jnp.sum(both.num_steps).astype(jnp.int32)
-    scaling = scaling_at(prob, cfg, state.gamma, state.rotation)
-    joint = joint_objective(prob, cfg, rigid, state.gamma, state.rotation, scaling)
+
+    given_lower = jnp.isfinite(parametrized.energy) & ~(registered.energy <= parametrized.energy)
+    # The surfaces are of unit size here (_geometry/units.py): a gap below sqrt(eps) is
+    # rounding (identical inputs: the registered energy ~1e-30 against the given 0).
+    noise = jnp.sqrt(jnp.finfo(dtype).eps)
+    not_registered = given_lower & ~(
+        registered.energy - parametrized.energy <= cfg.outer_tol * parametrized.energy + noise
+    )
+    final = jax.tree_util.tree_map(
+        lambda a, b: jnp.where(given_lower, a, b), parametrized, registered
+    )
+    gamma = jnp.where(given_lower, prob.e1, state.gamma)
+    rotation = jnp.where(given_lower, jnp.eye(3, dtype=dtype), state.rotation)
+
+    scaling = scaling_at(prob, cfg, gamma, rotation)
+    joint = joint_objective(prob, cfg, rigid, gamma, rotation, scaling)
     zero_step = zero_registration(prob, rigid, dtype)
     grad_norm = optx.two_norm(jax.grad(joint)((scaling.whitened(final.coefficients), zero_step)))
     rounds_result = RESULTS.where(
@@ -126,10 +148,9 @@ def end_phase(metric, f1, f2, bases, solved, cfg, rigid) -> ShapeGeodesicResult:
         RESULTS.where(rounds.done, RESULTS.successful, RESULTS.nonlinear_max_steps_reached),
     )
     result = RESULTS.where(final.converged, rounds_result, final.result)
+    result = RESULTS.where(not_registered, RESULTS.not_registered, result)
     if cfg.refinement:
-        refinement = _refinement(
-            prob, cfg, state.gamma, state.rotation, final.coefficients, final.energy
-        )
+        refinement = _refinement(prob, cfg, gamma, rotation, final.coefficients, final.energy)
     else:
         nan = jnp.asarray(jnp.nan, dtype)
         refinement = Refinement(nan, nan, nan)
@@ -139,13 +160,13 @@ def end_phase(metric, f1, f2, bases, solved, cfg, rigid) -> ShapeGeodesicResult:
         energy=final.energy,
         parametrized_distance=parametrized.distance,
         f1_registered=final.path[0],
-        gamma=state.gamma,
-        rotation=state.rotation,
+        gamma=gamma,
+        rotation=rotation,
         coefficients=final.coefficients,
         energy_history=history,
         rounds=rounds.rounds,
         num_steps=steps,
-        converged=final.converged & rounds.done & ~state.shrunk,
+        converged=final.converged & rounds.done & ~state.shrunk & ~not_registered,
         result=result,
         grad_norm=grad_norm,
         min_curvature=final.min_curvature,

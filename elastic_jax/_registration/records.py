@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._results import RESULTS, result_message
+from .._results import RESULTS, record_repr, result_message
 
 MODULI = ("diff", "rigid")
 
@@ -33,6 +33,8 @@ class Refinement(NamedTuple):
     distance_time: Float[Array, ""]
     distance_grid: Float[Array, ""]
     relative_change: Float[Array, ""]
+
+    __repr__ = record_repr
 
 
 class ShapeGeodesicResult(NamedTuple):
@@ -86,6 +88,8 @@ class ShapeGeodesicResult(NamedTuple):
     grad_norm: Float[Array, ""]
     min_curvature: Float[Array, ""]
     refinement: Refinement
+
+    __repr__ = record_repr
 
     @property
     def message(self) -> str:

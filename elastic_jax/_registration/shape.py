@@ -143,12 +143,16 @@ def shape_geodesic(
     modulo="rigid"); paper sections 4.2-4.3.
 
     1. The parametrized geodesic f1 -> f2 (``parametrized_distance``).
-    2. Starts (``init="moebius"``): the 60 icosahedral rotations as reparametrizations
-       ranked by straight-line energy, the best ``init_candidates`` refined over the
-       rotations and over the Moebius group of S^2 (rotations and conformal boosts).
-       Every start gets registration rounds on the L2 mismatch; the one whose straight
-       line then has the lowest energy gets rounds on that energy (coarse to fine in the
-       criterion and in time).
+    2. Starts (``init="moebius"``): each of the 60 icosahedral rotations, as a
+       reparametrization, starts a short search over the Moebius group of S^2 (rotations
+       and conformal boosts; modulo "rigid" with R's Procrustes optimum for each) on the
+       L2 mismatch int ‖f1 o gamma - R f2‖^2; the 60 are ranked by that mismatch, and the
+       best ``init_candidates`` that lie apart are refined to the tolerance (other
+       ``init`` values: :class:`ShapeOptions`). Every start gets registration rounds on
+       the L2 mismatch; the pair as given (the identity gamma and, modulo "rigid", also
+       its Procrustes-best rotation) is ranked beside them as one more candidate,
+       unmatched; the candidate whose straight line then has the lowest energy gets rounds
+       on that energy (coarse to fine in the criterion and in time).
     3. Registration rounds with the whole path (``method="joint"``: path and Diff step
        together, Algorithm 2; ``"coordinate"``: alternately). Each Diff step
        Proj(Id + sum x_k v_k) of degree vf_degree is composed onto gamma and shrunk (by
@@ -159,6 +163,10 @@ def shape_geodesic(
        Rounds whose last step had to shrink stopped at that edge, not at a minimum:
        ``RESULTS.resolution_limited``, not converged.
     4. The final geodesic, its status, and the refinement check (:class:`Refinement`).
+       The result is never above the parametrized geodesic: when the registered
+       geodesic ends above the pair as given, the result is the parametrized geodesic
+       (identity gamma and rotation), with ``RESULTS.not_registered`` when the gap
+       exceeds outer_tol.
 
     Each phase is one compiled program (five in all, see _solve_in_phases); under
     ``jax.vmap`` or a caller's ``jax.jit`` the whole solve is one program, vmappable

@@ -206,11 +206,20 @@ def enable_compilation_cache(
 
 @cached
 def _source_digest() -> str:
-    """A digest of this package's source files (an exported program is only as new as
-    the code it was traced from)."""
-    digest = hashlib.sha256()
-    for file in sorted(pathlib.Path(__file__).parent.glob("*.py")):
-        digest.update(file.name.encode())
+    """A digest of the package's version and of every source file of the package, in
+    every subpackage (an exported program is only as new as the code it was traced from:
+    a phase of the shape solve calls into _registration, _geodesics and _geometry, so a
+    digest of one folder would let a stored program outlive a change elsewhere)."""
+    from importlib import metadata
+
+    try:  # the installed distribution's version (the package's __init__.py is hashed too)
+        version = metadata.version("elastic-jax")
+    except metadata.PackageNotFoundError:
+        version = ""
+    root = pathlib.Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256(version.encode())
+    for file in sorted(root.rglob("*.py")):
+        digest.update(b"\0" + file.relative_to(root).as_posix().encode() + b"\0")
         digest.update(file.read_bytes())
     return digest.hexdigest()
 

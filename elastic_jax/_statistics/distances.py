@@ -18,7 +18,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._errors import ConvergenceWarning, InputError
 from .._geometry.metric import SplitMetric
 from .._options import ShapeOptions
-from .._results import RESULTS, result_message
+from .._results import RESULTS, record_repr, result_message
 from .._runtime.atomic import save_npz_atomic
 from .batching import (
     check_batch,
@@ -54,6 +54,8 @@ class DistanceMatrixResult(NamedTuple):
     converged: Bool[Array, ""]
     result: RESULTS
     num_steps: Int[Array, ""]
+
+    __repr__ = record_repr
 
     @property
     def message(self) -> str:

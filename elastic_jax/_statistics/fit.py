@@ -38,7 +38,7 @@ from .._geometry.energy import frame_energy
 from .._geometry.metric import SplitMetric
 from .._options import ShapeOptions
 from .._registration.problem import make_bases, make_problem, path_energy_at
-from .._results import RESULTS, result_message
+from .._results import RESULTS, record_repr, result_message
 from .._runtime.atomic import save_npz_atomic
 from .batching import (
     check_batch,
@@ -103,6 +103,8 @@ class MetricFit(NamedTuple):
     result: RESULTS
     num_steps: Int[Array, ""]
     evaluations: Int[Array, ""]
+
+    __repr__ = record_repr
 
     @property
     def message(self) -> str:

@@ -33,7 +33,7 @@ from .._geometry.reparam import reparametrize_unchecked
 from .._geometry.srnf import center_unchecked
 from .._geometry.validation import as_surface
 from .._options import ShapeOptions, check_int, check_positive
-from .._results import RESULTS
+from .._results import RESULTS, record_repr
 from .._runtime.atomic import save_npz_atomic
 from .batching import (
     check_batch,
@@ -105,6 +105,8 @@ class KarcherResult(NamedTuple):
     num_steps: int
     num_solves: int
     result: RESULTS
+
+    __repr__ = record_repr
 
     @property
     def message(self) -> str:

@@ -18,7 +18,7 @@ from .._geometry.metric import SplitMetric
 from .._options import ShapeOptions
 from .._registration.records import turned_back
 from .._registration.shape import shape_geodesic
-from .._results import RESULTS, result_message
+from .._results import RESULTS, record_repr, result_message
 
 
 class LogResult(NamedTuple):
@@ -43,6 +43,8 @@ class LogResult(NamedTuple):
     converged: Array
     result: RESULTS
     num_steps: Int[Array, ""]
+
+    __repr__ = record_repr
 
     @property
     def message(self) -> str:

@@ -24,6 +24,7 @@ from .._errors import InputError
 from .._geodesics.shooting import shoot
 from .._geometry.metric import SplitMetric, metric_inner
 from .._geometry.validation import as_surface
+from .._results import record_repr
 
 
 class TangentPCA(NamedTuple):
@@ -44,6 +45,8 @@ class TangentPCA(NamedTuple):
     explained: Float[Array, " k"]
     scores: Float[Array, "K k"]
     mean_velocity: Float[Array, "3 m n"]
+
+    __repr__ = record_repr
 
 
 def _mean_and_velocities(karcher) -> tuple[Array, Array]:

@@ -11,6 +11,7 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from .._errors import InputError
+from .._results import record_repr
 
 
 class RetrievalScores(NamedTuple):
@@ -27,6 +28,8 @@ class RetrievalScores(NamedTuple):
     nearest_neighbour: float
     first_tier: float
     second_tier: float
+
+    __repr__ = record_repr
 
 
 def check_labels(labels, k: int, name: str = "labels") -> np.ndarray:
