@@ -24,8 +24,13 @@ and, when nilearn is installed, FreeSurfer's fsaverage5 left inflated hemisphere
 the mirrored right one (nilearn ships the meshes; they are put on the grid by
 elastic_jax.io.mesh_to_grid at 50 x 99).
 
+With ``--rtol`` each solve is a resolved distance (ShapeOptions.rtol, docs/math.md §10):
+the working grid refined by levels (``--levels``) until two agree within rtol, and each
+record carries the levels' grids, distances and times and the estimate.
+
 Run: python benchmarks/bench_real.py [--pairs cats,cat-horse,horse-hand,synthetic,fsaverage]
      [--cases grid25,up49,data,moebius,reversed,self] [--init moebius|energy|icosahedral|none]
+     [--differential grid|chain] [--rtol 0.03] [--levels 13x25,25x49,49x97]
 """
 
 from __future__ import annotations
@@ -127,6 +132,21 @@ def _inputs(case: str, f1, f2):
     return f1, _moved(f1, 0.5, 2)  # self
 
 
+def _levels_record(levels) -> dict:
+    """The levels of a resolved distance (--rtol): grids, distances, times, estimate."""
+    if levels is None:
+        return {}
+    return {
+        "levels": {
+            "grids": np.asarray(levels.grids).tolist(),
+            "distances": np.asarray(levels.distances).tolist(),
+            "seconds": np.asarray(levels.seconds).tolist(),
+            "estimate": float(levels.estimate),
+            "rtol": float(levels.rtol),
+        }
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", default=",".join(PAIRS))
@@ -135,7 +155,23 @@ def main() -> None:
         "--init", default="moebius", choices=("moebius", "energy", "icosahedral", "none")
     )
     parser.add_argument("--differential", default="grid", choices=("grid", "chain"))
+    parser.add_argument(
+        "--rtol",
+        type=float,
+        default=None,
+        help="resolve each distance by levels of working grids to this relative tolerance",
+    )
+    parser.add_argument(
+        "--levels",
+        default=None,
+        help="the levels' grids for --rtol, e.g. 13x25,25x49,49x97 (default: the package's)",
+    )
     args = parser.parse_args()
+    options = ej.ShapeOptions(init=args.init, differential=args.differential, rtol=args.rtol)
+    if args.levels:
+        options = options.replace(
+            levels=tuple(tuple(int(k) for k in g.split("x")) for g in args.levels.split(","))
+        )
     pairs, cases = args.pairs.split(","), args.cases.split(",")
     for name in pairs:
         if name not in PAIRS:
@@ -151,6 +187,8 @@ def main() -> None:
             "modulo": "rigid",
             "init": args.init,
             "differential": args.differential,
+            "rtol": args.rtol,
+            "levels": [list(g) for g in options.levels] if args.rtol else None,
         }
     )
     seen = set()
@@ -166,9 +204,7 @@ def main() -> None:
             start = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", ej.ConvergenceWarning)
-                res = ej.shape_geodesic(
-                    f1, f2, METRIC, modulo="rigid", init=args.init, differential=args.differential
-                )
+                res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
                 jax.block_until_ready(res.distance)
             seconds = time.perf_counter() - start
             distances[case] = float(res.distance)
@@ -188,6 +224,7 @@ def main() -> None:
                     "relative_change": float(res.refinement.relative_change),
                     "seconds": seconds,
                     "compiled": grid not in seen,
+                    **_levels_record(res.levels),
                 }
             )
             seen.add(grid)

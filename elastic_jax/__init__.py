@@ -55,6 +55,7 @@ from ._geometry.so3 import so3_exp as so3_exp
 from ._geometry.so3 import so3_log as so3_log
 from ._geometry.so3 import vee as vee
 from ._options import ShapeOptions as ShapeOptions
+from ._registration.records import Levels as Levels
 from ._registration.records import Refinement as Refinement
 from ._registration.records import ShapeGeodesicResult as ShapeGeodesicResult
 from ._registration.shape import shape_geodesic as shape_geodesic
@@ -82,6 +83,7 @@ __all__ = [
     "GeodesicResult",
     "InputError",
     "KarcherResult",
+    "Levels",
     "LogResult",
     "MetricFit",
     "RESULTS",

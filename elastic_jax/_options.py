@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from ._checks import check_bool, check_choice, check_int, check_positive
+from ._checks import check_bool, check_choice, check_grid_shape, check_int, check_positive
 from ._errors import InputError
 
 __all__ = [
@@ -79,14 +79,14 @@ class ShapeOptions:
             straight-line energy, the best ``init_candidates`` refined over rotations and,
             as that many more starts, over the Moebius group; ``"icosahedral"``: the
             same over rotations only (the paper's Remark 4); ``"none"``: the identity
-            alone. Every start then gets registration rounds on the L2 mismatch; the pair
-            as given (the identity gamma and, modulo rigid, also its Procrustes-best
-            rotation) is ranked beside them as one more candidate, unmatched; the
+            alone. Every start then gets registration rounds on the L2 mismatch; the
             candidate whose straight line then has the lowest energy gets rounds on that
             energy and goes on to the rounds with the whole path. The result is never
-            above the parametrized geodesic: it is that geodesic, with
-            ``RESULTS.not_registered``, when the registered one ended above it by more
-            than outer_tol.
+            above the parametrized geodesic: when the registered one ends above it by
+            more than outer_tol, the pair as given (the identity gamma and, modulo
+            rigid, also its Procrustes-best rotation) gets rounds of its own (concrete
+            inputs), and the lower result is kept; the parametrized geodesic itself,
+            with ``RESULTS.not_registered``, when neither registration is lower.
         init_candidates: how many of the ranked searches become starts (with
             "moebius", the best that lie apart: mean distance of their maps above 0.1;
             with "energy", twice as many starts: each refined over rotations and over
@@ -112,6 +112,21 @@ class ShapeOptions:
             with abs(a) = 0.5 at 50 x 99 is 47-58 % of an animal-to-animal distance.
             ``energy`` is then not ``path_energy(path)``, which differences path[0].
 
+    Grid fields:
+        grid: the working grid ``(m, n)`` the path is discretized on (odd n, m, n >= 5),
+            whatever grids the inputs come on: each input is read through its
+            interpolant (:ref:`math §10 <math-10>`). None (default): the inputs' grid,
+            or the finer of two (more points) when they differ.
+        rtol: a resolved distance (:ref:`math §10 <math-10>`): the path is solved on
+            each working grid of ``levels`` in turn, each level started from the
+            registration of the one below (gamma read at its points, the rotation),
+            until two successive levels' distances agree within rtol (relative); the
+            result's ``levels`` records each level's distance and time and the
+            estimate. None (default): one working grid. Concrete inputs only (not under
+            jit or vmap); not with ``grid``.
+        levels: the working grids for ``rtol``, coarse to fine (default 13 x 25,
+            25 x 49, 49 x 97, 97 x 193).
+
     Check fields:
         refinement: re-evaluate the result with every time step halved and on the
             (2m - 1) x (2n - 1) grid (:class:`Refinement`).
@@ -135,6 +150,9 @@ class ShapeOptions:
     differential: str = "grid"
     refinement: bool = True
     saddle_checks: int = 1
+    grid: tuple[int, int] | None = None
+    rtol: float | None = None
+    levels: tuple[tuple[int, int], ...] = ((13, 25), (25, 49), (49, 97), (97, 193))
 
     def __post_init__(self):
         ints = {
@@ -167,6 +185,26 @@ class ShapeOptions:
             object.__setattr__(self, "tol", check_positive("tol", self.tol))
         object.__setattr__(self, "outer_tol", check_positive("outer_tol", self.outer_tol))
         object.__setattr__(self, "refinement", check_bool("refinement", self.refinement))
+        if self.grid is not None:
+            object.__setattr__(self, "grid", _checked_grid("grid", self.grid))
+        try:
+            levels = tuple(_checked_grid("levels", grid) for grid in self.levels)
+        except TypeError:
+            raise InputError(
+                f"levels must be a sequence of grids (m, n); got {self.levels!r}"
+            ) from None
+        if not levels or any(
+            a[0] * a[1] >= b[0] * b[1] for a, b in zip(levels, levels[1:], strict=False)
+        ):
+            raise InputError(f"levels must be grids from coarse to fine; got {levels}")
+        object.__setattr__(self, "levels", levels)
+        if self.rtol is not None:
+            object.__setattr__(self, "rtol", check_positive("rtol", self.rtol))
+            if self.grid is not None:
+                raise InputError(
+                    "grid forces one working grid and rtol asks for levels of them: "
+                    "give one of the two"
+                )
 
     def replace(self, **changes) -> ShapeOptions:
         """A copy with some fields changed (validated again)."""
@@ -184,6 +222,16 @@ class ShapeOptions:
         registration)."""
         names = ("degree", "n_times", "solver", "max_steps", "tol", "scheme", "saddle_checks")
         return {name: getattr(self, name) for name in names}
+
+
+def _checked_grid(name: str, grid) -> tuple[int, int]:
+    """``grid`` as a pair (m, n) of Python ints that make a valid grid."""
+    try:
+        m, n = grid
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must hold grids (m, n); got {grid!r}") from None
+    m, n = check_int(f"{name}'s m", m, 5), check_int(f"{name}'s n", n, 5)
+    return check_grid_shape((3, m, n), name)
 
 
 class FromOptions:

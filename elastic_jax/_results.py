@@ -90,6 +90,11 @@ class RESULTS(optx.RESULTS, metaclass=_NamedEnumeration):  # pyright: ignore
         "distance. The rounds ended in a worse basin than the identity's; more "
         "init_candidates, init='energy' or a start of your own may find a lower one."
     )
+    not_resolved = (
+        "The working grid's levels ran out before two successive levels' distances agreed "
+        "within rtol: the distance is the finest level's, and levels.estimate states how "
+        "far it moved from the level before. Give finer levels, or a larger rtol."
+    )
     saddle_point = (
         "The solver met its tolerance at a saddle point of the energy (a negative Hessian "
         "eigenvalue), not a minimum: raise saddle_checks to escape along it."

@@ -182,7 +182,7 @@ def test_docstrings_cite_the_site_not_a_missing_file():
     sources = "".join(p.read_text() for p in package.rglob("*.py"))
     assert "MATH.md" not in sources
     math = (DOCS / "math.md").read_text()
-    for n in range(1, 10):
+    for n in range(1, 11):
         assert f"(math-{n})=" in math
     assert sources.count("<math-") >= 20  # the public docstrings' references
 

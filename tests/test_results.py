@@ -360,6 +360,16 @@ def _records():
             ["nearest_neighbour=0.666667", "second_tier=0.933333"],
         ),
     }
+    records["Levels"] = (
+        ej.Levels(
+            jnp.asarray([[13, 25], [25, 49], [49, 97]], jnp.int32),
+            jnp.asarray([0.8, 0.9, 0.92]),
+            jnp.asarray([10.0, 20.0, 60.0]),
+            _scalar(0.0217),
+            _scalar(0.03),
+        ),
+        ["grids=i32[3,2]", "estimate=0.0217", "rtol=0.03"],
+    )
     for name, record in _mesh_records().items():
         records[name] = (record, ["f64[642,3]" if name != "MeshFrame" else "scale=1.25"])
     return records
@@ -381,6 +391,7 @@ RECORDS = [
     "GeodesicResult", "ShapeGeodesicResult", "Refinement", "ShootingResult", "TransportResult",
     "LogResult", "SrnfInversion", "SrnfGeodesic", "KarcherResult", "DistanceMatrixResult",
     "TangentPCA", "MetricFit", "RetrievalScores", "MeshFrame", "SphericalParametrization",
+    "Levels",
 ]  # fmt: skip
 
 

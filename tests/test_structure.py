@@ -186,7 +186,7 @@ def _cached_line() -> int:
 # of moving code (issue 31: the tree may change, these names may not).
 PUBLIC = {
     "elastic_jax": """ConvergenceWarning DistanceMatrixResult GeodesicResult InputError
-        KarcherResult LogResult MetricFit RESULTS Refinement ShapeGeodesicResult ShapeOptions
+        KarcherResult Levels LogResult MetricFit RESULTS Refinement ShapeGeodesicResult ShapeOptions
         RetrievalScores ShootingResult SphericalHarmonics SplitMetric SrnfGeodesic
         SrnfInversion TangentPCA TransportResult base_inner center clear_caches
         diffeomorphism diffeomorphism_bound differential distance_matrix

@@ -47,9 +47,10 @@ def units_of(*surfaces: Float[ArrayLike, "3 m n"]) -> Units:
     Traceable and vmappable; jitted, so that a first call compiles one small program
     rather than one per operation.
     """
-    stacked = jnp.stack(surfaces).reshape(len(surfaces), 3, -1)
-    lower = jnp.min(stacked, axis=(0, 2))
-    upper = jnp.max(stacked, axis=(0, 2))
+    # Each surface on its own grid (a shape solve's inputs may come on different grids).
+    flat = [jnp.asarray(f).reshape(3, -1) for f in surfaces]
+    lower = jnp.min(jnp.stack([jnp.min(f, axis=1) for f in flat]), axis=0)
+    upper = jnp.max(jnp.stack([jnp.max(f, axis=1) for f in flat]), axis=0)
     extent = jnp.max(upper - lower)
     # A single point (refused on concrete input) keeps unit scale instead of 0; the log
     # never sees 0 (double where).

@@ -190,13 +190,22 @@ def safe_update(prob, cfg, gamma, y):
 
 
 class Problem(NamedTuple):
-    """The traced data of one solve: metric, surfaces (centered when rigid), bases."""
+    """The traced data of one solve: metric, surfaces (centered when rigid), bases.
+
+    ``f1``, ``f2`` are the surfaces on the working grid (the bases' grid, whose points
+    are ``e1``); ``source1``, ``source2`` are the inputs on their own grids, whose
+    interpolants f1 o gamma and the chain rule's differentials read (math §10: an input
+    stands for its interpolant, the working grid discretizes the path). On one grid they
+    are the same arrays.
+    """
 
     metric: SplitMetric
     f1: Array
     f2: Array
     e1: Array
     bases: _Bases
+    source1: Array
+    source2: Array
 
 
 class State(NamedTuple):
@@ -209,7 +218,7 @@ class State(NamedTuple):
 
 
 def registered_f1(prob, cfg, gamma):
-    return reparametrize_unchecked(prob.f1, gamma, method=cfg.interpolation)
+    return reparametrize_unchecked(prob.source1, gamma, method=cfg.interpolation)
 
 
 def stepped_gamma(prob, cfg, gamma, x):
@@ -258,7 +267,7 @@ def registered_frame(prob, cfg, gamma):
     """The differential of f1 o gamma (interior points)."""
     if cfg.differential == "grid":
         return interior_frame(registered_f1(prob, cfg, gamma))
-    return _chain_frame(prob.f1, gamma, cfg.interpolation)
+    return _chain_frame(prob.source1, gamma, cfg.interpolation)
 
 
 def rotated_end_frame(prob, cfg, rotation):
@@ -267,7 +276,7 @@ def rotated_end_frame(prob, cfg, rotation):
     if cfg.differential == "grid":
         frame = interior_frame(prob.f2)
     else:
-        frame = _chain_frame(prob.f2, prob.e1, cfg.interpolation)
+        frame = _chain_frame(prob.source2, prob.e1, cfg.interpolation)
     return tuple(rotate_surface(rotation, a) for a in frame)
 
 
@@ -419,11 +428,30 @@ def zero_coefficients(prob, cfg):
     return jnp.zeros((cfg.n_times - 2, prob.bases.dframe.shape[0] * 3), prob.f1.dtype)
 
 
-def make_problem(metric, f1, f2, bases, rigid) -> Problem:
-    m, n = f1.shape[-2:]
+def on_grid(f, points, interpolation):
+    """f read at a grid's ``points (3, m, n)`` (its interpolant), with the grid's layout
+    made exact: one value per pole row, the seam column equal to the first (math §1);
+    ``f`` itself when it is on that grid already."""
+    if f.shape[-2:] == points.shape[-2:]:
+        return f
+    g = reparametrize_unchecked(f, points, method=interpolation)
+    g = g.at[:, 0, :].set(g[:, 0, :1]).at[:, -1, :].set(g[:, -1, :1])
+    return g.at[:, :, -1].set(g[:, :, 0])
+
+
+def working_grid(bases) -> tuple[int, int]:
+    """The working grid (m, n) of a solve: the grid of its bases."""
+    return tuple(bases.fields.shape[-2:])
+
+
+def make_problem(metric, f1, f2, bases, rigid, interpolation="bicubic") -> Problem:
+    """The problem on the bases' working grid; f1, f2 on their own grids (math §10)."""
+    m, n = working_grid(bases)
     if rigid:
         f1, f2 = center_unchecked(f1), center_unchecked(f2)
-    return Problem(metric, f1, f2, sphere_points(m, n, f1.dtype), bases)
+    e1 = sphere_points(m, n, f1.dtype)
+    w1, w2 = on_grid(f1, e1, interpolation), on_grid(f2, e1, interpolation)
+    return Problem(metric, w1, w2, e1, bases, f1, f2)
 
 
 def make_bases(m: int, n: int, cfg: ShapeOptions, dtype) -> _Bases:

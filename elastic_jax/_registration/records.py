@@ -37,6 +37,29 @@ class Refinement(NamedTuple):
     __repr__ = record_repr
 
 
+class Levels(NamedTuple):
+    """The working grids a resolved distance was solved on, coarse to fine
+    (:ref:`math §10 <math-10>`).
+
+    Attributes:
+        grids: ``(L, 2)`` each level's working grid (m, n).
+        distances: ``(L,)`` each level's distance.
+        seconds: ``(L,)`` each level's wall-clock time (its first call compiles).
+        estimate: ``()`` the relative change of the distance between the last two
+            levels, abs(d_L - d_{L-1}) / d_L: the stated resolution of the answer (NaN with
+            one level).
+        rtol: ``()`` the tolerance asked for.
+    """
+
+    grids: Int[Array, "L 2"]
+    distances: Float[Array, " L"]
+    seconds: Float[Array, " L"]
+    estimate: Float[Array, ""]
+    rtol: Float[Array, ""]
+
+    __repr__ = record_repr
+
+
 class ShapeGeodesicResult(NamedTuple):
     """A geodesic between shapes; a pytree, batched by ``jax.vmap``.
 
@@ -70,6 +93,8 @@ class ShapeGeodesicResult(NamedTuple):
             eigenvalue of its scaled objective (:class:`GeodesicResult`): positive at a
             minimum of the path for this registration.
         refinement: :class:`Refinement` (NaN when the options turn it off).
+        levels: :class:`Levels` when the options' ``rtol`` asked for a resolved distance
+            (the working grid refined until two levels agree), else None.
     """
 
     path: Float[Array, "N 3 m n"]
@@ -88,6 +113,7 @@ class ShapeGeodesicResult(NamedTuple):
     grad_norm: Float[Array, ""]
     min_curvature: Float[Array, ""]
     refinement: Refinement
+    levels: Levels | None = None
 
     __repr__ = record_repr
 

@@ -73,7 +73,7 @@ class Rounds(NamedTuple):
 
 def rounds_phase(metric, f1, f2, bases, coarse, cfg, rigid) -> Rounds:
     """Phase 3: the registration rounds with the whole path."""
-    prob = make_problem(metric, f1, f2, bases, rigid)
+    prob = make_problem(metric, f1, f2, bases, rigid, cfg.interpolation)
     straight0 = straight_line_energy(prob, cfg, *identity_frames(prob, cfg))
 
     def small_change(before, after):

@@ -18,6 +18,7 @@ vmap the whole solve is one program, vmappable over f2.
 from __future__ import annotations
 
 import functools
+import time
 import warnings
 
 import jax
@@ -29,7 +30,6 @@ from .._checks import is_concrete
 from .._errors import ConvergenceWarning, InputError
 from .._geodesics.geodesic import (
     GeodesicResult,
-    check_pair,
     constant,
     default_tol,
 )
@@ -39,13 +39,14 @@ from .._geometry.reparam import (
     jacobian_determinant_unchecked,
 )
 from .._geometry.units import in_units
+from .._geometry.validation import as_surface
 from .._options import ShapeOptions, check_choice
 from .._results import RESULTS
 from .._runtime.cache import exported_call, solver_jit
-from .coarse import coarse_phase
+from .coarse import coarse_phase, given_only_starts
 from .final import end_phase, geodesics_phase, shape_finish
 from .problem import State, make_bases
-from .records import MODULI, Refinement, ShapeGeodesicResult
+from .records import MODULI, Levels, Refinement, ShapeGeodesicResult
 from .rounds import Rounds, rounds_phase
 from .starts import given_start, inverse_gamma, starts_phase
 
@@ -119,6 +120,28 @@ def resolve_options(options: ShapeOptions | None, changes: dict) -> ShapeOptions
     return options.replace(**changes) if changes else options
 
 
+def check_shape_pair(f1, f2) -> tuple:
+    """Two single surfaces with one dtype, each on a grid of its own (math §10)."""
+    f1, f2 = as_surface(f1, "f1"), as_surface(f2, "f2")
+    for name, f in (("f1", f1), ("f2", f2)):
+        if f.ndim != 3:
+            raise InputError(
+                f"{name} must be one surface (3, m, n); got {f.shape}. Batch with jax.vmap."
+            )
+    if f1.dtype != f2.dtype:
+        raise InputError(f"f1 and f2 must share one dtype; got {f1.dtype} and {f2.dtype}")
+    return f1, f2
+
+
+def working_grid_of(options: ShapeOptions, f1, f2) -> tuple[int, int]:
+    """The grid a shape solve discretizes its path on: ``options.grid``, else the inputs'
+    grid, else the finer of the two (more points; f1's on a tie)."""
+    if options.grid is not None:
+        return options.grid
+    grids = [tuple(f.shape[-2:]) for f in (f1, f2)]
+    return max(grids, key=lambda grid: grid[0] * grid[1])
+
+
 def check_grid_options(options: ShapeOptions, m: int, n: int) -> None:
     """The grid-dependent limits of ``options`` (degrees) on an m x n grid."""
     check_degree(options.degree, m, n)
@@ -149,10 +172,8 @@ def shape_geodesic(
        L2 mismatch int ‖f1 o gamma - R f2‖^2; the 60 are ranked by that mismatch, and the
        best ``init_candidates`` that lie apart are refined to the tolerance (other
        ``init`` values: :class:`ShapeOptions`). Every start gets registration rounds on
-       the L2 mismatch; the pair as given (the identity gamma and, modulo "rigid", also
-       its Procrustes-best rotation) is ranked beside them as one more candidate,
-       unmatched; the candidate whose straight line then has the lowest energy gets rounds
-       on that energy (coarse to fine in the criterion and in time).
+       the L2 mismatch; the one whose straight line then has the lowest energy gets
+       rounds on that energy (coarse to fine in the criterion and in time).
     3. Registration rounds with the whole path (``method="joint"``: path and Diff step
        together, Algorithm 2; ``"coordinate"``: alternately). Each Diff step
        Proj(Id + sum x_k v_k) of degree vf_degree is composed onto gamma and shrunk (by
@@ -163,6 +184,11 @@ def shape_geodesic(
        Rounds whose last step had to shrink stopped at that edge, not at a minimum:
        ``RESULTS.resolution_limited``, not converged.
     4. The final geodesic, its status, and the refinement check (:class:`Refinement`).
+       The pair as given is always a candidate (:ref:`math §10 <math-10>`): a registered
+       geodesic that ends above the parametrized one by more than outer_tol is replaced
+       by it, with ``RESULTS.not_registered``; on concrete inputs the pair as given (the
+       identity gamma, and modulo "rigid" also its Procrustes-best rotation) then gets
+       steps 3-4 of its own, and the lower of the two solves is the result.
        The result is never above the parametrized geodesic: when the registered
        geodesic ends above the pair as given, the result is the parametrized geodesic
        (identity gamma and rotation), with ``RESULTS.not_registered`` when the gap
@@ -173,7 +199,11 @@ def shape_geodesic(
     over f2.
 
     Args:
-        f1, f2: ``(3, m, n)`` immersions on the same grid.
+        f1, f2: ``(3, m1, n1)`` and ``(3, m2, n2)`` immersions, each on a grid of its
+            own: each stands for its interpolant (:ref:`math §10 <math-10>`), read at the
+            working grid's points (``options.grid``; by default the inputs' grid, or the
+            finer of two).
+            The result's path, gamma and f1_registered are on the working grid.
         metric: split metric coefficients.
         modulo: ``"diff"`` (reparametrizations) or ``"rigid"`` (also rotations; centers both).
         options: a :class:`ShapeOptions` (its defaults when None).
@@ -208,10 +238,12 @@ def shape_geodesic(
     """
     check_choice("modulo", modulo, MODULI)
     cfg = resolve_options(options, changes)
-    f1, f2 = check_pair(f1, f2)
+    f1, f2 = check_shape_pair(f1, f2)
     if symmetric:
         return _symmetric_solve(f1, f2, metric, modulo, cfg, start)
-    m, n = f1.shape[-2:]
+    if cfg.rtol is not None:
+        return _levels_solve(f1, f2, metric, modulo, cfg, start)
+    m, n = working_grid_of(cfg, f1, f2)
     check_grid_options(cfg, m, n)
     dtype = f1.dtype
     if cfg.tol is None:
@@ -231,8 +263,95 @@ def shape_geodesic(
         starts,
     )
     result = shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
+    if is_concrete(result.result) and bool(result.result == RESULTS.not_registered):
+        # The rounds ended above the pair as given: carry the pair as given (and its best
+        # rotation) through the rounds as well, and keep the lower of the two.
+        solved = _solve_in_phases(
+            (constant(metric), jax.lax.stop_gradient(g1), jax.lax.stop_gradient(g2), bases),
+            cfg,
+            rigid,
+            given_only_starts(m, n, dtype),
+        )
+        again = shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
+        if float(again.energy) < float(result.energy):
+            result = again._replace(num_steps=again.num_steps + result.num_steps)
     _warn_unless_converged(result)
     return result
+
+
+def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
+    """shape_geodesic with ``cfg.rtol``: the working grids of ``cfg.levels`` coarse to
+    fine, each level started from the registration of the one below, until two
+    successive distances agree within rtol (math §10).
+
+    The finest level's result, with ``levels`` recording every level; converged when
+    that level converged and the tolerance was met, else ``RESULTS.not_resolved`` when
+    only the tolerance was missed.
+    """
+    if not is_concrete(f1, f2, metric):
+        raise InputError(
+            "rtol refines the working grid until two levels agree: it needs concrete inputs, "
+            "not tracers (call it outside jax.jit and jax.vmap, or give grid=)"
+        )
+    for m, n in cfg.levels:
+        try:
+            check_grid_options(cfg, m, n)
+        except InputError as error:
+            raise InputError(f"levels: the {m} x {n} level: {error}") from None
+    grids, distances, seconds = [], [], []
+    result, estimate = None, np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        for grid in cfg.levels:
+            begin = time.perf_counter()
+            carried = start if result is None else result
+            if carried is not None and not _carries_to(carried, grid, f1.dtype, modulo):
+                # The coarser gamma's interpolant folds between its points (the cats at
+                # 13 x 25 read at 25 x 49, chain rule): this level searches its own start.
+                carried = None if result is not None else carried
+            result = shape_geodesic(
+                f1,
+                f2,
+                metric,
+                modulo=modulo,
+                options=cfg.replace(rtol=None, grid=grid),
+                start=carried,
+            )
+            distances.append(float(jax.block_until_ready(result.distance)))
+            seconds.append(time.perf_counter() - begin)
+            grids.append(grid)
+            if len(distances) >= 2:
+                d, before = distances[-1], distances[-2]
+                estimate = abs(d - before) / max(d, np.finfo(np.float64).tiny)
+                if estimate <= cfg.rtol and bool(result.converged):
+                    break
+    dtype = result.distance.dtype
+    met = bool(estimate <= cfg.rtol)
+    levels = Levels(
+        grids=jnp.asarray(grids, jnp.int32),
+        distances=jnp.asarray(distances, dtype),
+        seconds=jnp.asarray(seconds, dtype),
+        estimate=jnp.asarray(estimate, dtype),
+        rtol=jnp.asarray(cfg.rtol, dtype),
+    )
+    code = result.result
+    if not met and bool(result.converged):
+        code = RESULTS.not_resolved
+    result = result._replace(
+        converged=jnp.asarray(bool(result.converged) and met), result=code, levels=levels
+    )
+    _warn_unless_converged(result, stacklevel=4)
+    return result
+
+
+def _carries_to(start, grid, dtype, modulo) -> bool:
+    """Whether a registration (a result, or gamma and R) read at ``grid``'s points is a
+    diffeomorphism there (given_start's checks)."""
+    try:
+        given_start(start, *grid, dtype, modulo == "rigid")
+    except InputError:
+        return False
+    return True
 
 
 def _symmetric_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
@@ -262,7 +381,7 @@ def _symmetric_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
     return best
 
 
-def _warn_unless_converged(result: ShapeGeodesicResult) -> None:
+def _warn_unless_converged(result: ShapeGeodesicResult, stacklevel: int = 3) -> None:
     """ConvergenceWarning for a concrete result that did not converge."""
     if is_concrete(result.converged, result.energy_history, result.rounds) and not bool(
         result.converged
@@ -272,10 +391,20 @@ def _warn_unless_converged(result: ShapeGeodesicResult) -> None:
         # change; running out of steps is the one that does not.
         ran_out = bool(result.result == RESULTS.nonlinear_max_steps_reached)
         advice = "; raise outer_steps or max_steps" if ran_out else ""
+        if result.levels is not None:
+            steps = ", ".join(
+                f"{m} x {n}: {d:.6g}"
+                for (m, n), d in zip(
+                    np.asarray(result.levels.grids).tolist(),
+                    np.asarray(result.levels.distances).tolist(),
+                    strict=True,
+                )
+            )
+            advice += f"; levels {steps} (estimate {float(result.levels.estimate):.3g})"
         warnings.warn(
             f"shape_geodesic: not converged after {int(result.rounds)} registration rounds "
             f"({result.message}; energies {history[np.isfinite(history)].round(6).tolist()})"
             f"{advice}",
             ConvergenceWarning,
-            stacklevel=3,
+            stacklevel=stacklevel,
         )

@@ -261,7 +261,7 @@ def _initialize(prob, cfg, rigid):
 
 def starts_phase(metric, f1, f2, bases, cfg, rigid) -> tuple[Array, Array, Array]:
     """Phase 1 of a solve: the starts (_initialize)."""
-    return _initialize(make_problem(metric, f1, f2, bases, rigid), cfg, rigid)
+    return _initialize(make_problem(metric, f1, f2, bases, rigid, cfg.interpolation), cfg, rigid)
 
 
 # Newton steps of inverse_gamma: quadratic from the nearest grid image; 12 reach rounding

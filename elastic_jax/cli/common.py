@@ -250,11 +250,12 @@ def json_floats(values) -> list:
 def collection_settings(args, m: int, n: int, options: ShapeOptions) -> dict:
     return {
         "metric": list(args.metric),
-        "grid": [m, n],
         "modulo": args.modulo,
         "strategy": args.strategy,
         "batch_size": args.batch_size,
         **options.as_dict(),
+        # The inputs' grid, which is the working grid here (ShapeOptions.grid is None).
+        "grid": [m, n],
         "dtype": args.dtype,
     }
 

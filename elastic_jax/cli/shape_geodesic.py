@@ -42,9 +42,9 @@ def run_shape_geodesic(args, progress: Progress) -> dict:
     )
     settings = {
         "metric": list(args.metric),
-        "grid": [m, n],
         "modulo": args.modulo,
         **options.as_dict(),
+        "grid": [m, n],  # the inputs' grid, the working grid (ShapeOptions.grid is None)
         "dtype": args.dtype,
     }
     files = write_path(args.out, np.asarray(res.path), settings, progress)

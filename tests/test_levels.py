@@ -1,0 +1,95 @@
+"""Inputs on grids of their own and resolved distances by levels of working grids
+(docs/math.md §10)."""
+
+import warnings
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import elastic_jax as ej
+from elastic_jax import shapes
+from elastic_jax._registration.shape import working_grid_of
+
+from .conftest import assert_area_bound
+
+METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+OPTIONS = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+
+
+def test_an_input_on_a_finer_grid_is_read_through_its_interpolant():
+    """f2 given at 25 x 49 and solved on a 13 x 25 working grid: its interpolant is read
+    at the working grid's points, which are points of the finer grid, so the pair is the
+    one given at 13 x 25 (parametrized distance to rounding) and the registration ends at
+    the same distance."""
+    rotation = shapes.random_rotation(1)
+    f1 = shapes.sample(shapes.bumpy, 13, 25)
+    coarse = shapes.sample(shapes.bumpy, 13, 25, rotation=rotation)
+    fine = shapes.sample(shapes.bumpy, 25, 49, rotation=rotation)
+    same = ej.shape_geodesic(f1, coarse, METRIC, modulo="rigid", options=OPTIONS)
+    mixed = ej.shape_geodesic(f1, fine, METRIC, modulo="rigid", options=OPTIONS, grid=(13, 25))
+    assert mixed.path.shape == same.path.shape == (5, 3, 13, 25)
+    np.testing.assert_allclose(mixed.parametrized_distance, same.parametrized_distance, rtol=1e-12)
+    np.testing.assert_allclose(mixed.distance, same.distance, rtol=1e-3)
+    assert float(mixed.distance) < 0.05 * float(mixed.parametrized_distance)
+
+
+def test_the_default_working_grid_is_the_finer_input():
+    f, g = jnp.zeros((3, 13, 25)), jnp.zeros((3, 25, 49))
+    assert working_grid_of(OPTIONS, f, g) == working_grid_of(OPTIONS, g, f) == (25, 49)
+    assert working_grid_of(OPTIONS.replace(grid=(9, 17)), f, g) == (9, 17)
+    assert working_grid_of(OPTIONS, f, f) == (13, 25)
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"grid": (13, 24)}, "even number of columns"),
+        ({"grid": 13}, "grid must hold grids"),
+        ({"levels": ((25, 49), (13, 25))}, "from coarse to fine"),
+        ({"levels": ()}, "from coarse to fine"),
+        ({"rtol": 0.03, "grid": (13, 25)}, "give one of the two"),
+        ({"rtol": -1.0}, "rtol must be"),
+    ],
+)
+def test_grid_options_are_checked(changes, message):
+    with pytest.raises(ej.InputError, match=message):
+        OPTIONS.replace(**changes)
+
+
+def test_levels_resolve_the_concentric_spheres():
+    """Spheres of radii 1 and 2 (the second rotated, on a finer grid than the first):
+    the levels' distances approach the closed form sqrt(8 pi) (metric a = b = 1) and
+    stop where two agree within rtol; the estimate is their relative change."""
+    f1 = shapes.sample(shapes.sphere, 13, 25, radius=1.0)
+    f2 = shapes.sample(shapes.sphere, 25, 49, radius=2.0, rotation=shapes.random_rotation(3))
+    options = OPTIONS.replace(rtol=0.03, levels=((9, 17), (13, 25), (25, 49)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ej.ConvergenceWarning)
+        res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
+    levels = res.levels
+    d = np.asarray(levels.distances)
+    assert np.asarray(levels.grids).tolist() == [[9, 17], [13, 25]]  # met at the second
+    np.testing.assert_allclose(levels.estimate, abs(d[1] - d[0]) / d[1], rtol=1e-12)
+    assert float(levels.estimate) <= 0.03 and bool(res.converged)
+    assert res.result == ej.RESULTS.successful and res.path.shape[-2:] == (13, 25)
+    assert float(res.distance) == d[-1]
+    closed = np.sqrt(8 * np.pi)
+    assert abs(d[-1] - closed) < 0.03 * closed and d[0] < d[1] < closed  # from below
+    # Within the tolerance asked for: the 13 x 25 level is 1.5 % below the area bound.
+    assert_area_bound(res.distance, f1, f2, METRIC, slack=0.03)
+    assert float(res.distance) <= float(res.parametrized_distance)
+    assert "levels=Levels(" in repr(res) and len(repr(res)) <= 2000
+
+
+def test_levels_that_run_out_say_so():
+    """rtol tighter than the levels reach: the finest level's distance, not converged,
+    RESULTS.not_resolved, and a warning that lists the levels."""
+    f1 = shapes.sample(shapes.sphere, 13, 25, radius=1.0)
+    f2 = shapes.sample(shapes.sphere, 13, 25, radius=2.0)
+    options = OPTIONS.replace(rtol=1e-4, levels=((9, 17), (13, 25)))
+    with pytest.warns(ej.ConvergenceWarning, match=r"levels 9 x 17: [\d.]+, 13 x 25"):
+        res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
+    assert res.result == ej.RESULTS.not_resolved and not bool(res.converged)
+    assert float(res.levels.estimate) > 1e-4
+    assert "levels ran out" in res.message
