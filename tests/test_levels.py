@@ -93,3 +93,13 @@ def test_levels_that_run_out_say_so():
     assert res.result == ej.RESULTS.not_resolved and not bool(res.converged)
     assert float(res.levels.estimate) > 1e-4
     assert "levels ran out" in res.message
+
+
+def test_levels_check_a_start_before_solving():
+    f = shapes.sample(shapes.sphere, 13, 25)
+    options = OPTIONS.replace(rtol=0.03, levels=((9, 17), (13, 25)))
+    with pytest.raises(ej.InputError, match="start must be a ShapeGeodesicResult or a pair"):
+        ej.shape_geodesic(f, f, METRIC, options=options, start=3.0)
+    folded = -ej.sphere_points(13, 25)  # a reflection: J < 0 everywhere
+    with pytest.raises(ej.InputError, match="not a diffeomorphism on the 13 x 25 grid"):
+        ej.shape_geodesic(f, f, METRIC, options=options, start=(folded, jnp.eye(3)))

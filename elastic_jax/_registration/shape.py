@@ -293,6 +293,15 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
             "rtol refines the working grid until two levels agree: it needs concrete inputs, "
             "not tracers (call it outside jax.jit and jax.vmap, or give grid=)"
         )
+    if start is not None:  # a start must be a registration on its own grid
+        try:
+            gamma = start.gamma if isinstance(start, ShapeGeodesicResult) else start[0]
+            own = tuple(np.shape(gamma)[-2:])
+        except (TypeError, IndexError, KeyError):
+            own = ()
+        if len(own) != 2:
+            own = cfg.levels[0]  # malformed: given_start names the problem
+        given_start(start, *own, f1.dtype, modulo == "rigid")
     for m, n in cfg.levels:
         try:
             check_grid_options(cfg, m, n)
@@ -307,8 +316,9 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
             carried = start if result is None else result
             if carried is not None and not _carries_to(carried, grid, f1.dtype, modulo):
                 # The coarser gamma's interpolant folds between its points (the cats at
-                # 13 x 25 read at 25 x 49, chain rule): this level searches its own start.
-                carried = None if result is not None else carried
+                # 13 x 25 read at 25 x 49, chain rule), or a fine start read on a coarse
+                # level does: this level searches its own start.
+                carried = None
             result = shape_geodesic(
                 f1,
                 f2,
