@@ -103,3 +103,15 @@ def test_levels_check_a_start_before_solving():
     folded = -ej.sphere_points(13, 25)  # a reflection: J < 0 everywhere
     with pytest.raises(ej.InputError, match="not a diffeomorphism on the 13 x 25 grid"):
         ej.shape_geodesic(f, f, METRIC, options=options, start=(folded, jnp.eye(3)))
+
+
+@pytest.mark.parametrize("changes", [{"grid": (9, 17)}, {"rtol": 0.03}])
+def test_collections_refuse_another_working_grid_and_levels(changes):
+    f = jnp.stack([shapes.sample(shapes.sphere, 13, 25, radius=r) for r in (1.0, 2.0, 3.0)])
+    options = OPTIONS.replace(**changes)
+    with pytest.raises(ej.InputError, match="grid=None|rtol=None"):
+        ej.distance_matrix(f, METRIC, options=options)
+    with pytest.raises(ej.InputError, match="grid=None|rtol=None"):
+        ej.karcher_mean(f, METRIC, options=options)
+    with pytest.raises(ej.InputError, match="grid=None|rtol=None"):
+        ej.fit_metric(f, [0, 0, 1], options=options)

@@ -282,6 +282,19 @@ def check_collection(shapes, options: ShapeOptions | None, name="shapes"):
         raise InputError(f"{name} must have shape (K, 3, m, n) with K >= 2; got {shapes.shape}")
     options = resolve_options(options, {})
     check_grid_options(options, *shapes.shape[-2:])
+    grid = tuple(shapes.shape[-2:])
+    if options.grid not in (None, grid):
+        # A collection's results (paths, velocities at the mean, registrations) live on
+        # its grid: a working grid of another size has no place to put them.
+        raise InputError(
+            f"options.grid={options.grid} differs from the collection's grid {grid}: resample "
+            "the shapes to the working grid (elastic_jax.resample), or leave grid=None"
+        )
+    if options.rtol is not None:
+        raise InputError(
+            "options.rtol (levels of working grids) is for single shape_geodesic calls; "
+            "a collection is solved on its own grid: leave rtol=None"
+        )
     if options.tol is None:
         # Resolved here, as the solves would: one static key for every call, and a
         # fingerprint that names the tolerance used.
