@@ -435,8 +435,9 @@ def upsample_coefficients(
     return lifted.reshape(new_n_times - 2, 3 * k1)
 
 
-def check_pair(f1, f2) -> tuple[Array, Array]:
-    """Two single surfaces on one grid with one dtype (geodesic and shape_geodesic)."""
+def check_pair(f1, f2, same_grid: bool = True) -> tuple[Array, Array]:
+    """Two single surfaces with one dtype, on one grid unless ``same_grid`` is False
+    (shape_geodesic reads each through its interpolant, math §10)."""
     f1 = as_surface(f1, "f1")
     f2 = as_surface(f2, "f2")
     for name, f in (("f1", f1), ("f2", f2)):
@@ -444,6 +445,10 @@ def check_pair(f1, f2) -> tuple[Array, Array]:
             raise InputError(
                 f"{name} must be one surface (3, m, n); got {f.shape}. Batch with jax.vmap."
             )
+    if not same_grid:
+        if f1.dtype != f2.dtype:
+            raise InputError(f"f1 and f2 must share one dtype; got {f1.dtype} and {f2.dtype}")
+        return f1, f2
     if f1.shape != f2.shape or f1.dtype != f2.dtype:
         raise InputError(
             "f1 and f2 must share grid and dtype (the same grid, the same dtype); got "

@@ -100,13 +100,20 @@ def _coarse_registration(prob, cfg, rigid, starts) -> State:
     """
     dtype = prob.f1.dtype
     gammas, rotations, steps = starts
-    eye = jnp.eye(3, dtype=dtype)
-    given = jnp.stack([eye, kabsch(prob.f2, prob.f1) if rigid else eye])
-    given_energies = jax.vmap(
-        lambda r: straight_line_energy(
-            prob, cfg, registered_frame(prob, cfg, prob.e1), rotated_end_frame(prob, cfg, r)
-        )
-    )(given)
+    n_starts = gammas.shape[0]
+    # The searched starts' slots are filled as they are matched. The pair as given is a
+    # candidate only when no start is searched (given_only_starts): ranked beside the
+    # matched starts it won on the elongated ellipsoids' pairs and then ended in a worse,
+    # less stationary minimum (0.3738 against 0.3722, joint gradient 8e-3).
+    energies = jnp.full((n_starts,), jnp.inf, dtype)
+    if n_starts == 0:
+        eye = jnp.eye(3, dtype=dtype)
+        rotations = jnp.stack([eye, kabsch(prob.f2, prob.f1) if rigid else eye])
+        gammas = jnp.broadcast_to(prob.e1, (2, *prob.e1.shape))
+        start_frame = registered_frame(prob, cfg, prob.e1)
+        energies = jax.vmap(
+            lambda r: straight_line_energy(prob, cfg, start_frame, rotated_end_frame(prob, cfg, r))
+        )(rotations)
     zero = State(
         prob.e1,
         jnp.eye(3, dtype=dtype),
@@ -118,23 +125,9 @@ def _coarse_registration(prob, cfg, rigid, starts) -> State:
 
     # Every start's L2 rounds and then the best start's energy rounds are jobs of one
     # scan, and so one compiled copy of the rounds (weight and step limit traced).
-    n_starts, n_given = gammas.shape[0], given.shape[0]
     starts = jax.tree_util.tree_map(
-        lambda x: jnp.broadcast_to(x, (n_starts + n_given, *x.shape)), zero
-    )._replace(
-        gamma=jnp.concatenate([gammas, jnp.broadcast_to(prob.e1, (n_given, *prob.e1.shape))]),
-        rotation=jnp.concatenate([rotations, given]),
-        # The matched starts' slots are filled as they are matched. The pair as given is
-        # a candidate only when no start is searched (given_only_starts): ranked beside
-        # the matched starts it won on the elongated ellipsoids' pairs and then ended in
-        # a worse, less stationary minimum (0.3738 against 0.3722, joint gradient 8e-3).
-        energy=jnp.concatenate(
-            [
-                jnp.full((n_starts,), jnp.inf, dtype),
-                given_energies if n_starts == 0 else jnp.full_like(given_energies, jnp.inf),
-            ]
-        ),
-    )
+        lambda x: jnp.broadcast_to(x, (gammas.shape[0], *x.shape)), zero
+    )._replace(gamma=gammas, rotation=rotations, energy=energies)
 
     def job(ends, j):
         matching = j < n_starts

@@ -30,6 +30,7 @@ from .._checks import is_concrete
 from .._errors import ConvergenceWarning, InputError
 from .._geodesics.geodesic import (
     GeodesicResult,
+    check_pair,
     constant,
     default_tol,
 )
@@ -39,7 +40,6 @@ from .._geometry.reparam import (
     jacobian_determinant_unchecked,
 )
 from .._geometry.units import in_units
-from .._geometry.validation import as_surface
 from .._options import ShapeOptions, check_choice
 from .._results import RESULTS
 from .._runtime.cache import exported_call, solver_jit
@@ -118,19 +118,6 @@ def resolve_options(options: ShapeOptions | None, changes: dict) -> ShapeOptions
     elif not isinstance(options, ShapeOptions):
         raise TypeError(f"options must be a ShapeOptions; got {type(options).__name__}")
     return options.replace(**changes) if changes else options
-
-
-def check_shape_pair(f1, f2) -> tuple:
-    """Two single surfaces with one dtype, each on a grid of its own (math §10)."""
-    f1, f2 = as_surface(f1, "f1"), as_surface(f2, "f2")
-    for name, f in (("f1", f1), ("f2", f2)):
-        if f.ndim != 3:
-            raise InputError(
-                f"{name} must be one surface (3, m, n); got {f.shape}. Batch with jax.vmap."
-            )
-    if f1.dtype != f2.dtype:
-        raise InputError(f"f1 and f2 must share one dtype; got {f1.dtype} and {f2.dtype}")
-    return f1, f2
 
 
 def working_grid_of(options: ShapeOptions, f1, f2) -> tuple[int, int]:
@@ -238,7 +225,7 @@ def shape_geodesic(
     """
     check_choice("modulo", modulo, MODULI)
     cfg = resolve_options(options, changes)
-    f1, f2 = check_shape_pair(f1, f2)
+    f1, f2 = check_pair(f1, f2, same_grid=False)
     if symmetric:
         return _symmetric_solve(f1, f2, metric, modulo, cfg, start)
     if cfg.rtol is not None:
@@ -253,26 +240,20 @@ def shape_geodesic(
     units, (g1, g2) = in_units(f1, f2)
     bases = make_bases(m, n, cfg, dtype)
     starts = None if start is None else given_start(start, m, n, dtype, rigid)
+
     # As in geodesic: the solve runs on constants and the energy is evaluated again,
     # differentiably, at the solution (envelope theorem: the derivative of the minimal
     # energy in f1, f2 and the metric, with gamma, R and C held).
-    solved = _solve_in_phases(
-        (constant(metric), jax.lax.stop_gradient(g1), jax.lax.stop_gradient(g2), bases),
-        cfg,
-        rigid,
-        starts,
-    )
-    result = shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
+    def solve(starts):
+        args = (constant(metric), jax.lax.stop_gradient(g1), jax.lax.stop_gradient(g2), bases)
+        solved = _solve_in_phases(args, cfg, rigid, starts)
+        return shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
+
+    result = solve(starts)
     if is_concrete(result.result) and bool(result.result == RESULTS.not_registered):
         # The rounds ended above the pair as given: carry the pair as given (and its best
         # rotation) through the rounds as well, and keep the lower of the two.
-        solved = _solve_in_phases(
-            (constant(metric), jax.lax.stop_gradient(g1), jax.lax.stop_gradient(g2), bases),
-            cfg,
-            rigid,
-            given_only_starts(m, n, dtype),
-        )
-        again = shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
+        again = solve(given_only_starts(m, n, dtype))
         if float(again.energy) < float(result.energy):
             result = again._replace(num_steps=again.num_steps + result.num_steps)
     _warn_unless_converged(result)
@@ -313,12 +294,10 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
         warnings.simplefilter("ignore", ConvergenceWarning)
         for grid in cfg.levels:
             begin = time.perf_counter()
-            carried = start if result is None else result
-            if carried is not None and not _carries_to(carried, grid, f1.dtype, modulo):
-                # The coarser gamma's interpolant folds between its points (the cats at
-                # 13 x 25 read at 25 x 49, chain rule), or a fine start read on a coarse
-                # level does: this level searches its own start.
-                carried = None
+            # The coarser gamma's interpolant can fold between its points (the cats at
+            # 13 x 25 read at 25 x 49, chain rule), and so can a fine start read on a
+            # coarse level: that level searches its own start.
+            carried = _carried(start if result is None else result, grid, f1.dtype, modulo)
             result = shape_geodesic(
                 f1,
                 f2,
@@ -354,14 +333,16 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
     return result
 
 
-def _carries_to(start, grid, dtype, modulo) -> bool:
-    """Whether a registration (a result, or gamma and R) read at ``grid``'s points is a
-    diffeomorphism there (given_start's checks)."""
+def _carried(start, grid, dtype, modulo):
+    """A registration (a result, or gamma and R; or None) read at ``grid``'s points as
+    (gamma, R), or None where it is not a diffeomorphism there (given_start's checks)."""
+    if start is None:
+        return None
     try:
-        given_start(start, *grid, dtype, modulo == "rigid")
+        gammas, rotations, _ = given_start(start, *grid, dtype, modulo == "rigid")
     except InputError:
-        return False
-    return True
+        return None
+    return gammas[0], rotations[0]
 
 
 def _symmetric_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
