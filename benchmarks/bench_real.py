@@ -30,7 +30,8 @@ record carries the levels' grids, distances and times and the estimate.
 
 Run: python benchmarks/bench_real.py [--pairs cats,cat-horse,horse-hand,synthetic,fsaverage]
      [--cases grid25,up49,data,moebius,reversed,self] [--init moebius|energy|icosahedral|none]
-     [--differential grid|chain] [--rtol 0.03] [--levels 13x25,25x49,49x97]
+     [--differential chain|grid] [--interpolation spline|bicubic|bilinear] [--rtol 0.03]
+     [--levels 13x25,25x49,49x97]   (differential and interpolation: the package's defaults)
 """
 
 from __future__ import annotations
@@ -154,7 +155,11 @@ def main() -> None:
     parser.add_argument(
         "--init", default="moebius", choices=("moebius", "energy", "icosahedral", "none")
     )
-    parser.add_argument("--differential", default="grid", choices=("grid", "chain"))
+    defaults = ej.ShapeOptions()
+    parser.add_argument("--differential", default=defaults.differential, choices=("chain", "grid"))
+    parser.add_argument(
+        "--interpolation", default=defaults.interpolation, choices=("spline", "bicubic", "bilinear")
+    )
     parser.add_argument(
         "--rtol",
         type=float,
@@ -167,7 +172,12 @@ def main() -> None:
         help="the levels' grids for --rtol, e.g. 13x25,25x49,49x97 (default: the package's)",
     )
     args = parser.parse_args()
-    options = ej.ShapeOptions(init=args.init, differential=args.differential, rtol=args.rtol)
+    options = ej.ShapeOptions(
+        init=args.init,
+        differential=args.differential,
+        interpolation=args.interpolation,
+        rtol=args.rtol,
+    )
     if args.levels:
         options = options.replace(
             levels=tuple(tuple(int(k) for k in g.split("x")) for g in args.levels.split(","))
@@ -187,6 +197,7 @@ def main() -> None:
             "modulo": "rigid",
             "init": args.init,
             "differential": args.differential,
+            "interpolation": args.interpolation,
             "rtol": args.rtol,
             "levels": [list(g) for g in options.levels] if args.rtol else None,
         }

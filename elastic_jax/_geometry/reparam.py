@@ -18,7 +18,7 @@ from .harmonics import check_degree, vector_fields_np
 from .interp import sample_at
 from .validation import as_surface, check_grid_shape
 
-METHODS = ("bilinear", "bicubic")
+METHODS = ("bilinear", "bicubic", "spline")
 
 
 def _check_coefficients(x: Array, degree: int) -> None:
@@ -232,7 +232,45 @@ def _cubic_weights(t: Array) -> tuple[Array, Array, Array, Array]:
     )
 
 
-def _sample_bicubic(f, phi, theta):
+def _spline_weights(t: Array) -> tuple[Array, Array, Array, Array]:
+    """Cubic B-spline weights of the 4 coefficients around t in [0, 1)."""
+    s = 1.0 - t
+    t2, t3 = t * t, t * t * t
+    return (
+        s * s * s / 6.0,
+        0.5 * t3 - t2 + 2.0 / 3.0,
+        (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0,
+        t3 / 6.0,
+    )
+
+
+def spline_coefficients(f: Array) -> Array:
+    """The cubic B-spline coefficients ``(..., m, n)`` that interpolate ``f (..., m, n)``.
+
+    The grid's values extend across the poles by the half-turn rule to a doubly periodic
+    array of 2(m - 1) x (n - 1) values; the interpolation conditions are then a
+    circulant system in each direction, solved by dividing f's Fourier coefficients by
+    the B-spline's symbol (2 + cos w) / 3 (never below 1/3). The coefficients keep the
+    half-turn symmetry, so rows 0..m-1 hold them all.
+    """
+    m = f.shape[-2]
+    g = f[..., :-1]
+    half = g.shape[-1] // 2
+    mirrored = jnp.roll(jnp.flip(g[..., 1:-1, :], axis=-2), -half, axis=-1)
+    periodic = jnp.concatenate([g, mirrored], axis=-2)  # rows 0 .. 2m - 3
+    p, q = periodic.shape[-2:]
+    symbol_r = (2.0 + np.cos(2.0 * np.pi * np.fft.fftfreq(p))) / 3.0
+    symbol_c = (2.0 + np.cos(2.0 * np.pi * np.fft.rfftfreq(q))) / 3.0
+    spectrum = jnp.fft.rfft2(periodic)
+    inverse = (1.0 / (symbol_r[:, None] * symbol_c[None, :])).reshape(
+        (1,) * (periodic.ndim - 2) + (p, q // 2 + 1)
+    )
+    inverse = jnp.asarray(inverse, dtype=spectrum.dtype)
+    c = jnp.fft.irfft2(spectrum * inverse, s=(p, q))[..., :m, :].astype(f.dtype)
+    return jnp.concatenate([c, c[..., :1]], axis=-1)
+
+
+def _sample_bicubic(f, phi, theta, kernel=_cubic_weights):
     m, n = f.shape[-2:]
     g = f[..., :-1]
     half = g.shape[-1] // 2
@@ -244,8 +282,8 @@ def _sample_bicubic(f, phi, theta):
     row = jnp.clip(jnp.floor(x), 0, m - 2)
     y = jnp.mod(theta * ((n - 1) / (2.0 * np.pi)), n - 1.0)
     col = jnp.floor(y)
-    weights_r = jnp.stack(_cubic_weights(x - row), axis=-1).astype(f.dtype)
-    weights_c = jnp.stack(_cubic_weights(y - col), axis=-1).astype(f.dtype)
+    weights_r = jnp.stack(kernel(x - row), axis=-1).astype(f.dtype)
+    weights_c = jnp.stack(kernel(y - col), axis=-1).astype(f.dtype)
     i0, j0 = row.astype(jnp.int32), col.astype(jnp.int32)
     lead = (1,) * i0.ndim
     offsets = jnp.arange(4, dtype=jnp.int32)
@@ -261,7 +299,25 @@ def _sample_in_angles(f, points, method):
     phi, theta = _angles_of(points)
     if method == "bilinear":
         return sample_at(f, phi, theta)
+    if method == "spline":
+        return _sample_bicubic(spline_coefficients(f), phi, theta, _spline_weights)
+    if method == "coefficients":  # f holds a spline's coefficients (spline_coefficients)
+        return _sample_bicubic(f, phi, theta, _spline_weights)
     return _sample_bicubic(f, phi, theta)
+
+
+def _pole_planes(f, method):
+    """((X, Y) north, (X', Y') south): f's differential at the poles (pole_fourier1 of
+    f_phi on the pole rows), of the interpolant that ``method`` reads."""
+    if method not in ("spline", "coefficients"):
+        return tuple(pole_fourier1(row) for row in pole_phi_derivative(f))
+    # The spline's f_phi on a pole row is the central difference of its coefficients
+    # smoothed along the row by the B-spline's (1, 4, 1) / 6, which scales the first
+    # Fourier mode by (2 + cos dtheta) / 3.
+    n = f.shape[-1]
+    smoothing = (2.0 + np.cos(2.0 * np.pi / (n - 1))) / 3.0
+    rows = pole_phi_derivative(spline_coefficients(f) if method == "spline" else f)
+    return tuple(tuple(smoothing * v for v in pole_fourier1(row)) for row in rows)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
@@ -282,7 +338,7 @@ def _sample_points_jvp(method, primals, tangents):
     f, points = primals
     df, dpoints = tangents
     value, moved = jax.jvp(lambda p: _sample_in_angles(f, p, method), (points,), (dpoints,))
-    (xn, yn), (xs, ys) = (pole_fourier1(row) for row in pole_phi_derivative(f))
+    (xn, yn), (xs, ys) = _pole_planes(f, method)
     # Results are laid out as f's leading axes (batch and coordinate) then the points'.
     k = points.ndim - 1
 
@@ -313,12 +369,16 @@ def reparametrize(
 
     gamma gives, at every point of a (p, q) grid, the point of S^2 where f is read. The
     interpolation is periodic in theta and crosses the poles by the half-turn rule.
-    "bilinear" (the paper's) is second order; "bicubic" (Catmull-Rom) is third order.
+    "bilinear" (the paper's) is second order; "bicubic" (Catmull-Rom, C^1) third order,
+    its derivative second; "spline" (the interpolating cubic B-spline, C^2: f's values
+    filtered once, by FFT, on the doubly periodic extension across the poles) fourth
+    order, its derivative too (the bumpy surface rotated: 3.2e-6 against 4.6e-5 for
+    bicubic at 50 x 99).
 
     Args:
         f: ``(..., 3, m, n)`` surfaces.
         gamma: ``(3, p, q)`` unit vectors, e.g. from :func:`diffeomorphism`.
-        method: ``"bilinear"`` or ``"bicubic"``.
+        method: ``"bilinear"``, ``"bicubic"`` or ``"spline"``.
 
     Returns:
         ``(..., 3, p, q)``.

@@ -30,6 +30,7 @@ from .._geometry.reparam import (
     jacobian_determinant_unchecked,
     reparametrize_unchecked,
     sample_points,
+    spline_coefficients,
 )
 from .._geometry.so3 import icosahedral_np, so3_exp_unchecked
 from .._geometry.srnf import center_unchecked
@@ -196,7 +197,8 @@ class Problem(NamedTuple):
     are ``e1``); ``source1``, ``source2`` are the inputs on their own grids, whose
     interpolants f1 o gamma and the chain rule's differentials read (math §10: an input
     stands for its interpolant, the working grid discretizes the path). On one grid they
-    are the same arrays.
+    are the same arrays (with ``interpolation="spline"`` the sources hold their spline's
+    coefficients: read them with source_method).
     """
 
     metric: SplitMetric
@@ -217,8 +219,14 @@ class State(NamedTuple):
     shrunk: Array  # () bool: the (last) round's step had to shrink to stay resolved
 
 
+def source_method(interpolation: str) -> str:
+    """How a Problem's sources are read: a spline's coefficients are computed once, in
+    make_problem, not in every evaluation of an objective."""
+    return "coefficients" if interpolation == "spline" else interpolation
+
+
 def registered_f1(prob, cfg, gamma):
-    return reparametrize_unchecked(prob.source1, gamma, method=cfg.interpolation)
+    return reparametrize_unchecked(prob.source1, gamma, method=source_method(cfg.interpolation))
 
 
 def stepped_gamma(prob, cfg, gamma, x):
@@ -235,7 +243,7 @@ def _chord_correction_np(m: int, n: int) -> tuple[float, float]:
     return dtheta / np.sin(dtheta), dphi / np.sin(dphi)
 
 
-def _chain_frame(f, gamma, interpolation):
+def _chain_frame(f, gamma, interpolation, read=None):
     """The differential of f o gamma on the interior points by the chain rule (math §2's
     frame): (df at gamma) applied to gamma's frame.
 
@@ -243,31 +251,69 @@ def _chain_frame(f, gamma, interpolation):
     central difference); gamma's frame is its central differences with the chords of a
     rotation made exact. Central differences of f o gamma itself are chords across
     gamma(p +- h), which on a real shape cut corners wherever gamma stretches: they lower
-    the energy, and a registration minimizing it learns to under-sample f.
+    the energy, and a registration minimizing it learns to under-sample f. ``read`` is
+    how f is read (default ``interpolation``; a Problem's sources: source_method).
     """
+    read = interpolation if read is None else read
     m, n = gamma.shape[-2:]
-    g1, g2 = interior_frame(gamma)
-    c1, c2 = _chord_correction_np(m, n)
     points = gamma[:, 1:-1, :-1]
+    if interpolation == "spline":
+        g1, g2 = _spline_frame(gamma)
+    else:
+        g1, g2 = interior_frame(gamma)
+        c1, c2 = _chord_correction_np(m, n)
+        g1, g2 = g1 * c1, g2 * c2
 
     def along(direction):
-        return jax.jvp(lambda p: sample_points(f, p, interpolation), (points,), (direction,))[1]
+        return jax.jvp(lambda p: sample_points(f, p, read), (points,), (direction,))[1]
 
-    return along(g1 * c1), along(g2 * c2)
+    return along(g1), along(g2)
+
+
+@cached
+def _grid_tangents_np(m: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The frame (e_theta / sin phi, e_phi) of the round sphere at the interior points."""
+    phi, theta = np.meshgrid(*(a for a in _angles_interior_np(m, n)), indexing="ij")
+    t1 = np.stack([-np.sin(theta), np.cos(theta), np.zeros_like(theta)])
+    t2 = np.stack([np.cos(phi) * np.cos(theta), np.cos(phi) * np.sin(theta), -np.sin(phi)])
+    return t1, t2
+
+
+def _angles_interior_np(m, n):
+    phi = np.pi * np.arange(1, m - 1) / (m - 1)
+    theta = 2.0 * np.pi * np.arange(n - 1) / (n - 1)
+    return phi, theta
+
+
+def _spline_frame(gamma):
+    """gamma's frame on the interior points from the derivative of its cubic spline,
+    projected on the tangent plane at gamma: fourth order, where central differences
+    are second order (f o phi_a at abs(a) = 0.5: 0.03 % against 1.2 % at 25 x 49)."""
+    m, n = gamma.shape[-2:]
+    e = sphere_points(m, n, gamma.dtype)[:, 1:-1, :-1]
+    at = gamma[:, 1:-1, :-1]
+
+    def along(direction):
+        direction = jnp.asarray(direction, gamma.dtype)
+        v = jax.jvp(lambda p: sample_points(gamma, p, "spline"), (e,), (direction,))[1]
+        return v - at * jnp.sum(v * at, axis=0)[None]
+
+    return tuple(along(t) for t in _grid_tangents_np(m, n))
 
 
 def frame_of(f, gamma, cfg):
     """The differential of f o gamma on gamma's interior points (cfg.differential)."""
+    read = source_method(cfg.interpolation)
     if cfg.differential == "grid":
-        return interior_frame(reparametrize_unchecked(f, gamma, method=cfg.interpolation))
-    return _chain_frame(f, gamma, cfg.interpolation)
+        return interior_frame(reparametrize_unchecked(f, gamma, method=read))
+    return _chain_frame(f, gamma, cfg.interpolation, read)
 
 
 def registered_frame(prob, cfg, gamma):
     """The differential of f1 o gamma (interior points)."""
     if cfg.differential == "grid":
         return interior_frame(registered_f1(prob, cfg, gamma))
-    return _chain_frame(prob.source1, gamma, cfg.interpolation)
+    return _chain_frame(prob.source1, gamma, cfg.interpolation, source_method(cfg.interpolation))
 
 
 def rotated_end_frame(prob, cfg, rotation):
@@ -276,7 +322,9 @@ def rotated_end_frame(prob, cfg, rotation):
     if cfg.differential == "grid":
         frame = interior_frame(prob.f2)
     else:
-        frame = _chain_frame(prob.source2, prob.e1, cfg.interpolation)
+        frame = _chain_frame(
+            prob.source2, prob.e1, cfg.interpolation, source_method(cfg.interpolation)
+        )
     return tuple(rotate_surface(rotation, a) for a in frame)
 
 
@@ -451,6 +499,8 @@ def make_problem(metric, f1, f2, bases, rigid, interpolation="bicubic") -> Probl
         f1, f2 = center_unchecked(f1), center_unchecked(f2)
     e1 = sphere_points(m, n, f1.dtype)
     w1, w2 = on_grid(f1, e1, interpolation), on_grid(f2, e1, interpolation)
+    if interpolation == "spline":
+        f1, f2 = spline_coefficients(f1), spline_coefficients(f2)
     return Problem(metric, w1, w2, e1, bases, f1, f2)
 
 
