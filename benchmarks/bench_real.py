@@ -49,6 +49,7 @@ import numpy as np  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import shapes  # noqa: E402
+from elastic_jax._options import DIFFERENTIALS, INTERPOLATIONS  # noqa: E402
 
 from _common import DATA, emit, environment  # noqa: E402
 
@@ -156,10 +157,8 @@ def main() -> None:
         "--init", default="moebius", choices=("moebius", "energy", "icosahedral", "none")
     )
     defaults = ej.ShapeOptions()
-    parser.add_argument("--differential", default=defaults.differential, choices=("chain", "grid"))
-    parser.add_argument(
-        "--interpolation", default=defaults.interpolation, choices=("spline", "bicubic", "bilinear")
-    )
+    parser.add_argument("--differential", default=defaults.differential, choices=DIFFERENTIALS)
+    parser.add_argument("--interpolation", default=defaults.interpolation, choices=INTERPOLATIONS)
     parser.add_argument(
         "--rtol",
         type=float,

@@ -105,6 +105,18 @@ def sphere_points(m: int, n: int, dtype=None) -> Float[Array, "3 m n"]:
     return jnp.asarray(sphere_points_np(m, n), dtype=dtype)
 
 
+@cached
+def sphere_tangents_np(m: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The unit frame (e_theta, e_phi) of the round sphere at the grid's points, ``(3, m,
+    n)`` each in float64 numpy: e_theta = d e1 / dtheta / sin(phi), e_phi = d e1 / dphi."""
+    phi, theta = angles_np(m, n)
+    sp, cp = np.sin(phi)[:, None], np.cos(phi)[:, None]
+    ct, st = np.cos(theta)[None, :], np.sin(theta)[None, :]
+    e_theta = np.stack([-st * np.ones_like(cp), ct * np.ones_like(cp), np.zeros((m, n))])
+    e_phi = np.stack([cp * ct, cp * st, -sp * np.ones_like(ct)])
+    return e_theta, e_phi
+
+
 def sphere_points_np(m: int, n: int) -> np.ndarray:
     """:func:`sphere_points` in float64 numpy (usable while an outer jit traces)."""
     phi, theta = angles_np(m, n)

@@ -12,7 +12,7 @@ from jaxtyping import Array, Float, Int
 from .._checks import check_int
 from .._errors import InputError
 from .._runtime.cache import cached
-from .grid import angles_np
+from .grid import angles_np, sphere_tangents_np
 
 
 class SphericalHarmonics(NamedTuple):
@@ -142,11 +142,7 @@ def surface_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, "L 3 
 def vector_fields_np(m: int, n: int, degree: int) -> np.ndarray:
     """grad Y / sqrt(l(l+1)) and e1 x grad Y / sqrt(l(l+1)), ``(Lbar, 3, m, n)`` float64."""
     _, y_phi, _, grad_theta, ls, _ = harmonics_np(m, n, degree)
-    phi, theta = angles_np(m, n)
-    cp, sp = np.cos(phi)[:, None], np.sin(phi)[:, None]
-    ct, st = np.cos(theta)[None, :], np.sin(theta)[None, :]
-    e_phi = np.stack([cp * ct, cp * st, -sp * np.ones_like(ct)])
-    e_theta = np.stack([-st * np.ones_like(cp), ct * np.ones_like(cp), np.zeros((m, n))])
+    e_theta, e_phi = sphere_tangents_np(m, n)
     norm = np.sqrt(ls[1:] * (ls[1:] + 1.0))[:, None, None, None]
     a, b = y_phi[1:, None], grad_theta[1:, None]
     grad = (a * e_phi + b * e_theta) / norm

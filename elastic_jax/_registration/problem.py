@@ -23,7 +23,13 @@ from .._geodesics.geodesic import (
 )
 from .._geometry.differential import area_element, interior_frame
 from .._geometry.energy import frame_energy
-from .._geometry.grid import interior_weights, interior_weights_np, sphere_points, sphere_points_np
+from .._geometry.grid import (
+    interior_weights,
+    interior_weights_np,
+    sphere_points,
+    sphere_points_np,
+    sphere_tangents_np,
+)
 from .._geometry.harmonics import harmonics_np, vector_fields_np
 from .._geometry.metric import SplitMetric
 from .._geometry.reparam import (
@@ -270,21 +276,6 @@ def _chain_frame(f, gamma, interpolation, read=None):
     return along(g1), along(g2)
 
 
-@cached
-def _grid_tangents_np(m: int, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """The frame (e_theta / sin phi, e_phi) of the round sphere at the interior points."""
-    phi, theta = np.meshgrid(*(a for a in _angles_interior_np(m, n)), indexing="ij")
-    t1 = np.stack([-np.sin(theta), np.cos(theta), np.zeros_like(theta)])
-    t2 = np.stack([np.cos(phi) * np.cos(theta), np.cos(phi) * np.sin(theta), -np.sin(phi)])
-    return t1, t2
-
-
-def _angles_interior_np(m, n):
-    phi = np.pi * np.arange(1, m - 1) / (m - 1)
-    theta = 2.0 * np.pi * np.arange(n - 1) / (n - 1)
-    return phi, theta
-
-
 def _spline_frame(gamma):
     """gamma's frame on the interior points from the derivative of its cubic spline,
     projected on the tangent plane at gamma: fourth order, where central differences
@@ -292,17 +283,19 @@ def _spline_frame(gamma):
     m, n = gamma.shape[-2:]
     e = sphere_points(m, n, gamma.dtype)[:, 1:-1, :-1]
     at = gamma[:, 1:-1, :-1]
+    coefficients = spline_coefficients(gamma)  # once for both directions
 
     def along(direction):
-        direction = jnp.asarray(direction, gamma.dtype)
-        v = jax.jvp(lambda p: sample_points(gamma, p, "spline"), (e,), (direction,))[1]
-        return v - at * jnp.sum(v * at, axis=0)[None]
+        direction = jnp.asarray(direction[:, 1:-1, :-1], gamma.dtype)
+        v = jax.jvp(lambda p: sample_points(coefficients, p, "coefficients"), (e,), (direction,))
+        return v[1] - at * jnp.sum(v[1] * at, axis=0)[None]
 
-    return tuple(along(t) for t in _grid_tangents_np(m, n))
+    return tuple(along(t) for t in sphere_tangents_np(m, n))
 
 
 def frame_of(f, gamma, cfg):
-    """The differential of f o gamma on gamma's interior points (cfg.differential)."""
+    """The differential of f o gamma on gamma's interior points (cfg.differential), for a
+    Problem's source f (read by source_method)."""
     read = source_method(cfg.interpolation)
     if cfg.differential == "grid":
         return interior_frame(reparametrize_unchecked(f, gamma, method=read))
@@ -311,9 +304,7 @@ def frame_of(f, gamma, cfg):
 
 def registered_frame(prob, cfg, gamma):
     """The differential of f1 o gamma (interior points)."""
-    if cfg.differential == "grid":
-        return interior_frame(registered_f1(prob, cfg, gamma))
-    return _chain_frame(prob.source1, gamma, cfg.interpolation, source_method(cfg.interpolation))
+    return frame_of(prob.source1, gamma, cfg)
 
 
 def rotated_end_frame(prob, cfg, rotation):
@@ -322,9 +313,7 @@ def rotated_end_frame(prob, cfg, rotation):
     if cfg.differential == "grid":
         frame = interior_frame(prob.f2)
     else:
-        frame = _chain_frame(
-            prob.source2, prob.e1, cfg.interpolation, source_method(cfg.interpolation)
-        )
+        frame = frame_of(prob.source2, prob.e1, cfg)
     return tuple(rotate_surface(rotation, a) for a in frame)
 
 
