@@ -106,6 +106,37 @@ def test_shooting_refuses_what_it_cannot_do():
         shoot(f, f, METRIC, degree=40)
     with pytest.raises(ej.InputError, match="scheme=.midpoint"):
         log(f, 2.0 * f, METRIC, modulo="diff", scheme="forward")
+    with pytest.raises(ej.InputError, match=r"frames must hold .* \(2, 2, 3, 11, 24\)"):
+        shoot(f, f, METRIC, frames=jnp.zeros((2, 3, 11, 24)))
+    frames = jnp.zeros((2, 2, 3, M - 2, N_GRID - 1)).at[1, 0, 0, 0, 0].set(jnp.inf)
+    with pytest.raises(ej.InputError, match="frames contains 1 non-finite"):
+        shoot(f, f, METRIC, frames=frames)
+
+
+def test_a_chain_rule_log_shoots_back_from_its_own_frames():
+    """Under differential="chain" the registered geodesic's ends' differentials come from
+    the chain rule, not from the grid: shot with the log's frames, its path comes back
+    node by node (measured 1e-8); with the grid's differences of f1 and v it does not
+    (measured 2.5e-3): the frames carry what the grid cannot."""
+    f1 = shapes.sample(shapes.ellipsoid, M, N_GRID)
+    f2 = shapes.sample(shapes.bumpy, M, N_GRID, rotation=shapes.random_rotation(4))
+    # tests/test_levels.py's options: the solve's compiled phases are shared.
+    options = ej.ShapeOptions(
+        degree=4, vf_degree=4, n_times=5, differential="chain", interpolation="spline"
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)  # the registration rounds
+        lg = log(f1, f2, METRIC, modulo="rigid", options=options)
+    assert float(jnp.max(jnp.abs(lg.path[0] - f1))) == 0.0
+    shot = shoot(f1, lg.velocity, METRIC, frames=lg.frames, options=options)
+    errors = [relative(a, b) for a, b in zip(shot.path, lg.path, strict=True)]
+    print("node errors", np.array(errors), float(lg.distance))
+    assert max(errors) <= 1e-6
+    # Its speeds are the solve's: constant along the geodesic, their mean its length.
+    assert float(jnp.std(shot.speeds)) <= 1e-2 * float(jnp.mean(shot.speeds))
+    assert abs(float(jnp.mean(shot.speeds)) - float(lg.distance)) <= 1e-2 * float(lg.distance)
+    plain = shoot(f1, lg.velocity, METRIC, options=options)
+    assert relative(plain.endpoint, lg.target) >= 1e-4
 
 
 @pytest.mark.slow
@@ -144,7 +175,7 @@ def test_log_modulo_diff_lives_at_f1_and_shoots_back():
         plain = log(f1, f2, METRIC, options=options)
     assert float(jnp.max(jnp.abs(lg.path[0] - f1))) == 0.0
     assert float(lg.distance) < float(plain.distance)  # registration shortened it
-    shot = shoot(f1, lg.velocity, METRIC, degree=DEGREE, n_times=N_TIMES)
+    shot = shoot(f1, lg.velocity, METRIC, degree=DEGREE, n_times=N_TIMES, frames=lg.frames)
     errors = [relative(a, b) for a, b in zip(shot.path, lg.path, strict=True)]
     print("modulo diff: node errors", np.array(errors), float(lg.distance), float(plain.distance))
     assert max(errors) <= 1e-5

@@ -123,20 +123,23 @@ def _energy_of(metric, scheme, *frames):
     return frame_energy(metric, a1, a2, scheme)
 
 
-def node_solve(metric, scheme, f_a, f_b, c_guess, values, dframe, *, unknown, tol, max_newton):
+def node_solve(
+    metric, scheme, f_a, f_b, c_guess, values, dframe, *, unknown, tol, max_newton, frames=None
+):
     """One node of a discrete geodesic f_a, f_mid, f_b by Newton's method on the energy's
     Euler-Lagrange equation in the middle node, projected on the surface basis.
 
     unknown="next": f_a, f_mid = f_b are known and the unknown is the third node,
     2 f_b - f_a + sum_j c_j S_j (a shooting step). unknown="middle": the ends are known and
     the unknown is the middle, (f_a + f_b) / 2 + sum_j c_j S_j (the discrete midpoint).
-    Returns (the unknown node, c, the residual as a Newton step's size, Newton steps,
-    the result code).
+    ``frames``: the known nodes' differentials (a_a, a_b), each (a1, a2); default their
+    central differences. Returns (the unknown node, c, the residual as a Newton step's
+    size, Newton steps, the result code).
     """
     import optimistix as optx
 
     m, n = f_a.shape[-2:]
-    a_a, a_b = interior_frame(f_a), interior_frame(f_b)
+    a_a, a_b = (interior_frame(f_a), interior_frame(f_b)) if frames is None else frames
     zero = jnp.zeros(c_guess.shape, f_a.dtype)
     if unknown == "next":
         base = 2.0 * f_b - f_a
@@ -172,8 +175,13 @@ def node_solve(metric, scheme, f_a, f_b, c_guess, values, dframe, *, unknown, to
     return node, c, jnp.linalg.norm(residual(c, None)), sol.stats["num_steps"], result
 
 
-def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
+def _shoot(metric, f, v, a_f, a_v, values, dframe, *, n_times, scheme, tol, max_newton):
     """Traceable shooting in the units of f (the jitted entry point is ``_shoot_jit``).
+
+    The nodes' differentials travel with them: a_{k+1} = 2 a_k - a_{k-1} + sum_j c_j dS_j
+    from a_0 = a_f and a_1 = a_f + a_v / T, the same linear recursion as the nodes, so
+    that a path whose ends' differentials are not their grid differences (a registered
+    geodesic under the chain rule) is shot back node by node from its own frames.
 
     The recursion stops at the first step whose Newton solve fails: that node and every
     later one are NaN (their steps report no Newton iterations and a NaN residual). A
@@ -186,7 +194,7 @@ def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
     dtype = f.dtype
 
     def step(carry, _):
-        f_prev, f_here, c_guess, alive = carry
+        (f_prev, a_prev), (f_here, a_here), c_guess, alive = carry
 
         def solve(_):
             f_next, c, residual, steps, result = node_solve(
@@ -200,6 +208,7 @@ def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
                 unknown="next",
                 tol=tol,
                 max_newton=max_newton,
+                frames=(a_prev, a_here),
             )
             return f_next, c, residual, jnp.asarray(steps, jnp.int32), result
 
@@ -210,20 +219,27 @@ def _shoot(metric, f, v, values, dframe, *, n_times, scheme, tol, max_newton):
 
         f_next, c, residual, steps, result = jax.lax.cond(alive, solve, skip, None)
         ok = alive & (result == RESULTS.successful)
-        f_next = jnp.where(ok, f_next, jnp.nan)
+        base = tuple(2.0 * x - y for x, y in zip(a_here, a_prev, strict=True))
+        next_node = jax.tree_util.tree_map(
+            lambda x: jnp.where(ok, x, jnp.nan), (f_next, _frames_plus(base, c, dframe))
+        )
         # After a failure the known pair stays the last solved one (the later steps skip).
         kept = jax.tree_util.tree_map(
-            functools.partial(jnp.where, ok), (f_here, f_next, c), (f_prev, f_here, c_guess)
+            functools.partial(jnp.where, ok),
+            ((f_here, a_here), next_node, c),
+            ((f_prev, a_prev), (f_here, a_here), c_guess),
         )
-        return (*kept, ok), (f_next, (c, residual, steps, ok, result))
+        return (*kept, ok), (next_node, (c, residual, steps, ok, result))
 
-    f_first = f + v / t
-    carry = (f, f_first, jnp.zeros(size, dtype), jnp.asarray(True))
-    _, (nodes, (coefficients, residuals, newton_steps, ok, results)) = jax.lax.scan(
+    first = (f + v / t, tuple(x + y / t for x, y in zip(a_f, a_v, strict=True)))
+    carry = ((f, a_f), first, jnp.zeros(size, dtype), jnp.asarray(True))
+    _, ((nodes, node_frames), (coefficients, residuals, newton_steps, ok, results)) = jax.lax.scan(
         step, carry, None, length=n_times - 2
     )
-    path = jnp.concatenate([f[None], f_first[None], nodes])
-    speeds2, _ = frame_speeds2(metric, *interior_frame(path), scheme)
+    path = jnp.concatenate([f[None], first[0][None], nodes])
+    known = zip(a_f, first[1], node_frames, strict=True)
+    frames = tuple(jnp.concatenate([a[None], b[None], c]) for a, b, c in known)
+    speeds2, _ = frame_speeds2(metric, *frames, scheme)
     speeds = jnp.where(jnp.isnan(speeds2), jnp.nan, safe_sqrt(speeds2))
     n_valid = 2 + jnp.sum(ok.astype(jnp.int32))
     result = first_failure(results, ok)
@@ -255,6 +271,7 @@ def shoot(
     tol: float | None = None,
     max_newton: int = 20,
     options: ShapeOptions | None = None,
+    frames: Float[ArrayLike, "2 2 3 m-2 n-1"] | None = None,
 ) -> ShootingResult:
     """Shoot the discrete geodesic from f with initial velocity v (the discrete exp map).
 
@@ -278,6 +295,13 @@ def shoot(
         options: a :class:`ShapeOptions` whose n_times, degree and scheme are the ones
             not given as keywords (None: its defaults), so that a path shot from a
             :func:`geodesic` or :func:`log` uses that solve's record.
+        frames: ``(2, 2, 3, m - 2, n - 1)`` the differentials of f and of v on the
+            interior points (``frames[i, j]`` the j-th column of the i-th;
+            :attr:`LogResult.frames`). None (default): their central differences on the
+            grid. A registered geodesic under ``differential="chain"`` takes its ends'
+            differentials by the chain rule, not from the grid (math §2); shooting its
+            log back reproduces its path only from those (the nodes' differentials
+            follow the nodes' own recursion).
 
     Returns:
         :class:`ShootingResult`; a ConvergenceWarning when a step's solve failed. The
@@ -298,6 +322,7 @@ def shoot(
     max_newton = check_int("max_newton", max_newton, 1)
     tol = default_newton_tol(f.dtype) if tol is None else check_positive("tol", tol)
     values, dframe = (jnp.asarray(a, f.dtype) for a in basis_np(m, n, degree))
+    a_f, a_v = _checked_frames(frames, f, v)
     # In units of f's size (see _geometry/units.py): the energy is homogeneous, the path scales.
     units, (g,) = in_units(f)
     s = units.scale
@@ -305,6 +330,8 @@ def shoot(
         metric,
         g,
         v / s,
+        tuple(a / s for a in a_f),
+        tuple(a / s for a in a_v),
         values,
         dframe,
         n_times=n_times,
@@ -331,6 +358,22 @@ def shoot(
     if is_concrete(converged) and not bool(converged):
         warnings.warn(_failure_message(result, tol, max_newton), ConvergenceWarning, stacklevel=2)
     return result
+
+
+def _checked_frames(frames, f, v):
+    """(f's frame, v's frame), each (a1, a2): ``frames`` checked, or the central
+    differences of f and v."""
+    if frames is None:
+        return interior_frame(f), interior_frame(v)
+    m, n = f.shape[-2:]
+    frames = real_array(frames, "frames").astype(f.dtype)
+    if frames.shape != (2, 2, 3, m - 2, n - 1):
+        raise InputError(
+            f"frames must hold the differentials of f and v on the interior points, shape "
+            f"(2, 2, 3, {m - 2}, {n - 1}); got {frames.shape}"
+        )
+    check_finite(frames, "frames")
+    return (frames[0, 0], frames[0, 1]), (frames[1, 0], frames[1, 1])
 
 
 def _failure_message(result: ShootingResult, tol: float, max_newton: int) -> str:

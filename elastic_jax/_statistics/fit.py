@@ -226,7 +226,7 @@ def energy_parts(first, second, gammas, rotations, coefficients, bases, *, cfg, 
             if modulo == "none":
                 frames = frames_between(interior_frame(a), interior_frame(b), cfg.n_times)
                 return frame_energy(metric, *perturbed_frames(frames, c, bases), cfg.scheme)
-            prob = make_problem(metric, a, b, bases, modulo == "rigid")
+            prob = make_problem(metric, a, b, bases, modulo == "rigid", cfg.interpolation)
             return path_energy_at(prob, cfg, gamma, rotation, c)
 
         return jax.vmap(energy)(units)

@@ -6,16 +6,33 @@ It sits above registration because the shape-space log runs :func:`shape_geodesi
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
+import jax
+import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_choice
 from .._errors import InputError
-from .._geodesics.geodesic import GeodesicResult, check_pair, geodesic
+from .._geodesics.geodesic import (
+    GeodesicResult,
+    check_pair,
+    frames_between,
+    geodesic,
+    perturbed_frames,
+)
 from .._geodesics.shooting import check_scheme
+from .._geometry.differential import interior_frame
 from .._geometry.metric import SplitMetric
 from .._options import ShapeOptions
+from .._registration.problem import (
+    make_bases,
+    make_problem,
+    registered_frame,
+    rotate_surface,
+    rotated_end_frame,
+)
 from .._registration.records import turned_back
 from .._registration.shape import shape_geodesic
 from .._results import RESULTS, record_repr, result_message
@@ -34,6 +51,12 @@ class LogResult(NamedTuple):
         converged: ``()`` the geodesic solve's own convergence.
         result: that solve's result code (``elastic_jax.RESULTS``).
         num_steps: ``()`` that solve's steps.
+        frames: ``(2, 2, 3, m - 2, n - 1)`` the differentials of f1 and of ``velocity``
+            on the interior points as the solve took them (``frames[i, j]`` the j-th
+            column of the i-th): their central differences, except under
+            ``differential="chain"`` modulo "diff" / "rigid", whose ends' differentials
+            come from the chain rule (math §2). ``shoot(f1, velocity, frames=frames)``
+            reproduces ``path``.
     """
 
     velocity: Float[Array, "3 m n"]
@@ -43,6 +66,7 @@ class LogResult(NamedTuple):
     converged: Array
     result: RESULTS
     num_steps: Int[Array, ""]
+    frames: Float[Array, "2 2 3 m-2 n-1"]
 
     __repr__ = record_repr
 
@@ -69,7 +93,10 @@ def log(
     first surface and turns its second), the path reversed and turned back by R^T so that
     it starts at f1 as given: v is a tangent vector at f1 itself (as for a Karcher mean's
     tangent space) and ``target`` the registered f2. The midpoint energy is symmetric
-    under reversal, so the reversed path is again a discrete geodesic.
+    under reversal, so the reversed path is again a discrete geodesic. Under
+    ``differential="chain"`` the solve's path is given by its nodes' differentials, of
+    which the ends' are not the grid differences of the ends: shoot with
+    ``frames=result.frames`` to follow it.
 
     Args:
         f1, f2: ``(3, m, n)`` immersions on one grid.
@@ -86,6 +113,7 @@ def log(
     options = (ShapeOptions() if options is None else options).replace(**changes)
     check_scheme(options.scheme)
     f1, f2 = check_pair(f1, f2)
+    solve_frames = None
     if modulo == "none":
         res: GeodesicResult = geodesic(f1, f2, metric, **options.geodesic_kwargs())
         path = res.path
@@ -97,13 +125,39 @@ def log(
             )
         res = shape_geodesic(f2, f1, metric, modulo=modulo, options=options)
         path = turned_back(res, f1)[::-1].at[0].set(f1)
+        if options.differential == "chain":
+            # The bases without the finer grid's (refinement): a static cfg.
+            cfg = options.replace(refinement=False, rtol=None, grid=None)
+            solve_frames = _first_frames(f2, f1, metric, res, cfg, modulo == "rigid")
     t = options.n_times - 1
+    velocity = t * (path[1] - path[0])
+    if solve_frames is None:  # every node's differential is its grid differences
+        solve_frames = interior_frame(path[0]), interior_frame(path[1])
+    (a1, a2), (b1, b2) = solve_frames
     return LogResult(
-        velocity=t * (path[1] - path[0]),
+        velocity=velocity,
         target=path[-1],
         distance=res.distance,
         path=path,
         converged=res.converged,
         result=res.result,
         num_steps=res.num_steps,
+        frames=jnp.stack([jnp.stack([a1, a2]), t * jnp.stack([b1 - a1, b2 - a2])]),
     )
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "rigid"))
+def _first_frames(f2, f1, metric, res, cfg, rigid):
+    """The differentials of the log's first two nodes as the registered solve took them:
+    its last two nodes' (the straight line between the chain-rule frames of f2 o gamma
+    and R f1, plus the path's perturbation), turned back by R^T."""
+    m, n = res.gamma.shape[-2:]
+    bases = make_bases(m, n, cfg, f1.dtype)
+    prob = make_problem(metric, f2, f1, bases, rigid, cfg.interpolation)
+    start = registered_frame(prob, cfg, res.gamma)
+    end = rotated_end_frame(prob, cfg, res.rotation)
+    a1, a2 = perturbed_frames(
+        frames_between(start, end, cfg.n_times), res.coefficients, bases.dframe
+    )
+    back = res.rotation.T
+    return tuple(tuple(rotate_surface(back, a[k]) for a in (a1, a2)) for k in (-1, -2))
