@@ -160,3 +160,25 @@ def test_errors():
         ej.reparametrize(ej.sphere_points(13, 25), ej.sphere_points(13, 25), method="nearest")
     with pytest.raises(ValueError, match=r"gamma must have shape \(3, p, q\)"):
         ej.reparametrize(ej.sphere_points(13, 25), np.zeros((2, 3, 5, 5)))
+
+
+@pytest.mark.parametrize("grid", [(13, 25), (14, 27)])
+def test_the_spline_frame_is_the_splines_derivative_at_the_knots(grid):
+    """spline_frame (a Fourier multiplier) against the derivative of the spline's own
+    evaluation (reparametrize's JVP along the sphere's unit frame at the grid points): the
+    same numbers by two computations, to rounding, on an odd and an even number of rows."""
+    from elastic_jax._geometry.differential import interior_frame
+    from elastic_jax._geometry.grid import sphere_tangents_np
+    from elastic_jax._geometry.reparam import spline_frame
+
+    m, n = grid
+    f = shapes.sample(shapes.bumpy, m, n, rotation=shapes.random_rotation(3))
+    e = ej.sphere_points(m, n)[:, 1:-1, :-1]
+    frame = spline_frame(f)
+    for a, t in zip(frame, sphere_tangents_np(m, n), strict=True):
+        t = jnp.asarray(t[:, 1:-1, :-1])
+        _, along = jax.jvp(lambda p: ej.reparametrize(f, p, "spline"), (e,), (t,))
+        assert float(jnp.max(jnp.abs(a - along))) <= 1e-12 * float(jnp.max(jnp.abs(along)))
+    # and not the central differences (second order), which differ at this grid
+    central = interior_frame(f)
+    assert float(jnp.max(jnp.abs(frame[1] - central[1]))) > 1e-4

@@ -270,6 +270,44 @@ def spline_coefficients(f: Array) -> Array:
     return jnp.concatenate([c, c[..., :1]], axis=-1)
 
 
+def spline_frame(f: Array) -> tuple[Array, Array]:
+    """The derivatives of f's interpolating cubic spline at the interior grid points, in
+    :func:`interior_frame`'s layout ``(a1, a2)``, each ``(..., m - 2, n - 1)``: a1 =
+    S_theta / sin(phi), a2 = S_phi.
+
+    At a knot the tensor spline's derivative along one direction is (c_{i+1} -
+    c_{i-1}) / 2h of its coefficients, and its B-spline weights along the other
+    direction (1, 4, 1) / 6 undo that direction's filter: what remains is the Pade
+    derivative per direction, f's spectrum times 3 i sin(w) / (h (2 + cos w)), on the
+    periodic theta rows and on the doubly periodic extension across the poles (the
+    half-turn rule). Fourth order, like the spline's derivative anywhere, and two FFTs
+    instead of a derivative through the spline's evaluation.
+    """
+    m, n = f.shape[-2:]
+    g = f[..., :-1]
+    half = g.shape[-1] // 2
+    q = n - 1
+    w_c = 2.0 * np.pi * np.fft.rfftfreq(q)
+    d_c = 3.0 * np.sin(w_c) / ((2.0 + np.cos(w_c)) * (2.0 * np.pi / q))
+    inner = g[..., 1:-1, :]
+    spectrum = jnp.fft.rfft(inner, axis=-1)
+    lead = (1,) * (f.ndim - 2)  # explicit ranks: callers may forbid rank promotion
+    d_c = jnp.asarray(1j * d_c.reshape(lead + (1, -1)), spectrum.dtype)
+    f_theta = jnp.fft.irfft(spectrum * d_c, n=q, axis=-1)
+    sin_phi = np.sin(np.arange(1, m - 1) * (np.pi / (m - 1))).reshape(lead + (-1, 1))
+    a1 = (f_theta / jnp.asarray(sin_phi, f_theta.dtype)).astype(f.dtype)
+    mirrored = jnp.roll(jnp.flip(g[..., 1:-1, :], axis=-2), -half, axis=-1)
+    periodic = jnp.concatenate([g, mirrored], axis=-2)  # rows 0 .. 2m - 3
+    p = periodic.shape[-2]
+    w_r = 2.0 * np.pi * np.fft.rfftfreq(p)
+    d_r = 3.0 * np.sin(w_r) / ((2.0 + np.cos(w_r)) * (np.pi / (m - 1)))
+    spectrum = jnp.fft.rfft(periodic, axis=-2)
+    d_r = jnp.asarray(1j * d_r.reshape(lead + (-1, 1)), spectrum.dtype)
+    f_phi = jnp.fft.irfft(spectrum * d_r, n=p, axis=-2)
+    a2 = f_phi[..., 1 : m - 1, :].astype(f.dtype)
+    return a1, a2
+
+
 def _sample_bicubic(f, phi, theta, kernel=_cubic_weights):
     m, n = f.shape[-2:]
     g = f[..., :-1]
