@@ -288,8 +288,17 @@ def _records():
             ["vectors=f64[5,3,13,25]", "norm_drift=-0.00015"],
         ),
         "LogResult": (
-            ej.LogResult(surface, surface, _scalar(0.5123), path5, ok, successful, _scalar(30)),
-            ["path=f64[5,3,13,25]", "distance=0.5123"],
+            ej.LogResult(
+                surface,
+                surface,
+                _scalar(0.5123),
+                path5,
+                ok,
+                successful,
+                _scalar(30),
+                _f64(2, 2, 3, 11, 24),
+            ),
+            ["path=f64[5,3,13,25]", "distance=0.5123", "frames=f64[2,2,3,11,24]"],
         ),
         "SrnfInversion": (
             ej.SrnfInversion(
