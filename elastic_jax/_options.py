@@ -93,34 +93,37 @@ class ShapeOptions:
             the Moebius group).
         interpolation: how an input is read off its grid (f1 o gamma, an input on
             another grid than the working one) and how gamma is composed:
-            ``"bicubic"`` (default): Catmull-Rom, C^1, third order.
-            ``"spline"``: the interpolating cubic B-spline, C^2 and fourth order in
-            value and derivative; with the chain rule gamma's differential is its
-            spline's derivative too (f o phi_a, abs(a) = 0.5, at 25 x 49: differential
-            error 0.03 % against 1.2 % for bicubic and central differences; spheres'
-            closed form 0.3 % off at 13 x 25 against 2-4 %): the reads for a resolved
-            distance (``differential="chain"``, ``rtol``).
-            ``"bilinear"``: the paper's.
+            ``"spline"`` (default since 2026-11-27): the interpolating cubic B-spline,
+            C^2, fourth order in value and derivative; with the chain rule gamma's
+            differential is its spline's derivative too (f o phi_a, abs(a) = 0.5, at
+            25 x 49: differential error 0.03 % against 1.2 % for bicubic and central
+            differences; the spheres' closed form 0.3 % off at 13 x 25 against 2-4 %).
+            ``"bicubic"``: Catmull-Rom, C^1, third order (the default until
+            2026-11-27). ``"bilinear"``: the paper's.
         differential: how the differential of f1 o gamma is taken
             (:doc:`/guides/registration_notes`).
-            ``"grid"`` (default): central differences of f1 o gamma on the grid, as of
-            every other surface; an input that is f1 sampled through some gamma is then
-            matched exactly (d(f, R f o phi) at most 0.3 % of d(cat1, cat2) at 50 x 99).
-            Where gamma stretches, those differences are chords across a stretch of f1,
-            shorter than its tangents, and the registration can lower the energy by
-            under-sampling f1: the cats' distance rises by 32 % from 25 x 49 to the same
-            surfaces at 49 x 97, and the two orders differ by 4-8 %.
-            ``"chain"``: by the chain rule, (df1 at gamma) dgamma, with df1
-            the exact derivative of f1's interpolant and dgamma the derivative of
-            gamma's spline (with ``interpolation="spline"``; otherwise central
-            differences of gamma with a rotation's chords made exact); R f2's
-            differential the same way at the identity. It converges under
-            refinement and is nearly symmetric (the cats: 1.054, 1.316, 1.354 at 25 x 49,
-            49 x 97 and 97 x 193 of the same surfaces; the two orders 0.7 % apart at
-            25 x 49, 2.4 % at 50 x 99), but an input sampled through a large
-            reparametrization is itself under-resolved, and this sees that: d(f, R f o phi)
-            with abs(a) = 0.5 at 50 x 99 is 47-58 % of an animal-to-animal distance.
-            ``energy`` is then not ``path_energy(path)``, which differences path[0].
+            ``"chain"`` (default since 2026-11-27): by the chain rule, (df1 at gamma)
+            dgamma, with df1 the exact derivative of f1's interpolant and dgamma the
+            derivative of gamma's spline (with ``interpolation="spline"``; otherwise
+            central differences of gamma with a rotation's chords made exact); R f2's
+            differential the same way at the identity. It converges under refinement
+            (fourth order with splines on smooth surfaces), and every input stands for
+            its interpolant, whatever its grid. An input that is a surface sampled
+            through a large reparametrization on the working grid is a coarser surface
+            than the one it was sampled from, and the chain rule sees that (cat1 read
+            through a Moebius map with abs(a) = 0.3 at 25 x 49: 40 % of d(cat1, cat2)):
+            sample such inputs finer than the map's stretch (math §10). The path's
+            frames are then not the grid differences of its surfaces: ``energy`` is not
+            ``path_energy(path)``, and :func:`log` returns the frames its solve used
+            for :func:`shoot`.
+            ``"grid"``: central differences of f1 o gamma on the grid, as of every other
+            surface (the default until 2026-11-27); an input that is f1 sampled through
+            some gamma on the working grid is then matched exactly (d(f, R f o phi) at
+            most 0.3 % of d(cat1, cat2) at 50 x 99). Where gamma stretches, those
+            differences are chords across a stretch of f1, shorter than its tangents,
+            and the registration can lower the energy by under-sampling f1: the cats'
+            distance rises by 32 % from 25 x 49 to the same surfaces at 49 x 97, and the
+            two orders differ by 4-8 %.
 
     Grid fields:
         grid: the working grid ``(m, n)`` the path is discretized on (odd n, m, n >= 5),
@@ -156,8 +159,8 @@ class ShapeOptions:
     outer_tol: float = 1e-3
     init: str = "moebius"
     init_candidates: int = 3
-    interpolation: str = "bicubic"
-    differential: str = "grid"
+    interpolation: str = "spline"
+    differential: str = "chain"
     refinement: bool = True
     saddle_checks: int = 1
     grid: tuple[int, int] | None = None

@@ -290,7 +290,9 @@ def test_the_solve_in_phases_is_the_solve_in_one_program():
     caller's batch compiles): every field of the result, on a pair that takes rounds.
     The last phase's diagnostics (gradient norm, refinement) are compiled without LLVM's
     optimizations, so they round differently: a gradient norm near a minimum is a small
-    difference of large terms."""
+    difference of large terms. Grid differences: with spline reads the two programs
+    round the splines' FFTs differently and the rounds carry that to 3e-6 in the path
+    (measured; the rounding sensitivity of docs/guides/limitations.md)."""
     import numpy as np
 
     import elastic_jax as ej
@@ -301,7 +303,15 @@ def test_the_solve_in_phases_is_the_solve_in_one_program():
     m, n = 9, 17
     f1 = jnp.asarray(shapes.sample(shapes.bumpy, m, n))
     f2 = jnp.asarray(shapes.sample(shapes.bumpy, m, n, rotation=shapes.random_rotation(3)))
-    cfg = ej.ShapeOptions(degree=3, vf_degree=3, n_times=4, tol=1e-8, outer_steps=3)
+    cfg = ej.ShapeOptions(
+        degree=3,
+        vf_degree=3,
+        n_times=4,
+        tol=1e-8,
+        outer_steps=3,
+        differential="grid",
+        interpolation="bicubic",
+    )
     bases = _shape.make_bases(m, n, cfg, f1.dtype)
     args = (ej.SplitMetric(1.0, 1.0, 0.1, 0.0), f1, f2, bases)
     phased = _shape._solve_in_phases(args, cfg, False)
@@ -335,7 +345,10 @@ def test_around_the_solve_a_first_call_compiles_one_program_on_each_side(monkeyp
     m, n = 9, 15  # a grid no other test uses: nothing is compiled for it yet
     f1 = np.asarray(shapes.sample(shapes.bumpy, m, n))
     f2 = np.asarray(shapes.sample(shapes.ellipsoid, m, n))
-    cfg = ej.ShapeOptions(degree=2, vf_degree=2, n_times=3, tol=1e-6, outer_steps=1)
+    # Grid differences: the stand-in's straight line is then path_energy's own.
+    cfg = ej.ShapeOptions(
+        degree=2, vf_degree=2, n_times=3, tol=1e-6, outer_steps=1, differential="grid"
+    )
     bases = _shape.make_bases(m, n, cfg, f1.dtype)
     metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
     layout = jax.eval_shape(

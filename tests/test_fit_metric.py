@@ -176,10 +176,15 @@ def test_the_gradient_agrees_with_central_differences_of_whole_solves(modulo):
     ellipsoids' registrations are (joint gradient ~1e-5 at 13 x 25); the capsules' end
     where the rounds' energy change met outer_tol with a joint gradient of 2e-3, and
     whole re-solves there move by 6 % more or less than the envelope says (the fit
-    accepts its steps by re-solved values, so this does not mislead it).
+    accepts its steps by re-solved values, so this does not mislead it). Grid
+    differences: under the chain rule with spline reads the re-solves at w +- 1e-4 end
+    in registrations whose objectives differ by more than the derivative says (0.500
+    against 0.560 modulo rigid), the rounding sensitivity of the registration
+    (docs/guides/limitations.md), not the envelope derivative's error.
     """
     f, labels = (capsules if modulo == "none" else elongated)(7, 4)
     options = FAST if modulo == "none" else SHAPE
+    options = options.replace(differential="grid", interpolation="bicubic")
     coefficients = range(4) if modulo == "none" else (1, 2)
     _assert_gradient_matches(f, labels, modulo, options, [0.3, 0.25, 0.4, 0.05], coefficients)
 
