@@ -20,15 +20,17 @@ then one summary record per pair with the spreads the issue's targets ask about.
 
 Pairs: cat1 -> cat2, cat1 -> horse0, horse0 -> hand4 (../shared/data, skipped when
 absent), a synthetic pair (a bumpy surface against a stretched copy, sampled at 50 x 99),
-and, when nilearn is installed, FreeSurfer's fsaverage5 left inflated hemisphere against
-the mirrored right one (nilearn ships the meshes; they are put on the grid by
+and, when nilearn is installed, FreeSurfer's fsaverage5 left hemisphere against the
+mirrored right one, inflated (``fsaverage``), white (``fsaverage-white``) and pial
+(``fsaverage-pial``) (nilearn ships the meshes; they are put on the grid by
 elastic_jax.io.mesh_to_grid at 50 x 99).
 
 With ``--rtol`` each solve is a resolved distance (ShapeOptions.rtol, docs/math.md §10):
 the working grid refined by levels (``--levels``) until two agree within rtol, and each
 record carries the levels' grids, distances and times and the estimate.
 
-Run: python benchmarks/bench_real.py [--pairs cats,cat-horse,horse-hand,synthetic,fsaverage]
+Run: python benchmarks/bench_real.py [--pairs cats,cat-horse,horse-hand,synthetic,fsaverage,
+     fsaverage-white,fsaverage-pial]
      [--cases grid25,up49,data,moebius,reversed,self] [--init moebius|energy|icosahedral|none]
      [--differential chain|grid] [--interpolation spline|bicubic|bilinear] [--rtol 0.03]
      [--levels 13x25,25x49,49x97]   (differential and interpolation: the package's defaults)
@@ -60,6 +62,8 @@ PAIRS = {
     "horse-hand": ("horse0", "hand4"),
     "synthetic": None,
     "fsaverage": None,
+    "fsaverage-white": None,
+    "fsaverage-pial": None,
 }
 CASES = ("grid25", "up49", "data", "moebius", "reversed", "self")
 
@@ -80,10 +84,12 @@ def _moved(f, magnitude: float, seed: int):
     return jnp.einsum("ij,jmn->imn", r, _grid_surface(ej.reparametrize(f, where, "bicubic")))
 
 
-def _fsaverage():
-    """fsaverage5's left inflated hemisphere and the mirrored right one on 50 x 99."""
+def _fsaverage(surface: str = "infl"):
+    """fsaverage5's left hemisphere and the mirrored right one on 50 x 99 (``surface``:
+    "infl", "white" or "pial")."""
     try:
-        from nilearn import datasets, surface
+        from nilearn import datasets
+        from nilearn import surface as nilearn_surface
     except ImportError:
         return None
     import trimesh
@@ -93,7 +99,7 @@ def _fsaverage():
     paths = datasets.fetch_surf_fsaverage("fsaverage5")  # files inside nilearn's wheel
     grids = []
     for side, flip in (("left", 1.0), ("right", -1.0)):
-        mesh = surface.load_surf_mesh(paths[f"infl_{side}"])
+        mesh = nilearn_surface.load_surf_mesh(paths[f"{surface}_{side}"])
         coords = getattr(mesh, "coordinates", None)
         coords, faces = (mesh[0], mesh[1]) if coords is None else (coords, mesh.faces)
         coords = np.asarray(coords, float) * np.array([flip, 1.0, 1.0])
@@ -110,8 +116,8 @@ def _pair(name: str):
         stretch = jnp.asarray([1.3, 1.0, 0.8])
         moved = shapes.sample(shapes.bumpy, 50, 99, rotation=shapes.random_rotation(11))
         return shapes.sample(shapes.bumpy, 50, 99), jnp.einsum("i,imn->imn", stretch, moved)
-    if name == "fsaverage":
-        return _fsaverage()
+    if name.startswith("fsaverage"):
+        return _fsaverage({"fsaverage": "infl"}.get(name, name.removeprefix("fsaverage-")))
     paths = [DATA / f"{s}_50x99.npz" for s in PAIRS[name]]
     if not all(p.exists() for p in paths):
         return None
