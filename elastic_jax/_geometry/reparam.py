@@ -244,6 +244,15 @@ def _spline_weights(t: Array) -> tuple[Array, Array, Array, Array]:
     )
 
 
+def _doubly_periodic(f: Array) -> Array:
+    """f's distinct columns extended across the poles by the half-turn rule to rows
+    0 .. 2m - 3, periodic in both directions: ``(..., 2(m - 1), n - 1)``."""
+    g = f[..., :-1]
+    half = g.shape[-1] // 2
+    mirrored = jnp.roll(jnp.flip(g[..., 1:-1, :], axis=-2), -half, axis=-1)
+    return jnp.concatenate([g, mirrored], axis=-2)
+
+
 def spline_coefficients(f: Array) -> Array:
     """The cubic B-spline coefficients ``(..., m, n)`` that interpolate ``f (..., m, n)``.
 
@@ -254,10 +263,7 @@ def spline_coefficients(f: Array) -> Array:
     half-turn symmetry, so rows 0..m-1 hold them all.
     """
     m = f.shape[-2]
-    g = f[..., :-1]
-    half = g.shape[-1] // 2
-    mirrored = jnp.roll(jnp.flip(g[..., 1:-1, :], axis=-2), -half, axis=-1)
-    periodic = jnp.concatenate([g, mirrored], axis=-2)  # rows 0 .. 2m - 3
+    periodic = _doubly_periodic(f)
     p, q = periodic.shape[-2:]
     symbol_r = (2.0 + np.cos(2.0 * np.pi * np.fft.fftfreq(p))) / 3.0
     symbol_c = (2.0 + np.cos(2.0 * np.pi * np.fft.rfftfreq(q))) / 3.0
@@ -284,20 +290,17 @@ def spline_frame(f: Array) -> tuple[Array, Array]:
     instead of a derivative through the spline's evaluation.
     """
     m, n = f.shape[-2:]
-    g = f[..., :-1]
-    half = g.shape[-1] // 2
     q = n - 1
     w_c = 2.0 * np.pi * np.fft.rfftfreq(q)
     d_c = 3.0 * np.sin(w_c) / ((2.0 + np.cos(w_c)) * (2.0 * np.pi / q))
-    inner = g[..., 1:-1, :]
+    inner = f[..., 1:-1, :-1]
     spectrum = jnp.fft.rfft(inner, axis=-1)
     lead = (1,) * (f.ndim - 2)  # explicit ranks: callers may forbid rank promotion
     d_c = jnp.asarray(1j * d_c.reshape(lead + (1, -1)), spectrum.dtype)
     f_theta = jnp.fft.irfft(spectrum * d_c, n=q, axis=-1)
     sin_phi = np.sin(np.arange(1, m - 1) * (np.pi / (m - 1))).reshape(lead + (-1, 1))
     a1 = (f_theta / jnp.asarray(sin_phi, f_theta.dtype)).astype(f.dtype)
-    mirrored = jnp.roll(jnp.flip(g[..., 1:-1, :], axis=-2), -half, axis=-1)
-    periodic = jnp.concatenate([g, mirrored], axis=-2)  # rows 0 .. 2m - 3
+    periodic = _doubly_periodic(f)
     p = periodic.shape[-2]
     w_r = 2.0 * np.pi * np.fft.rfftfreq(p)
     d_r = 3.0 * np.sin(w_r) / ((2.0 + np.cos(w_r)) * (np.pi / (m - 1)))

@@ -397,11 +397,17 @@ def zero_registration(prob, rigid, dtype):
     return jnp.zeros(prob.bases.fields.shape[0] + (3 if rigid else 0), dtype)
 
 
-def path_energy_at(prob, cfg, gamma, rotation, coefficients):
-    """Energy of the straight line from f1 o gamma to R f2 plus the perturbation."""
+def path_frames_at(prob, cfg, gamma, rotation, coefficients):
+    """The frames (a1, a2), each ``(N, 3, m - 2, n - 1)``, of the straight line from
+    f1 o gamma to R f2 plus the perturbation: the path as the solve sees it."""
     start, end = registered_frame(prob, cfg, gamma), rotated_end_frame(prob, cfg, rotation)
     straight = frames_between(start, end, cfg.n_times)
-    frames = perturbed_frames(straight, coefficients, prob.bases.dframe)
+    return perturbed_frames(straight, coefficients, prob.bases.dframe)
+
+
+def path_energy_at(prob, cfg, gamma, rotation, coefficients):
+    """Energy of the straight line from f1 o gamma to R f2 plus the perturbation."""
+    frames = path_frames_at(prob, cfg, gamma, rotation, coefficients)
     return frame_energy(prob.metric, *frames, cfg.scheme)
 
 

@@ -15,24 +15,12 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_choice
 from .._errors import InputError
-from .._geodesics.geodesic import (
-    GeodesicResult,
-    check_pair,
-    frames_between,
-    geodesic,
-    perturbed_frames,
-)
+from .._geodesics.geodesic import GeodesicResult, check_pair, geodesic
 from .._geodesics.shooting import check_scheme
 from .._geometry.differential import interior_frame
 from .._geometry.metric import SplitMetric
 from .._options import ShapeOptions
-from .._registration.problem import (
-    make_bases,
-    make_problem,
-    registered_frame,
-    rotate_surface,
-    rotated_end_frame,
-)
+from .._registration.problem import make_bases, make_problem, path_frames_at, rotate_surface
 from .._registration.records import turned_back
 from .._registration.shape import shape_geodesic
 from .._results import RESULTS, record_repr, result_message
@@ -154,10 +142,6 @@ def _first_frames(f2, f1, metric, res, cfg, rigid):
     m, n = res.gamma.shape[-2:]
     bases = make_bases(m, n, cfg, f1.dtype)
     prob = make_problem(metric, f2, f1, bases, rigid, cfg.interpolation)
-    start = registered_frame(prob, cfg, res.gamma)
-    end = rotated_end_frame(prob, cfg, res.rotation)
-    a1, a2 = perturbed_frames(
-        frames_between(start, end, cfg.n_times), res.coefficients, bases.dframe
-    )
+    a1, a2 = path_frames_at(prob, cfg, res.gamma, res.rotation, res.coefficients)
     back = res.rotation.T
     return tuple(tuple(rotate_surface(back, a[k]) for a in (a1, a2)) for k in (-1, -2))
