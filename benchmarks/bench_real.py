@@ -11,7 +11,10 @@ For each pair, modulo rigid motion, metric (1, 1, 0.1, 0), the package's default
   and rotated, on the data's grid: should equal ``data``;
 - ``reversed``: the pair in the other order, on the data's grid: should equal ``data``;
 - ``self``: f1 against itself read through a Moebius map (|a| = 0.5) and rotated, on the
-  data's grid: should be 0.
+  data's grid: should be 0 (ill-posed at the data's grid, docs/math.md §10: kept as a record);
+- ``moebius99``, ``self99``: the well-posed forms, the map's input (|a| = 0.3) read by the
+  spline at 99 x 197: with ``--rtol`` the first should equal ``data`` and the second be
+  small against it (the issue's 3 % and 5 %).
 
 Each record has the distance, the parametrized distance, converged, the result's name,
 the refinement (distance_time, distance_grid, relative_change), the solve time (the
@@ -31,7 +34,8 @@ record carries the levels' grids, distances and times and the estimate.
 
 Run: python benchmarks/bench_real.py [--pairs cats,cat-horse,horse-hand,synthetic,fsaverage,
      fsaverage-white,fsaverage-pial]
-     [--cases grid25,up49,data,moebius,reversed,self] [--init moebius|energy|icosahedral|none]
+     [--cases grid25,up49,data,moebius,reversed,self,moebius99,self99]
+     [--init moebius|energy|icosahedral|none]
      [--differential chain|grid] [--interpolation spline|bicubic|bilinear] [--rtol 0.03]
      [--levels 13x25,25x49,49x97]   (differential and interpolation: the package's defaults)
 """
@@ -65,7 +69,7 @@ PAIRS = {
     "fsaverage-white": None,
     "fsaverage-pial": None,
 }
-CASES = ("grid25", "up49", "data", "moebius", "reversed", "self")
+CASES = ("grid25", "up49", "data", "moebius", "reversed", "self", "moebius99", "self99")
 
 
 def _grid_surface(f):
@@ -74,14 +78,15 @@ def _grid_surface(f):
     return f.at[:, :, -1].set(f[:, :, 0])
 
 
-def _moved(f, magnitude: float, seed: int):
-    """R (f o phi_a): f read through a Moebius map with |a| = magnitude, then rotated."""
+def _moved(f, magnitude: float, seed: int, grid=None, method: str = "bicubic"):
+    """R (f o phi_a): f read through a Moebius map with |a| = magnitude, then rotated, at
+    the points of ``grid`` (default: f's own)."""
     rng = np.random.default_rng(seed)
     a = rng.standard_normal(3)
     a *= magnitude / np.linalg.norm(a)
     r = ej.so3_exp(jnp.asarray(rng.standard_normal(3)))
-    where = ej.moebius(ej.sphere_points(*f.shape[-2:]), jnp.asarray(a))
-    return jnp.einsum("ij,jmn->imn", r, _grid_surface(ej.reparametrize(f, where, "bicubic")))
+    where = ej.moebius(ej.sphere_points(*(grid or f.shape[-2:])), jnp.asarray(a))
+    return jnp.einsum("ij,jmn->imn", r, _grid_surface(ej.reparametrize(f, where, method)))
 
 
 def _fsaverage(surface: str = "infl"):
@@ -137,6 +142,13 @@ def _inputs(case: str, f1, f2):
         return _moved(f1, 0.3, 1), f2
     if case == "reversed":
         return f2, f1
+    # The well-posed forms (docs/math.md §10): the map's input read through the package's
+    # spline at 99 x 197, finer than the data by more than the map's stretch (1.86 for
+    # abs(a) = 0.3); the solve's working grid is then that finer grid unless --levels.
+    if case == "moebius99":
+        return _moved(f1, 0.3, 1, (99, 197), "spline"), f2
+    if case == "self99":
+        return f1, _moved(f1, 0.3, 2, (99, 197), "spline")
     return f1, _moved(f1, 0.5, 2)  # self
 
 
@@ -158,7 +170,8 @@ def _levels_record(levels) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", default=",".join(PAIRS))
-    parser.add_argument("--cases", default=",".join(CASES))
+    # The 99 x 197 reads are opt-in: without --rtol they are solved at 99 x 197.
+    parser.add_argument("--cases", default=",".join(CASES[:6]))
     parser.add_argument(
         "--init", default="moebius", choices=("moebius", "energy", "icosahedral", "none")
     )
@@ -247,7 +260,7 @@ def main() -> None:
         summary = {"kind": "summary", "pair": name}
         d = distances.get("data")
         if d:
-            for case in ("moebius", "reversed", "self"):
+            for case in ("moebius", "reversed", "self", "moebius99", "self99"):
                 if case in distances:
                     summary[f"{case}_over_data"] = distances[case] / d
         if distances.get("grid25") and "up49" in distances:

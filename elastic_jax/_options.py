@@ -131,9 +131,11 @@ class ShapeOptions:
             interpolant (:ref:`math §10 <math-10>`). None (default): the inputs' grid,
             or the finer of two (more points) when they differ.
         rtol: a resolved distance (:ref:`math §10 <math-10>`): the path is solved on
-            each working grid of ``levels`` in turn, each level started from the
-            registration of the one below (gamma read at its points, the rotation),
-            until two successive levels' distances agree within rtol (relative); the
+            each working grid of ``levels`` in turn, each level continuing the one
+            below (its gamma read at this level's points, its rotation and its path:
+            the rounds with the whole path resume, without a new start search or
+            coarse rounds), until two successive levels' distances agree within rtol
+            (relative); the
             result's ``levels`` records each level's distance and time and the
             estimate. None (default): one working grid. Concrete inputs only (not under
             jit or vmap); not with ``grid``.

@@ -151,3 +151,38 @@ def test_collections_refuse_another_working_grid_and_levels(changes):
         ej.karcher_mean(f, METRIC, options=options)
     with pytest.raises(ej.InputError, match="grid=None|rtol=None"):
         ej.fit_metric(f, [0, 0, 1], options=options)
+
+
+def test_a_level_continues_the_registration_and_path_of_the_one_below():
+    """Each level after the first starts its rounds where the level below ended: that
+    level's gamma read at its points, its rotation and its path's coefficients (the
+    same spherical harmonics on every grid), with no new start search or coarse rounds.
+    Its first energy is then that path's energy on the finer grid, computed here
+    independently from the coarser level's result; its rounds only lower it."""
+    from elastic_jax._geometry.units import in_units
+    from elastic_jax._registration.problem import make_bases, make_problem, path_energy_at
+    from elastic_jax._registration.starts import given_start
+
+    f1 = shapes.sample(shapes.bumpy, 13, 25)
+    f2 = shapes.sample(shapes.bumpy, 13, 25, rotation=shapes.random_rotation(5))
+    f2 = jnp.einsum("i,imn->imn", jnp.asarray([1.2, 1.0, 0.9]), f2)
+    levels = ((9, 17), (13, 25))
+    options = OPTIONS.replace(rtol=1e-6, levels=levels)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
+        below = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=OPTIONS, grid=(9, 17))
+    np.testing.assert_allclose(res.levels.distances[0], below.distance, rtol=1e-12)
+
+    cfg = OPTIONS.replace(grid=(13, 25))
+    units, (g1, g2) = in_units(f1, f2)
+    prob = make_problem(METRIC, g1, g2, make_bases(13, 25, cfg, g1.dtype), True, cfg.interpolation)
+    gamma = given_start(below, 13, 25, g1.dtype, True)[0][0]
+    carried = (
+        path_energy_at(prob, cfg, gamma, below.rotation, below.coefficients / units.scale)
+        * units.scale**2
+    )
+    history = np.asarray(res.energy_history)
+    np.testing.assert_allclose(history[1], carried, rtol=1e-10)
+    assert float(res.energy) <= history[1] * (1 + 1e-12)
+    assert abs(float(carried) - float(below.energy)) > 1e-4 * float(below.energy)  # another grid

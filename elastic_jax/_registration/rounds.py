@@ -87,3 +87,28 @@ def rounds_phase(metric, f1, f2, bases, coarse, cfg, rigid) -> Rounds:
             lambda s: _round(prob, cfg, rigid, s), state, cfg.outer_steps, small_change, history
         )
     )
+
+
+def continuation_phase(metric, f1, f2, bases, carried, cfg, rigid) -> tuple[State, Array]:
+    """Phase 3's start from a registration carried from a coarser working grid (gamma
+    and R read at this grid's points, the path's coefficients as they were): the state
+    and the energy history coarse_phase would give, without its rounds.
+
+    A pure continuation. The coarse rounds re-register on the L2 mismatch and the straight
+    line, away from the carried registration and by a route that turns on rounding: on
+    the cats at 97 x 193 from one 49 x 97 registration, three solves whose inputs differ
+    by 1e-10 began their path rounds at energies 5.39, 5.31 and 5.57. It is also the
+    symmetric solve's third solve, from the other order's registration inverted: there
+    the coarse rounds left the inverted basin (a stretched bumpy pair, 0.587 against
+    0.547; continued, 0.5475). The path's coefficients are those of spherical harmonics,
+    the same functions on every grid.
+    """
+    prob = make_problem(metric, f1, f2, bases, rigid, cfg.interpolation)
+    gamma, rotation, coefficients = carried
+    energy = path_energy_at(prob, cfg, gamma, rotation, coefficients)
+    dtype = energy.dtype
+    state = State(
+        gamma, rotation, coefficients, energy, jnp.zeros((), jnp.int32), jnp.zeros((), bool)
+    )
+    history = jnp.full((cfg.outer_steps + 2,), jnp.nan, dtype).at[1].set(energy)
+    return state, history

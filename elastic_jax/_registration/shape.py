@@ -47,7 +47,7 @@ from .coarse import coarse_phase, given_only_starts
 from .final import end_phase, geodesics_phase, shape_finish
 from .problem import State, make_bases
 from .records import MODULI, Levels, Refinement, ShapeGeodesicResult
-from .rounds import Rounds, rounds_phase
+from .rounds import Rounds, continuation_phase, rounds_phase
 from .starts import given_start, inverse_gamma, starts_phase
 
 # The structures of the phases' results (leaves are placeholders), to rebuild them from
@@ -74,19 +74,26 @@ _PHASES = (
 )
 
 
+# A level's start carried from the level below (_levels_solve): in place of the start
+# search and the coarse rounds.
+_CONTINUATION = ("shape_continue", continuation_phase, (_STATE_SKELETON, 0))
+
+
 # The last phase runs for milliseconds and decides nothing the result reports as found
 # (its gradient norm and refinement are diagnostics): compiled for compile speed.
 _PHASE_JITS = {
     name: solver_jit(f, static_argnames=("cfg", "rigid"), quick=name == "shape_end")
-    for name, f, _ in _PHASES
+    for name, f, _ in (*_PHASES, _CONTINUATION)
 }
 
 
 def _solve_in_phases(
-    args: tuple, cfg: ShapeOptions, rigid: bool, starts=None
+    args: tuple, cfg: ShapeOptions, rigid: bool, starts=None, carried=None
 ) -> ShapeGeodesicResult:
     """_shape_solve(*args, cfg, rigid), one compiled program per phase; ``starts`` (the
-    first phase's result, given) skips the start search.
+    first phase's result, given) skips the start search; ``carried`` (gamma, R and the
+    path's coefficients, in the solve's units) skips the coarse rounds as well
+    (continuation_phase).
 
     XLA:CPU's compile time and memory grow with a program, and the phases share no
     compiled code: compiled one after the other, the largest program sets the peak
@@ -98,7 +105,10 @@ def _solve_in_phases(
     phases are part of the caller's one program.
     """
     static = {"cfg": cfg, "rigid": rigid}
-    phases, carried = (_PHASES, ()) if starts is None else (_PHASES[1:], (starts,))
+    if carried is not None:
+        phases, carried = (_CONTINUATION, *_PHASES[2:]), (carried,)
+    else:
+        phases, carried = (_PHASES, ()) if starts is None else (_PHASES[1:], (starts,))
     for name, function, skeleton in phases:
         carried = (
             exported_call(name, function, _PHASE_JITS[name], (*args, *carried), static, skeleton),
@@ -204,8 +214,13 @@ def shape_geodesic(
             gamma's interpolant, R^T), and return the lower of this order's results. The
             two orders' rounds end in different local minima (the cats at 25 x 49: 0.751
             one way, 0.722 the other, and 0.7225 this way from the other's registration),
-            so this finds the lower basin from either side. Two or three solves; concrete
-            inputs only (not under jit or vmap).
+            so this finds the lower basin from either side. The third solve continues
+            the inverted registration (its rounds with the whole path, no coarse rounds
+            on the L2 mismatch, which leave that basin). With ``rtol`` both orders are
+            solved by levels and the third solve continues on the finest level's grid;
+            the result's ``levels`` are then those of the order that found its basin,
+            the last distance its own. Two or three solves; concrete inputs only (not
+            under jit or vmap).
         **changes: fields of ShapeOptions to change, e.g. ``degree=5, n_times=9``.
 
     Returns:
@@ -230,6 +245,16 @@ def shape_geodesic(
         return _symmetric_solve(f1, f2, metric, modulo, cfg, start)
     if cfg.rtol is not None:
         return _levels_solve(f1, f2, metric, modulo, cfg, start)
+    result = _one_grid_solve(f1, f2, metric, modulo, cfg, start)
+    _warn_unless_converged(result)
+    return result
+
+
+def _one_grid_solve(f1, f2, metric, modulo, cfg, start, carry=None) -> ShapeGeodesicResult:
+    """shape_geodesic on one working grid; ``carry`` continues a registration instead of
+    searching starts (``start`` is then not used): a result of the same pair on a coarser
+    working grid (_levels_solve; its registration and path), or a pair (gamma, R) from
+    its straight line (_symmetric_solve)."""
     m, n = working_grid_of(cfg, f1, f2)
     check_grid_options(cfg, m, n)
     dtype = f1.dtype
@@ -240,30 +265,39 @@ def shape_geodesic(
     units, (g1, g2) = in_units(f1, f2)
     bases = make_bases(m, n, cfg, dtype)
     starts = None if start is None else given_start(start, m, n, dtype, rigid)
+    carried = None
+    if carry is not None:
+        gammas, rotations, _ = given_start(carry, m, n, dtype, rigid)
+        if isinstance(carry, ShapeGeodesicResult):
+            # The result's coefficients are in the user's units, the solve's in units.
+            coefficients = jnp.asarray(carry.coefficients, dtype) / units.scale
+        else:  # a registration alone: its straight line
+            coefficients = jnp.zeros((cfg.n_times - 2, bases.dframe.shape[0] * 3), dtype)
+        carried = (gammas[0], rotations[0], coefficients)
 
     # As in geodesic: the solve runs on constants and the energy is evaluated again,
     # differentiably, at the solution (envelope theorem: the derivative of the minimal
     # energy in f1, f2 and the metric, with gamma, R and C held).
-    def solve(starts):
+    def solve(starts, carried=None):
         args = (constant(metric), jax.lax.stop_gradient(g1), jax.lax.stop_gradient(g2), bases)
-        solved = _solve_in_phases(args, cfg, rigid, starts)
+        solved = _solve_in_phases(args, cfg, rigid, starts, carried)
         return shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
 
-    result = solve(starts)
+    result = solve(starts, carried)
     if is_concrete(result.result) and bool(result.result == RESULTS.not_registered):
         # The rounds ended above the pair as given: carry the pair as given (and its best
         # rotation) through the rounds as well, and keep the lower of the two.
         again = solve(given_only_starts(m, n, dtype))
         if float(again.energy) < float(result.energy):
             result = again._replace(num_steps=again.num_steps + result.num_steps)
-    _warn_unless_converged(result)
     return result
 
 
 def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
     """shape_geodesic with ``cfg.rtol``: the working grids of ``cfg.levels`` coarse to
-    fine, each level started from the registration of the one below, until two
-    successive distances agree within rtol (math §10).
+    fine, each level continuing the one below (its registration and path: no new start
+    search, no coarse rounds; continuation_phase), until two successive distances agree
+    within rtol (math §10). The first level starts from ``start`` or searches its own.
 
     The finest level's result, with ``levels`` recording every level; converged when
     that level converged and the tolerance was met, else ``RESULTS.not_resolved`` when
@@ -297,15 +331,14 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
             # The coarser gamma's interpolant can fold between its points (the cats at
             # 13 x 25 read at 25 x 49, chain rule), and so can a fine start read on a
             # coarse level: that level searches its own start.
+            # A level above the first continues the one below (continuation_phase): its
+            # registration and path, without a new start search or coarse rounds.
             carried = _carried(start if result is None else result, grid, f1.dtype, modulo)
-            result = shape_geodesic(
-                f1,
-                f2,
-                metric,
-                modulo=modulo,
-                options=cfg.replace(rtol=None, grid=grid),
-                start=carried,
-            )
+            level = cfg.replace(rtol=None, grid=grid)
+            if result is not None and carried is not None:
+                result = _one_grid_solve(f1, f2, metric, modulo, level, None, carry=result)
+            else:
+                result = _one_grid_solve(f1, f2, metric, modulo, level, carried)
             distances.append(float(jax.block_until_ready(result.distance)))
             seconds.append(time.perf_counter() - begin)
             grids.append(grid)
@@ -365,11 +398,51 @@ def _symmetric_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
                 float(residual) <= tol
                 and float(jnp.min(jacobian_determinant_unchecked(inverse))) > 0
             ):
-                again = solve(f1, f2, start=(inverse, other.rotation.T))
+                # A continuation: the coarse rounds would re-register on the L2
+                # mismatch and leave the inverted registration's basin.
+                grid = tuple(other.gamma.shape[-2:])
+                begin = time.perf_counter()
+                again = _one_grid_solve(
+                    f1,
+                    f2,
+                    metric,
+                    modulo,
+                    cfg.replace(rtol=None, grid=grid),
+                    None,
+                    carry=(inverse, other.rotation.T),
+                )
+                if other.levels is not None:
+                    seconds = time.perf_counter() - begin
+                    again = _continued_levels(again, other.levels, cfg.rtol, seconds)
                 if float(again.distance) < float(best.distance):
                     best = again
     _warn_unless_converged(best)
     return best
+
+
+def _continued_levels(result, levels: Levels, rtol: float, seconds: float) -> ShapeGeodesicResult:
+    """``result``, a continuation on the finest grid of ``levels`` (the other order's), with
+    those levels as its record: the last distance its own (its ``seconds`` added to that
+    level's), the estimate against the level below, and converged only when that
+    estimate meets rtol."""
+    dtype = levels.distances.dtype
+    distances = levels.distances.at[-1].set(result.distance.astype(dtype))
+    d = float(distances[-1])
+    before = float(distances[-2]) if distances.shape[0] > 1 else np.nan
+    estimate = abs(d - before) / max(d, np.finfo(np.float64).tiny)
+    met = bool(estimate <= rtol)
+    code = result.result
+    if not met and bool(result.converged):
+        code = RESULTS.not_resolved
+    return result._replace(
+        converged=jnp.asarray(bool(result.converged) and met),
+        result=code,
+        levels=levels._replace(
+            distances=distances,
+            seconds=levels.seconds.at[-1].add(seconds),
+            estimate=jnp.asarray(estimate, dtype),
+        ),
+    )
 
 
 def _warn_unless_converged(result: ShapeGeodesicResult, stacklevel: int = 3) -> None:
