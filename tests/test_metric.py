@@ -52,8 +52,14 @@ def test_fast_kernel_equals_the_decomposition(alpha, xi, eta, abcd):
         k * float(ej.base_inner(alpha, px, py))
         for k, px, py in zip(abcd, parts_x, parts_y, strict=True)
     )
-    base = float(ej.base_inner(alpha, xi, xi)) * float(ej.base_inner(alpha, eta, eta))
-    scale = max(abcd) * np.sqrt(base)
+    # Each norm taken of the unit-scaled matrix and scaled back: xi with entries ~1e-174
+    # has a squared norm below float64's range, which made this tolerance 0 (a flaky
+    # hypothesis example: 4.5e-190 apart on values 2.7e-174).
+    sx, sy = (max(float(np.abs(m).max()), 1e-300) for m in (xi, eta))
+    norms = [
+        np.sqrt(float(ej.base_inner(alpha, m / s, m / s))) * s for m, s in ((xi, sx), (eta, sy))
+    ]
+    scale = max(abcd) * norms[0] * norms[1]
     assert abs(float(ej.split_inner(metric, alpha, xi, eta)) - reference) <= 1e-11 * scale + 1e-200
 
 
