@@ -251,10 +251,10 @@ def shape_geodesic(
 
 
 def _one_grid_solve(f1, f2, metric, modulo, cfg, start, carry=None) -> ShapeGeodesicResult:
-    """shape_geodesic on one working grid; ``carry`` continues a registration instead of
-    searching starts (``start`` is then not used): a result of the same pair on a coarser
-    working grid (_levels_solve; its registration and path), or a pair (gamma, R) from
-    its straight line (_symmetric_solve)."""
+    """shape_geodesic on one working grid; ``carry`` = (gamma, R, coefficients or None)
+    continues a registration instead of searching starts (``start`` is then not used):
+    the level below's registration and path in the user's units (_levels_solve), or an
+    inverted registration from its straight line (None; _symmetric_solve)."""
     m, n = working_grid_of(cfg, f1, f2)
     check_grid_options(cfg, m, n)
     dtype = f1.dtype
@@ -267,12 +267,12 @@ def _one_grid_solve(f1, f2, metric, modulo, cfg, start, carry=None) -> ShapeGeod
     starts = None if start is None else given_start(start, m, n, dtype, rigid)
     carried = None
     if carry is not None:
-        gammas, rotations, _ = given_start(carry, m, n, dtype, rigid)
-        if isinstance(carry, ShapeGeodesicResult):
-            # The result's coefficients are in the user's units, the solve's in units.
-            coefficients = jnp.asarray(carry.coefficients, dtype) / units.scale
-        else:  # a registration alone: its straight line
+        gamma, rotation, coefficients = carry
+        gammas, rotations, _ = given_start((gamma, rotation), m, n, dtype, rigid)
+        if coefficients is None:  # the straight line
             coefficients = jnp.zeros((cfg.n_times - 2, bases.dframe.shape[0] * 3), dtype)
+        else:  # the user's units to the solve's
+            coefficients = jnp.asarray(coefficients, dtype) / units.scale
         carried = (gammas[0], rotations[0], coefficients)
 
     # As in geodesic: the solve runs on constants and the energy is evaluated again,
@@ -323,47 +323,61 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
         except InputError as error:
             raise InputError(f"levels: the {m} x {n} level: {error}") from None
     grids, distances, seconds = [], [], []
-    result, estimate = None, np.nan
+    result = None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
         for grid in cfg.levels:
             begin = time.perf_counter()
-            # The coarser gamma's interpolant can fold between its points (the cats at
+            # A level above the first continues the one below (continuation_phase): its
+            # registration and path, without a new start search or coarse rounds. The
+            # coarser gamma's interpolant can fold between its points (the cats at
             # 13 x 25 read at 25 x 49, chain rule), and so can a fine start read on a
             # coarse level: that level searches its own start.
-            # A level above the first continues the one below (continuation_phase): its
-            # registration and path, without a new start search or coarse rounds.
             carried = _carried(start if result is None else result, grid, f1.dtype, modulo)
             level = cfg.replace(rtol=None, grid=grid)
             if result is not None and carried is not None:
-                result = _one_grid_solve(f1, f2, metric, modulo, level, None, carry=result)
+                carry = (*carried, result.coefficients)
+                result = _one_grid_solve(f1, f2, metric, modulo, level, None, carry=carry)
             else:
                 result = _one_grid_solve(f1, f2, metric, modulo, level, carried)
             distances.append(float(jax.block_until_ready(result.distance)))
             seconds.append(time.perf_counter() - begin)
             grids.append(grid)
-            if len(distances) >= 2:
-                d, before = distances[-1], distances[-2]
-                estimate = abs(d - before) / max(d, np.finfo(np.float64).tiny)
-                if estimate <= cfg.rtol and bool(result.converged):
-                    break
+            if _change(distances) <= cfg.rtol and bool(result.converged):
+                break
+    result = _with_levels(result, grids, distances, seconds, cfg.rtol)
+    _warn_unless_converged(result, stacklevel=4)
+    return result
+
+
+def _change(distances) -> float:
+    """The relative change of the last two levels' distances (NaN for one level)."""
+    if len(distances) < 2:
+        return np.nan
+    d, before = float(distances[-1]), float(distances[-2])
+    return abs(d - before) / max(d, np.finfo(np.float64).tiny)
+
+
+def _with_levels(result, grids, distances, seconds, rtol) -> ShapeGeodesicResult:
+    """``result`` (the finest level's) with its :class:`Levels` record; converged when it
+    converged and the last change met rtol, ``RESULTS.not_resolved`` when only the
+    tolerance was missed."""
     dtype = result.distance.dtype
-    met = bool(estimate <= cfg.rtol)
+    estimate = _change(distances)
+    met = bool(estimate <= rtol)
     levels = Levels(
         grids=jnp.asarray(grids, jnp.int32),
         distances=jnp.asarray(distances, dtype),
         seconds=jnp.asarray(seconds, dtype),
         estimate=jnp.asarray(estimate, dtype),
-        rtol=jnp.asarray(cfg.rtol, dtype),
+        rtol=jnp.asarray(rtol, dtype),
     )
     code = result.result
     if not met and bool(result.converged):
         code = RESULTS.not_resolved
-    result = result._replace(
+    return result._replace(
         converged=jnp.asarray(bool(result.converged) and met), result=code, levels=levels
     )
-    _warn_unless_converged(result, stacklevel=4)
-    return result
 
 
 def _carried(start, grid, dtype, modulo):
@@ -402,47 +416,21 @@ def _symmetric_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
                 # mismatch and leave the inverted registration's basin.
                 grid = tuple(other.gamma.shape[-2:])
                 begin = time.perf_counter()
-                again = _one_grid_solve(
-                    f1,
-                    f2,
-                    metric,
-                    modulo,
-                    cfg.replace(rtol=None, grid=grid),
-                    None,
-                    carry=(inverse, other.rotation.T),
-                )
+                carry = (inverse, other.rotation.T, None)
+                level = cfg.replace(rtol=None, grid=grid)
+                again = _one_grid_solve(f1, f2, metric, modulo, level, None, carry=carry)
                 if other.levels is not None:
-                    seconds = time.perf_counter() - begin
-                    again = _continued_levels(again, other.levels, cfg.rtol, seconds)
+                    # The levels that found this basin (the other order's), the last
+                    # distance and time this solve's.
+                    levels = other.levels
+                    distances = np.asarray(levels.distances).tolist()[:-1] + [float(again.distance)]
+                    seconds = np.asarray(levels.seconds).tolist()
+                    seconds[-1] += time.perf_counter() - begin
+                    again = _with_levels(again, levels.grids, distances, seconds, cfg.rtol)
                 if float(again.distance) < float(best.distance):
                     best = again
     _warn_unless_converged(best)
     return best
-
-
-def _continued_levels(result, levels: Levels, rtol: float, seconds: float) -> ShapeGeodesicResult:
-    """``result``, a continuation on the finest grid of ``levels`` (the other order's), with
-    those levels as its record: the last distance its own (its ``seconds`` added to that
-    level's), the estimate against the level below, and converged only when that
-    estimate meets rtol."""
-    dtype = levels.distances.dtype
-    distances = levels.distances.at[-1].set(result.distance.astype(dtype))
-    d = float(distances[-1])
-    before = float(distances[-2]) if distances.shape[0] > 1 else np.nan
-    estimate = abs(d - before) / max(d, np.finfo(np.float64).tiny)
-    met = bool(estimate <= rtol)
-    code = result.result
-    if not met and bool(result.converged):
-        code = RESULTS.not_resolved
-    return result._replace(
-        converged=jnp.asarray(bool(result.converged) and met),
-        result=code,
-        levels=levels._replace(
-            distances=distances,
-            seconds=levels.seconds.at[-1].add(seconds),
-            estimate=jnp.asarray(estimate, dtype),
-        ),
-    )
 
 
 def _warn_unless_converged(result: ShapeGeodesicResult, stacklevel: int = 3) -> None:
