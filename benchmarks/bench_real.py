@@ -28,15 +28,17 @@ mirrored right one, inflated (``fsaverage``), white (``fsaverage-white``) and pi
 (``fsaverage-pial``) (nilearn ships the meshes; they are put on the grid by
 elastic_jax.io.mesh_to_grid at 50 x 99).
 
-With ``--rtol`` each solve is a resolved distance (ShapeOptions.rtol, docs/math.md §10):
-the working grid refined by levels (``--levels``) until two agree within rtol, and each
-record carries the levels' grids, distances and times and the estimate.
+Each solve is a resolved distance (ShapeOptions.rtol, the package's default 0.03;
+docs/math.md §10): the working grid refined by levels (``--levels``) until two agree
+within rtol, and each record carries the levels' grids, distances and times and the
+estimate. ``--rtol none`` solves on one working grid, the inputs' (the records before
+levels were the default).
 
 Run: python benchmarks/bench_real.py [--pairs cats,cat-horse,horse-hand,synthetic,fsaverage,
      fsaverage-white,fsaverage-pial]
      [--cases grid25,up49,data,moebius,reversed,self,moebius99,self99]
      [--init moebius|energy|icosahedral|none]
-     [--differential chain|grid] [--interpolation spline|bicubic|bilinear] [--rtol 0.03]
+     [--differential chain|grid] [--interpolation spline|bicubic|bilinear] [--rtol 0.03|none]
      [--levels 13x25,25x49,49x97]   (differential and interpolation: the package's defaults)
 """
 
@@ -170,7 +172,7 @@ def _levels_record(levels) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", default=",".join(PAIRS))
-    # The 99 x 197 reads are opt-in: without --rtol they are solved at 99 x 197.
+    # The 99 x 197 reads are opt-in: with --rtol none they are solved at 99 x 197.
     parser.add_argument("--cases", default=",".join(CASES[:6]))
     parser.add_argument(
         "--init", default="moebius", choices=("moebius", "energy", "icosahedral", "none")
@@ -180,9 +182,10 @@ def main() -> None:
     parser.add_argument("--interpolation", default=defaults.interpolation, choices=INTERPOLATIONS)
     parser.add_argument(
         "--rtol",
-        type=float,
-        default=None,
-        help="resolve each distance by levels of working grids to this relative tolerance",
+        type=lambda text: None if text == "none" else float(text),
+        default=defaults.rtol,
+        help="resolve each distance by levels of working grids to this relative tolerance "
+        "(the package's default); 'none': one working grid, the inputs'",
     )
     parser.add_argument(
         "--levels",

@@ -176,7 +176,10 @@ def main() -> None:
         settings = ROWS[row]
         m, n = settings["grid"]
         cfg = ej.ShapeOptions(
-            degree=settings["degree"], vf_degree=settings["vf_degree"], n_times=settings["n_times"]
+            degree=settings["degree"],
+            vf_degree=settings["vf_degree"],
+            n_times=settings["n_times"],
+            rtol=None,
         )
         cfg = cfg.replace(tol=_shape.default_tol(np.float64))
         for name in pairs:

@@ -126,19 +126,23 @@ class ShapeOptions:
             two orders differ by 4-8 %.
 
     Grid fields:
-        grid: the working grid ``(m, n)`` the path is discretized on (odd n, m, n >= 5),
+        grid: one working grid ``(m, n)`` the path is discretized on (odd n, m, n >= 5),
             whatever grids the inputs come on: each input is read through its
-            interpolant (:ref:`math §10 <math-10>`). None (default): the inputs' grid,
-            or the finer of two (more points) when they differ.
-        rtol: a resolved distance (:ref:`math §10 <math-10>`): the path is solved on
-            each working grid of ``levels`` in turn, each level continuing the one
-            below (its gamma read at this level's points, its rotation and its path:
-            the rounds with the whole path resume, without a new start search or
+            interpolant (:ref:`math §10 <math-10>`); no levels (``rtol`` is then not
+            used): the paper's protocol, benchmarks, and jit or vmap. None (default):
+            the levels of ``rtol``, or with ``rtol=None`` the inputs' grid (the finer of
+            two, more points, when they differ).
+        rtol: a resolved distance (:ref:`math §10 <math-10>`), the default: the path is
+            solved on each working grid of ``levels`` in turn, each level continuing the
+            one below (its gamma read at this level's points, its rotation and its
+            path: the rounds with the whole path resume, without a new start search or
             coarse rounds), until two successive levels' distances agree within rtol
-            (relative); the
-            result's ``levels`` records each level's distance and time and the
-            estimate. None (default): one working grid. Concrete inputs only (not under
-            jit or vmap); not with ``grid``.
+            (relative; default 0.03); the result's ``levels`` records each level's
+            distance and time and the estimate, and ``converged`` means the tolerance
+            was met at a minimum. Levels compare concrete distances: under jax.jit or
+            jax.vmap give ``grid`` (or rtol=None). None: one working grid. Collections
+            (karcher_mean, distance_matrix, fit_metric, log) are solved on their own
+            grid and do not use rtol.
         levels: the working grids for ``rtol``, coarse to fine (default 13 x 25,
             25 x 49, 49 x 97, 97 x 193).
 
@@ -166,7 +170,7 @@ class ShapeOptions:
     refinement: bool = True
     saddle_checks: int = 1
     grid: tuple[int, int] | None = None
-    rtol: float | None = None
+    rtol: float | None = 0.03
     levels: tuple[tuple[int, int], ...] = ((13, 25), (25, 49), (49, 97), (97, 193))
 
     def __post_init__(self):
@@ -215,11 +219,11 @@ class ShapeOptions:
         object.__setattr__(self, "levels", levels)
         if self.rtol is not None:
             object.__setattr__(self, "rtol", check_positive("rtol", self.rtol))
-            if self.grid is not None:
-                raise InputError(
-                    "grid forces one working grid and rtol asks for levels of them: "
-                    "give one of the two"
-                )
+
+    @property
+    def resolves(self) -> bool:
+        """Whether a shape solve runs levels of working grids (rtol given, grid not)."""
+        return self.rtol is not None and self.grid is None
 
     def replace(self, **changes) -> ShapeOptions:
         """A copy with some fields changed (validated again)."""

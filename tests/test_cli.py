@@ -27,7 +27,7 @@ SMALL = ["--grid", str(M), str(N), "--degree", "3", "--times", "5", "--quiet", *
 # Shape commands: the configuration of tests/test_karcher.py (one compilation for both).
 SHAPE = ["--grid", str(M), str(N), "--degree", "4", "--vf-degree", "4", "--times", "5"]
 SHAPE += ["--quiet", *CACHE]
-SHAPE_OPTIONS = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+SHAPE_OPTIONS = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5, rtol=None)
 
 
 def _no_temporaries(directory):
@@ -127,6 +127,7 @@ def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, caps
     out = tmp_path / "out"
     cases = {  # argv, what the one-line message must contain
         "times": (["shape-geodesic", good, good, "--times", "2"], "--times 2"),
+        "rtol": (["shape-geodesic", good, good, "--rtol", "-0.1"], "--rtol -0.1"),
         "max-steps": (["karcher", good, good, "--max-steps", "0"], "--max-steps 0"),
         "outer-steps": (["distances", good, good, "--outer-steps", "-1"], "--outer-steps -1"),
         "vf-degree": (["distances", good, good, "--vf-degree", "30"], "--vf-degree 30"),
@@ -455,8 +456,10 @@ def test_karcher_and_shape_geodesic_equal_the_library(tmp_path, capsys):
     np.testing.assert_allclose(np.load(pca_out / "pca.npz")["mode_paths"][0], path, atol=1e-8)
 
     out = tmp_path / "shape"
-    code = cli.main(["shape-geodesic", files[0], files[1], *SHAPE, "--out", str(out)])
+    argv = ["shape-geodesic", files[0], files[1], *SHAPE, "--rtol", "none", "--out", str(out)]
+    code = cli.main(argv)
     summary = json.loads(capsys.readouterr().out)
+    assert summary["levels"] is None and summary["settings"]["grid"] == [M, N]
     res = ej.shape_geodesic(fs[0], fs[1], METRIC, modulo="diff", options=SHAPE_OPTIONS)
     assert code == (0 if bool(res.converged) else cli.EXIT_NOT_CONVERGED)
     assert summary["distance"] == pytest.approx(float(res.distance), rel=1e-9)

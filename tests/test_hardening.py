@@ -158,7 +158,7 @@ def test_gradient_through_a_shape_solve_that_did_not_converge():
     """The convergence warning reads only concrete values: jax.grad goes through."""
     options = ej.ShapeOptions(
         degree=2, vf_degree=2, n_times=3, outer_steps=1, max_steps=3, init="none",
-        refinement=False, saddle_checks=0,
+        refinement=False, saddle_checks=0, rtol=None,
     )  # fmt: skip
 
     def distance(f2):

@@ -14,7 +14,8 @@ from elastic_jax._registration.shape import working_grid_of
 from .conftest import assert_area_bound
 
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
-OPTIONS = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+# One working grid unless a test asks for levels (rtol).
+OPTIONS = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5, rtol=None)
 
 
 def test_an_input_on_a_finer_grid_is_read_through_its_interpolant():
@@ -58,7 +59,6 @@ def test_the_default_working_grid_is_the_finer_input():
         ({"grid": 13}, "grid must hold grids"),
         ({"levels": ((25, 49), (13, 25))}, "from coarse to fine"),
         ({"levels": ()}, "from coarse to fine"),
-        ({"rtol": 0.03, "grid": (13, 25)}, "give one of the two"),
         ({"rtol": -1.0}, "rtol must be"),
     ],
 )
@@ -94,21 +94,22 @@ def test_spline_reads_make_the_chain_rule_meet_the_spheres_closed_form():
 
 
 def test_levels_resolve_the_concentric_spheres():
-    """Spheres of radii 1 and 2 (the second rotated, on a finer grid than the first):
-    the levels' distances approach the closed form sqrt(8 pi) (metric a = b = 1) and
-    stop where two agree within rtol; the estimate is their relative change."""
+    """Spheres of radii 1 and 2 (the second rotated, on a finer grid than the first) at
+    the default rtol and levels: the levels' distances approach the closed form
+    sqrt(8 pi) (metric a = b = 1) and stop where two agree within rtol (the second,
+    25 x 49); the estimate is their relative change."""
     f1 = shapes.sample(shapes.sphere, 13, 25, radius=1.0)
     f2 = shapes.sample(shapes.sphere, 25, 49, radius=2.0, rotation=shapes.random_rotation(3))
-    options = OPTIONS.replace(rtol=0.03, levels=((9, 17), (13, 25), (25, 49)))
+    options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)  # rtol 0.03, levels default
     with warnings.catch_warnings():
         warnings.simplefilter("error", ej.ConvergenceWarning)
         res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
     levels = res.levels
     d = np.asarray(levels.distances)
-    assert np.asarray(levels.grids).tolist() == [[9, 17], [13, 25]]  # met at the second
+    assert np.asarray(levels.grids).tolist() == [[13, 25], [25, 49]]  # met at the second
     np.testing.assert_allclose(levels.estimate, abs(d[1] - d[0]) / d[1], rtol=1e-12)
     assert float(levels.estimate) <= 0.03 and bool(res.converged)
-    assert res.result == ej.RESULTS.successful and res.path.shape[-2:] == (13, 25)
+    assert res.result == ej.RESULTS.successful and res.path.shape[-2:] == (25, 49)
     assert float(res.distance) == d[-1]
     closed = np.sqrt(8 * np.pi)
     assert abs(d[-1] - closed) < 0.03 * closed and d[0] < d[1] < closed  # from below
@@ -141,16 +142,36 @@ def test_levels_check_a_start_before_solving():
         ej.shape_geodesic(f, f, METRIC, options=options, start=(folded, jnp.eye(3)))
 
 
-@pytest.mark.parametrize("changes", [{"grid": (9, 17)}, {"rtol": 0.03}])
-def test_collections_refuse_another_working_grid_and_levels(changes):
+def test_collections_refuse_another_working_grid():
     f = jnp.stack([shapes.sample(shapes.sphere, 13, 25, radius=r) for r in (1.0, 2.0, 3.0)])
-    options = OPTIONS.replace(**changes)
-    with pytest.raises(ej.InputError, match="grid=None|rtol=None"):
+    options = OPTIONS.replace(grid=(9, 17))
+    with pytest.raises(ej.InputError, match="grid=None"):
         ej.distance_matrix(f, METRIC, options=options)
-    with pytest.raises(ej.InputError, match="grid=None|rtol=None"):
+    with pytest.raises(ej.InputError, match="grid=None"):
         ej.karcher_mean(f, METRIC, options=options)
-    with pytest.raises(ej.InputError, match="grid=None|rtol=None"):
+    with pytest.raises(ej.InputError, match="grid=None"):
         ej.fit_metric(f, [0, 0, 1], options=options)
+
+
+def test_levels_are_the_default_and_grid_or_tracers_mean_one_grid():
+    """The defaults resolve (rtol 0.03 by levels); grid= forces one working grid, and
+    under jax.jit levels (which compare concrete distances) are refused by name."""
+    import jax
+
+    assert ej.ShapeOptions().resolves and ej.ShapeOptions().rtol == 0.03
+    assert not ej.ShapeOptions(grid=(13, 25)).resolves
+    assert not ej.ShapeOptions(rtol=None).resolves
+    # Near-equal shapes (a distance under 5 % of the parametrized one) are resolved to
+    # that absolute size; others relative to their distance.
+    from elastic_jax._registration.shape import _change
+
+    assert _change([0.010, 0.012], parametrized=1.0) == pytest.approx(0.002 / 0.05)
+    assert _change([2.0, 2.1], parametrized=1.0) == pytest.approx(0.1 / 2.1)
+    assert np.isnan(_change([2.0], parametrized=1.0))
+    f = shapes.sample(shapes.sphere, 13, 25)
+    options = OPTIONS.replace(rtol=0.03)
+    with pytest.raises(ej.InputError, match=r"grid=\(m, n\), or rtol=None"):
+        jax.jit(lambda g: ej.shape_geodesic(f, g, METRIC, options=options).distance)(2.0 * f)
 
 
 def test_a_level_continues_the_registration_and_path_of_the_one_below():

@@ -18,7 +18,7 @@ METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 # One configuration for most tests, so that they share one compilation. vf_degree 8:
 # Diff steps of degree 5 cannot undo a composition of two degree-3 steps (stalled at
 # energy 0.107 against 0.0024).
-OPTIONS = ej.ShapeOptions(degree=5, vf_degree=8, n_times=7)
+OPTIONS = ej.ShapeOptions(degree=5, vf_degree=8, n_times=7, rtol=None)
 # A direction no grid symmetry favours, for the Moebius maps.
 DIRECTION = np.array([0.3, -0.5, 0.7]) / np.linalg.norm([0.3, -0.5, 0.7])
 
@@ -160,7 +160,7 @@ def test_self_recovery_on_cat1(phi):
     # surface than f wherever phi stretches, and the shared animals' poles are not
     # differentiable: 0.60 against d(cat1, cat2) = 1.51 here (docs/guides/
     # registration_notes.md); tests/test_levels.py holds the chain rule's version.
-    grid = {"differential": "grid", "interpolation": "bicubic"}
+    grid = {"differential": "grid", "interpolation": "bicubic", "rtol": None}
     points = ej.sphere_points(M, N)
     f, g = (ej.reparametrize(load_shape(name), points, "bicubic") for name in ("cat1", "cat2"))
     if phi.startswith("moebius"):
@@ -214,7 +214,7 @@ def test_refinement_on_the_cats(capsys):
     # refinement shows that, and no more: registration exploits no grid gap of its own.
     # Grid differences, as the parametrized geodesic's path_energy takes them (the chain
     # rule's refinement is tested on its own in tests/test_levels.py).
-    grid = {"differential": "grid", "interpolation": "bicubic"}
+    grid = {"differential": "grid", "interpolation": "bicubic", "rtol": None}
     points = ej.sphere_points(M, N)
     f1, f2 = (ej.reparametrize(load_shape(name), points, "bicubic") for name in ("cat1", "cat2"))
     res = _solve(f1, f2, **grid)
@@ -283,7 +283,7 @@ def test_shape_distance_is_below_the_parametrized_one_on_real_shapes(other):
 def test_vmap_over_targets_equals_a_loop():
     # At 13 x 25 in the configuration of tests/test_cli.py and tests/test_karcher.py, whose
     # single solves this shares (the batched program compiles on its own).
-    m, n, options = 13, 25, ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+    m, n, options = 13, 25, ej.ShapeOptions(degree=4, vf_degree=4, n_times=5, rtol=None)
     f1 = shapes.sample(shapes.bumpy, m, n)
     targets = jnp.stack(
         [shapes.sample(shapes.bumpy, m, n, rotation=shapes.random_rotation(k)) for k in (11, 2)]
@@ -401,7 +401,7 @@ def test_self_recovery_on_the_shared_shapes_at_their_grid(name):
     # f o phi sampled on f's own grid is their target, not the chain rule's (1.09 for
     # cat2 under the chain rule: a coarser surface, and the animals' poles are not
     # differentiable; docs/guides/registration_notes.md, section 10).
-    grid = {"differential": "grid", "interpolation": "bicubic"}
+    grid = {"differential": "grid", "interpolation": "bicubic", "rtol": None}
     f = jnp.asarray(load_shape(name))
     m, n = f.shape[-2:]
     rng = np.random.default_rng(sorted(_COMPANION).index(name))
@@ -524,7 +524,7 @@ def test_chain_differential_keeps_the_spheres_closed_form_and_identity():
 
 @pytest.mark.slow
 def test_a_given_identity_start_is_init_none():
-    m, n, options = 13, 25, ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+    m, n, options = 13, 25, ej.ShapeOptions(degree=4, vf_degree=4, n_times=5, rtol=None)
     f = shapes.sample(shapes.bumpy, m, n)
     moved = shapes.sample(shapes.bumpy, m, n, rotation=shapes.random_rotation(1))
     searched = ej.shape_geodesic(
@@ -542,7 +542,7 @@ def test_a_coarse_solve_starts_the_finer_grid():
     # Multiresolution in grid (paper section 5): f against f o h o phi_a solved at 13 x 25,
     # its gamma read at the 25 x 49 grid's points as the start there. The coarse gamma is
     # kept exactly at the points the grids share, and the fine solve recovers the map.
-    options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+    options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5, rtol=None)
     a, h = jnp.asarray([0.2, -0.1, 0.3]), shapes.random_rotation(1)
     grids = ((13, 25), (25, 49))
     f, moved = (
@@ -712,7 +712,7 @@ def test_fsaverage_pial_hemispheres_stay_below_their_parametrized_distance():
     left, right = (io.load_surface(folder / f"pial_{s}.gii.gz", 11, 19) for s in ("left", "right"))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
-        res = ej.shape_geodesic(left, right, METRIC, modulo="diff")
+        res = ej.shape_geodesic(left, right, METRIC, modulo="diff", rtol=None)
     assert float(res.distance) <= float(res.parametrized_distance) * (1.0 + 1e-12)
     assert float(res.distance) < 0.9 * float(res.parametrized_distance)
     assert_area_bound(res.distance, left, right, METRIC)

@@ -24,7 +24,7 @@ from .conftest import assert_area_bound, load_shape
 
 # test_shape's configuration, so that the registration compiles once (persistent cache).
 METRIC_SHAPE = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
-OPTIONS_SHAPE = ej.ShapeOptions(degree=5, vf_degree=8, n_times=7)
+OPTIONS_SHAPE = ej.ShapeOptions(degree=5, vf_degree=8, n_times=7, rtol=None)
 
 # The synthetic meshes here are symmetric (spheres, ellipsoids, tubes): their frame is the
 # input's, which test_mesh_frame.py tests with the warning it gives.

@@ -46,8 +46,10 @@ class Levels(NamedTuple):
         distances: ``(L,)`` each level's distance.
         seconds: ``(L,)`` each level's wall-clock time (its first call compiles).
         estimate: ``()`` the relative change of the distance between the last two
-            levels, abs(d_L - d_{L-1}) / d_L: the stated resolution of the answer (NaN with
-            one level).
+            levels, abs(d_L - d_{L-1}) / max(d_L, 0.05 p_L) with p_L the last level's
+            parametrized distance (near-equal shapes, whose distance is near zero, are
+            resolved to that absolute size): the stated resolution of the answer (NaN
+            with one level).
         rtol: ``()`` the tolerance asked for.
     """
 

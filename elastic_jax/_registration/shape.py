@@ -191,15 +191,22 @@ def shape_geodesic(
        (identity gamma and rotation), with ``RESULTS.not_registered`` when the gap
        exceeds outer_tol.
 
+    5. Levels (the default, ``options.rtol`` 0.03 with ``grid=None``): steps 2-4 on the
+       coarsest grid of ``options.levels``, then on each finer grid steps 3-4 continuing
+       the level below, until two successive distances agree within rtol (math §10);
+       ``res.levels`` records them. ``grid=(m, n)`` (or ``rtol=None``, the inputs'
+       grid) solves on one working grid instead.
+
     Each phase is one compiled program (five in all, see _solve_in_phases); under
     ``jax.vmap`` or a caller's ``jax.jit`` the whole solve is one program, vmappable
-    over f2.
+    over f2, on one working grid (give ``grid`` or ``rtol=None``: levels compare
+    concrete distances).
 
     Args:
         f1, f2: ``(3, m1, n1)`` and ``(3, m2, n2)`` immersions, each on a grid of its
             own: each stands for its interpolant (:ref:`math §10 <math-10>`), read at the
-            working grid's points (``options.grid``; by default the inputs' grid, or the
-            finer of two).
+            working grid's points (each level's; ``options.grid``; with ``rtol=None`` the
+            inputs' grid, or the finer of two).
             The result's path, gamma and f1_registered are on the working grid.
         metric: split metric coefficients.
         modulo: ``"diff"`` (reparametrizations) or ``"rigid"`` (also rotations; centers both).
@@ -232,7 +239,9 @@ def shape_geodesic(
         >>> from elastic_jax import shapes
         >>> f1 = shapes.sample(shapes.bumpy, 13, 25)
         >>> f2 = shapes.sample(shapes.bumpy, 13, 25, rotation=shapes.random_rotation(1))
-        >>> options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+        >>> # One working grid (grid=): without it the default rtol solves levels of
+        >>> # grids until two agree within 3 % (res.levels).
+        >>> options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5, grid=(13, 25))
         >>> metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
         >>> res = ej.shape_geodesic(f1, f2, metric, modulo="rigid", options=options)
         >>> bool(res.distance < 0.1 * res.parametrized_distance)
@@ -243,7 +252,7 @@ def shape_geodesic(
     f1, f2 = check_pair(f1, f2, same_grid=False)
     if symmetric:
         return _symmetric_solve(f1, f2, metric, modulo, cfg, start)
-    if cfg.rtol is not None:
+    if cfg.resolves:
         return _levels_solve(f1, f2, metric, modulo, cfg, start)
     result = _one_grid_solve(f1, f2, metric, modulo, cfg, start)
     _warn_unless_converged(result)
@@ -305,8 +314,9 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
     """
     if not is_concrete(f1, f2, metric):
         raise InputError(
-            "rtol refines the working grid until two levels agree: it needs concrete inputs, "
-            "not tracers (call it outside jax.jit and jax.vmap, or give grid=)"
+            "rtol (the default) refines the working grid until two levels agree: it needs "
+            "concrete inputs, not tracers; under jax.jit or jax.vmap give one working grid "
+            "(options grid=(m, n), or rtol=None for the inputs' grid)"
         )
     if start is not None:  # a start must be a registration on its own grid
         try:
@@ -343,19 +353,29 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
             distances.append(float(jax.block_until_ready(result.distance)))
             seconds.append(time.perf_counter() - begin)
             grids.append(grid)
-            if _change(distances) <= cfg.rtol and bool(result.converged):
+            change = _change(distances, result.parametrized_distance)
+            if change <= cfg.rtol and bool(result.converged):
                 break
     result = _with_levels(result, grids, distances, seconds, cfg.rtol)
     _warn_unless_converged(result, stacklevel=4)
     return result
 
 
-def _change(distances) -> float:
-    """The relative change of the last two levels' distances (NaN for one level)."""
+# A pair of near-equal shapes (a distance below this fraction of the pair's parametrized
+# distance) is resolved to that absolute size, not relative to its own distance: d(f, R f)
+# is zero in the continuum, and levels of a small number differ by more than 3 % of it
+# however well each is solved (the issue's target for such pairs is 0.05 d, absolute).
+_NEAR_EQUAL = 0.05
+
+
+def _change(distances, parametrized=0.0) -> float:
+    """The change of the last two levels' distances relative to the last, or to
+    _NEAR_EQUAL times the parametrized distance when that is larger (NaN for one level)."""
     if len(distances) < 2:
         return np.nan
     d, before = float(distances[-1]), float(distances[-2])
-    return abs(d - before) / max(d, np.finfo(np.float64).tiny)
+    scale = max(d, _NEAR_EQUAL * float(parametrized), np.finfo(np.float64).tiny)
+    return abs(d - before) / scale
 
 
 def _with_levels(result, grids, distances, seconds, rtol) -> ShapeGeodesicResult:
@@ -363,7 +383,7 @@ def _with_levels(result, grids, distances, seconds, rtol) -> ShapeGeodesicResult
     converged and the last change met rtol, ``RESULTS.not_resolved`` when only the
     tolerance was missed."""
     dtype = result.distance.dtype
-    estimate = _change(distances)
+    estimate = _change(distances, result.parametrized_distance)
     met = bool(estimate <= rtol)
     levels = Levels(
         grids=jnp.asarray(grids, jnp.int32),

@@ -290,11 +290,9 @@ def check_collection(shapes, options: ShapeOptions | None, name="shapes"):
             f"options.grid={options.grid} differs from the collection's grid {grid}: resample "
             "the shapes to the working grid (elastic_jax.resample), or leave grid=None"
         )
-    if options.rtol is not None:
-        raise InputError(
-            "options.rtol (levels of working grids) is for single shape_geodesic calls; "
-            "a collection is solved on its own grid: leave rtol=None"
-        )
+    # A collection is solved on its own grid (its members' results live there), not by
+    # levels: rtol is for single shape_geodesic calls.
+    options = options.replace(rtol=None)
     if options.tol is None:
         # Resolved here, as the solves would: one static key for every call, and a
         # fingerprint that names the tolerance used.

@@ -91,14 +91,16 @@ def log(
         metric: the split metric coefficients.
         modulo: ``"none"``, ``"diff"`` or ``"rigid"``.
         options: :class:`ShapeOptions` (degree, n_times, scheme, ... and the registration);
-            keyword changes apply on top (``degree=5``).
+            keyword changes apply on top (``degree=5``). Solved on the inputs' grid (or
+            ``grid``): ``rtol``'s levels are not used.
 
     Returns:
         :class:`LogResult`.
     """
 
     check_choice("modulo", modulo, ("none", "diff", "rigid"))
-    options = (ShapeOptions() if options is None else options).replace(**changes)
+    # On the inputs' grid, not by levels: the log's velocity and frames live there.
+    options = (ShapeOptions() if options is None else options).replace(**{**changes, "rtol": None})
     check_scheme(options.scheme)
     f1, f2 = check_pair(f1, f2)
     solve_frames = None

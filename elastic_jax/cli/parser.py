@@ -108,6 +108,16 @@ def _common(
     parser.add_argument("--max-steps", type=int, default=max_steps, help=max_steps_help)
 
 
+def _rtol(text: str) -> float | None:
+    """--rtol's value: a number, or 'none' (one working grid)."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or 'none'; got {text!r}") from None
+
+
 def _shape_options(
     parser: argparse.ArgumentParser,
     *,
@@ -250,6 +260,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("source", help=SURFACE_FILE)
     p.add_argument("target", help=SURFACE_FILE)
     _shape_options(p, modulo="diff")
+    p.add_argument(
+        "--rtol",
+        type=_rtol,
+        default=SHAPE_DEFAULTS.rtol,
+        help="a resolved distance: working grids 13 x 25 ... 97 x 193 until two levels' "
+        "distances agree within this; 'none': one working grid, the inputs'",
+    )
 
     p = command(
         "karcher",

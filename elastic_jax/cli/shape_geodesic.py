@@ -28,13 +28,31 @@ def run_shape_geodesic(args, progress: Progress) -> dict:
     files = [args.source, args.target]
     (f1, f2), metric, options = prepare(args, progress, files, shape_geodesic_options)
     m, n = f1.shape[1:]
+    where = (
+        "on working grids "
+        + ", ".join(f"{a} x {b}" for a, b in options.levels)
+        + f" until two levels agree within {options.rtol:g}"
+        if options.resolves
+        else f"on {m} x {n}"
+    )
     progress(
-        f"registering and solving modulo {args.modulo} on {m} x {n}, "
-        f"at most {options.outer_steps} registration rounds (the first call compiles)"
+        f"registering and solving modulo {args.modulo} {where}, "
+        f"at most {options.outer_steps} registration rounds each (the first call compiles)"
     )
     start = time.perf_counter()
     res = jax.block_until_ready(shape_geodesic(f1, f2, metric, modulo=args.modulo, options=options))
     seconds = time.perf_counter() - start
+    levels = None
+    if res.levels is not None:
+        levels = {
+            "grids": np.asarray(res.levels.grids).tolist(),
+            "distances": json_floats(res.levels.distances),
+            "seconds": json_floats(res.levels.seconds),
+            "estimate": json_float(res.levels.estimate),
+            "rtol": float(res.levels.rtol),
+        }
+        for (a, b), d in zip(levels["grids"], levels["distances"], strict=True):
+            progress(f"level {a} x {b}: distance {d:.6g}")
     progress(
         f"shape distance {float(res.distance):.6g} "
         f"(parametrized {float(res.parametrized_distance):.6g}) "
@@ -44,7 +62,9 @@ def run_shape_geodesic(args, progress: Progress) -> dict:
         "metric": list(args.metric),
         "modulo": args.modulo,
         **options.as_dict(),
-        "grid": [m, n],  # the inputs' grid, the working grid (ShapeOptions.grid is None)
+        "input_grid": [m, n],
+        # The working grid the path is on: the finest level's, or the inputs'.
+        "grid": list(res.path.shape[-2:]),
         "dtype": args.dtype,
     }
     files = write_path(args.out, np.asarray(res.path), settings, progress)
@@ -72,6 +92,7 @@ def run_shape_geodesic(args, progress: Progress) -> dict:
         "energy": float(res.energy),
         "energy_history": json_floats(res.energy_history),
         "rounds": int(res.rounds),
+        "levels": levels,
         **result_fields(res),
         "grad_norm": float(res.grad_norm),
         "refinement": {
