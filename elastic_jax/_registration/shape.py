@@ -267,6 +267,9 @@ def _one_grid_solve(f1, f2, metric, modulo, cfg, start, carry=None) -> ShapeGeod
     m, n = working_grid_of(cfg, f1, f2)
     check_grid_options(cfg, m, n)
     dtype = f1.dtype
+    # One static record per grid and settings, however the grid was asked for (grid=,
+    # the inputs' grid, a level): one compiled program for each.
+    cfg = cfg.replace(grid=(m, n), rtol=None)
     if cfg.tol is None:
         cfg = cfg.replace(tol=default_tol(dtype))
     rigid = modulo == "rigid"
