@@ -128,6 +128,7 @@ def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, caps
     cases = {  # argv, what the one-line message must contain
         "times": (["shape-geodesic", good, good, "--times", "2"], "--times 2"),
         "rtol": (["shape-geodesic", good, good, "--rtol", "-0.1"], "--rtol -0.1"),
+        "rtol text": (["shape-geodesic", good, good, "--rtol", "abc"], "--rtol abc"),
         "max-steps": (["karcher", good, good, "--max-steps", "0"], "--max-steps 0"),
         "outer-steps": (["distances", good, good, "--outer-steps", "-1"], "--outer-steps -1"),
         "vf-degree": (["distances", good, good, "--vf-degree", "30"], "--vf-degree 30"),
