@@ -18,6 +18,9 @@ solver (central scheme, 2 outer steps): Karcher step map 17.7 s, loop 19.8 s, vm
 Run: python benchmarks/bench_karcher.py [--shapes 8] [--matrix-shapes 16]
      [--strategies vmap,map,loop] [--matrix-strategy map] [--dtype float64|float32]
      (--strategies "" skips them)
+     python benchmarks/bench_karcher.py --resolved [--deformations 12] [--medoid]
+     [--synthetic]: one mean at the package's defaults (resolved), its SSD history,
+     levels, time, and with --medoid every member's SSD as the centre.
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ from elastic_jax import shapes
 
 k, task, strategy = {k}, {task!r}, {strategy!r}
 m, n = 25, 49
-options = ej.ShapeOptions(degree=5, vf_degree=5, n_times=7)
+options = ej.ShapeOptions(degree=5, vf_degree=5, n_times=7, rtol=None)
 coll = []
 for name in ("cat1", "cat2", "horse0", "hand4"):
     p = DATA / f"{{name}}_50x99.npz"
@@ -78,8 +81,102 @@ print(json.dumps({{"first_s": first, "repeat_s": again,
 """
 
 
+def resolved(args, emit, environment) -> None:
+    """--resolved: one Karcher mean at the package's defaults (resolved: levels, then
+    continuations on the grid they needed), modulo rigid, on the shared shapes (with
+    --deformations more: each a shared shape under a random stretch, rotation and Moebius
+    map of its parameter sphere), or on three synthetic shapes with --synthetic. With
+    --medoid every member's SSD as the centre, from resolved pairwise shape geodesics
+    (each pair once, the earlier member reparametrized)."""
+    import time
+    import warnings
+
+    import jax
+
+    jax.config.update("jax_enable_x64", args.dtype == "float64")
+    import numpy as np
+
+    import elastic_jax as ej
+    from elastic_jax import shapes
+
+    from _common import DATA
+
+    rng = np.random.default_rng(0)
+    if args.synthetic:
+        m, n = 13, 25
+        coll = [
+            shapes.sample(shapes.bumpy, m, n),
+            shapes.sample(shapes.ellipsoid, m, n, axes=(1.1, 0.9, 0.7)),
+            shapes.sample(shapes.bumpy, m, n, scale=1.3, rotation=shapes.random_rotation(3)),
+        ]
+        options = ej.ShapeOptions(degree=3, vf_degree=3, n_times=5)
+    else:
+        paths = [DATA / f"{name}_50x99.npz" for name in ("cat1", "cat2", "horse0", "hand4")]
+        if not all(p.exists() for p in paths):
+            print("bench_karcher --resolved: ../shared/data is absent", file=sys.stderr)
+            return
+        coll = [np.load(p)["f"] for p in paths]
+        for i in range(args.deformations):
+            base = coll[i % 4]
+            m, n = base.shape[-2:]
+            axes = shapes.random_rotation(int(rng.integers(1 << 30)))
+            stretch = axes @ np.diag(np.exp(rng.uniform(-0.1, 0.1, 3))) @ axes.T
+            a = rng.normal(size=3)
+            a = rng.uniform(0.0, 0.3) * a / np.linalg.norm(a)
+            gamma = ej.moebius(ej.sphere_points(m, n), a)
+            turn = shapes.random_rotation(int(rng.integers(1 << 30)))
+            f = np.asarray(ej.reparametrize(base, gamma, method="spline"))
+            coll.append(np.einsum("ij,jk,kmn->imn", turn, stretch, f))
+        options = ej.ShapeOptions()
+    coll = np.stack([np.asarray(f, args.dtype) for f in coll])
+    metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+    warnings.simplefilter("ignore", ej.ConvergenceWarning)
+    start = time.perf_counter()
+    res = ej.karcher_mean(coll, metric, modulo="rigid", options=options)
+    seconds = time.perf_counter() - start
+    levels = res.level_distances.tolist()  # NaN (past a shape's last level) as null
+    record = {
+        "benchmark": "karcher_resolved",
+        "settings": {
+            "shapes": len(coll),
+            "synthetic": args.synthetic,
+            "deformations": 0 if args.synthetic else args.deformations,
+            "metric": [1.0, 1.0, 0.1, 0.0],
+            "modulo": "rigid",
+            "dtype": args.dtype,
+            "options": options.as_dict(),
+        },
+        "mean_grid": list(res.mean.shape[-2:]),
+        "steps": int(res.num_steps),
+        "solves": int(res.num_solves),
+        "seconds": seconds,
+        "sum_sq_history": res.history[:, 0].tolist(),
+        "mean_velocity_history": res.history[:, 1].tolist(),
+        "level_distances": [[x if x == x else None for x in row] for row in levels],
+        "distances": np.asarray(res.distances).tolist(),
+        "geodesics_converged": np.asarray(res.geodesics_converged).tolist(),
+        "converged": bool(res.converged),
+        "result": ej.RESULTS.name(res.result),
+    }
+    if args.medoid:
+        k = len(coll)
+        d = np.zeros((k, k))
+        for i in range(k):
+            for j in range(i + 1, k):
+                pair = ej.shape_geodesic(coll[i], coll[j], metric, modulo="rigid", options=options)
+                d[i, j] = d[j, i] = float(pair.distance)
+        record["member_sum_sq"] = (d**2).sum(axis=1).tolist()
+    emit({**record, "environment": environment()})
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--resolved", action="store_true", help="one resolved mean (defaults) instead"
+    )
+    parser.add_argument("--synthetic", action="store_true", help="--resolved on 3 small shapes")
+    parser.add_argument("--deformations", type=int, default=0, help="--resolved: more shapes")
+    parser.add_argument("--medoid", action="store_true", help="--resolved: members as centres")
     parser.add_argument("--shapes", type=int, default=8)
     parser.add_argument("--matrix-shapes", type=int, default=16)
     parser.add_argument("--strategies", default="vmap,map,loop")
@@ -92,6 +189,9 @@ def main() -> None:
     sys.path.insert(0, bench_dir)
     from _common import emit, environment
 
+    if args.resolved:
+        resolved(args, emit, environment)
+        return
     env = environment()
     jobs = [("karcher", s, args.shapes) for s in args.strategies.split(",") if s]
     if args.matrix_shapes:

@@ -300,9 +300,28 @@ def _one_grid_solve(f1, f2, metric, modulo, cfg, start, carry=None) -> ShapeGeod
         # The rounds ended above the pair as given: carry the pair as given (and its best
         # rotation) through the rounds as well, and keep the lower of the two.
         again = solve(given_only_starts(m, n, dtype))
-        if float(again.energy) < float(result.energy):
+        # On a tie (identical inputs: both at the given pair's energy) the solve whose
+        # rounds reached it, with their status, not not_registered.
+        if float(again.energy) <= float(result.energy):
             result = again._replace(num_steps=again.num_steps + result.num_steps)
     return result
+
+
+def continued_geodesic(f1, f2, metric, modulo, cfg, gamma, rotation, coefficients):
+    """shape_geodesic on ``cfg``'s one working grid (``cfg.grid``, else the inputs'),
+    continuing a registration and path: the registration rounds with the whole path start
+    from gamma ``(3, p, q)`` (read at the working grid's points when on another grid), R
+    ``(3, 3)`` and the path's coefficients ``(N - 2, L)`` in f1's and f2's units (a
+    result's ``coefficients``); no start search and no coarse rounds (continuation_phase).
+
+    A solve that follows the basin it starts in: its distance is continuous in f1 and f2
+    where the rounds' local minimum is (the resolved Karcher mean's steps; a level above
+    the first). Traceable (jit, vmap); no ConvergenceWarning (the result's status says).
+    """
+    m, n = working_grid_of(cfg, f1, f2)
+    cfg = cfg.replace(grid=(m, n), rtol=None)
+    carry = (gamma, rotation, coefficients)
+    return _one_grid_solve(f1, f2, metric, modulo, cfg, None, carry=carry)
 
 
 def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
@@ -337,6 +356,7 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
             raise InputError(f"levels: the {m} x {n} level: {error}") from None
     grids, distances, seconds = [], [], []
     result = None
+    noise = _noise_distance(f1, f2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
         for grid in cfg.levels:
@@ -346,7 +366,7 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
             # coarser gamma's interpolant can fold between its points (the cats at
             # 13 x 25 read at 25 x 49, chain rule), and so can a fine start read on a
             # coarse level: that level searches its own start.
-            carried = _carried(start if result is None else result, grid, f1.dtype, modulo)
+            carried = registration_at(start if result is None else result, grid, f1.dtype, modulo)
             level = cfg.replace(rtol=None, grid=grid)
             if result is not None and carried is not None:
                 carry = (*carried, result.coefficients)
@@ -356,10 +376,10 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
             distances.append(float(jax.block_until_ready(result.distance)))
             seconds.append(time.perf_counter() - begin)
             grids.append(grid)
-            change = _change(distances, result.parametrized_distance)
+            change = _change(distances, result.parametrized_distance, noise)
             if change <= cfg.rtol and bool(result.converged):
                 break
-    result = _with_levels(result, grids, distances, seconds, cfg.rtol)
+    result = _with_levels(result, grids, distances, seconds, cfg.rtol, noise)
     _warn_unless_converged(result, stacklevel=4)
     return result
 
@@ -371,22 +391,35 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
 _NEAR_EQUAL = 0.05
 
 
-def _change(distances, parametrized=0.0) -> float:
-    """The change of the last two levels' distances relative to the last, or to
-    _NEAR_EQUAL times the parametrized distance when that is larger (NaN for one level)."""
+def _noise_distance(f1, f2) -> float:
+    """The distance whose energy is the rounding level at which the final phase compares
+    the registered and the given pair (sqrt(eps) in the solve's unit-size units): two
+    levels' distances that differ by less are the same minimum. Identical inputs end at
+    0 on one level and at up to this on the next, from the carried identity's
+    interpolation (a sphere of radius 2 at 13 x 25: 1e-14, 8e-15, 3.4e-5, 3.1e-4 up to
+    97 x 193, all within 4.9e-4)."""
+    units, _ = in_units(f1, f2)
+    eps = float(np.finfo(np.dtype(f1.dtype)).eps)
+    return eps**0.25 * float(units.scale)
+
+
+def _change(distances, parametrized=0.0, noise=0.0) -> float:
+    """The change of the last two levels' distances, less ``noise`` (_noise_distance),
+    relative to the last, or to _NEAR_EQUAL times the parametrized distance when that is
+    larger (NaN for one level)."""
     if len(distances) < 2:
         return np.nan
     d, before = float(distances[-1]), float(distances[-2])
     scale = max(d, _NEAR_EQUAL * float(parametrized), np.finfo(np.float64).tiny)
-    return abs(d - before) / scale
+    return max(abs(d - before) - noise, 0.0) / scale
 
 
-def _with_levels(result, grids, distances, seconds, rtol) -> ShapeGeodesicResult:
+def _with_levels(result, grids, distances, seconds, rtol, noise=0.0) -> ShapeGeodesicResult:
     """``result`` (the finest level's) with its :class:`Levels` record; converged when it
     converged and the last change met rtol, ``RESULTS.not_resolved`` when only the
     tolerance was missed."""
     dtype = result.distance.dtype
-    estimate = _change(distances, result.parametrized_distance)
+    estimate = _change(distances, result.parametrized_distance, noise)
     met = bool(estimate <= rtol)
     levels = Levels(
         grids=jnp.asarray(grids, jnp.int32),
@@ -403,7 +436,7 @@ def _with_levels(result, grids, distances, seconds, rtol) -> ShapeGeodesicResult
     )
 
 
-def _carried(start, grid, dtype, modulo):
+def registration_at(start, grid, dtype, modulo):
     """A registration (a result, or gamma and R; or None) read at ``grid``'s points as
     (gamma, R), or None where it is not a diffeomorphism there (given_start's checks)."""
     if start is None:
@@ -449,7 +482,8 @@ def _symmetric_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
                     distances = np.asarray(levels.distances).tolist()[:-1] + [float(again.distance)]
                     seconds = np.asarray(levels.seconds).tolist()
                     seconds[-1] += time.perf_counter() - begin
-                    again = _with_levels(again, levels.grids, distances, seconds, cfg.rtol)
+                    noise = _noise_distance(f1, f2)
+                    again = _with_levels(again, levels.grids, distances, seconds, cfg.rtol, noise)
                 if float(again.distance) < float(best.distance):
                     best = again
     _warn_unless_converged(best)

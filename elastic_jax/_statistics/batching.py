@@ -21,7 +21,12 @@ from .._geometry.grid import sphere_points
 from .._geometry.validation import as_surface
 from .._options import ShapeOptions, check_choice, check_int
 from .._registration.records import turned_back
-from .._registration.shape import check_grid_options, resolve_options, shape_geodesic
+from .._registration.shape import (
+    check_grid_options,
+    continued_geodesic,
+    resolve_options,
+    shape_geodesic,
+)
 from .._results import RESULTS
 from .._runtime.cache import solver_jit
 
@@ -56,19 +61,26 @@ def initial_velocity(path: Float[ArrayLike, "N 3 m n"]) -> Float[Array, "3 m n"]
 
 
 def _one_geodesic(mean, shape, metric, modulo, options, start=None):
-    """Distance, registered shape, initial velocity at the mean, status and registration
-    (gamma, R) for one shape.
+    """Distance, registered shape, initial velocity at the mean, status, registration
+    (gamma, R), resolution_limited flag and the path's coefficients, for one shape.
 
     Every geodesic runs from the shape to the mean, as shape_geodesic must (it
     reparametrizes its first surface and rotates its second), also for modulo="none", so
     that a one-sided scheme ("forward") treats the mean alike for every modulo.
 
-    ``start`` (gamma, R): a second solve whose registration rounds start there (the
-    shape's registration at the previous mean) instead of the start search; the lower of
-    the two distances is kept. The search alone may land in another basin at a mean
-    moved a little and make the sum of squared distances jump; the warm solve follows its
-    basin continuously, so the sum is continuous in the mean, while the search still
-    finds a lower basin when there is one.
+    ``start``:
+
+    - None: shape_geodesic's start search.
+    - (gamma, R): a second solve whose registration rounds start there (the shape's
+      registration at the previous mean) instead of the start search; the lower of the
+      two distances is kept (``warm_start``). The search alone may land in another basin
+      at a mean moved a little and make the sum of squared distances jump; the warm
+      solve follows its basin, while the search still finds a lower basin when there
+      is one.
+    - (gamma, R, C): a pure continuation (the resolved Karcher mean): one solve whose
+      registration rounds with the whole path start from that registration and path
+      (no start search, no coarse rounds; :func:`continued_geodesic`). The distance is
+      then a continuous function of the mean: no jump to another basin.
     """
     if modulo == "none":
         res = geodesic(shape, mean, metric, **options.geodesic_kwargs())
@@ -77,8 +89,11 @@ def _one_geodesic(mean, shape, metric, modulo, options, start=None):
         back = res.path
         limited = jnp.zeros((), bool)
     else:
-        res = shape_geodesic(shape, mean, metric, modulo=modulo, options=options)
-        if start is not None:
+        if start is not None and len(start) == 3:
+            res = continued_geodesic(shape, mean, metric, modulo, options, *start)
+        else:
+            res = shape_geodesic(shape, mean, metric, modulo=modulo, options=options)
+        if start is not None and len(start) == 2:
             warm = shape_geodesic(shape, mean, metric, modulo=modulo, options=options, start=start)
             lower = warm.distance < res.distance
             res = jax.tree_util.tree_map(lambda a, b: jnp.where(lower, a, b), warm, res)
@@ -86,11 +101,21 @@ def _one_geodesic(mean, shape, metric, modulo, options, start=None):
         back = turned_back(res, mean)
         limited = res.result == RESULTS.resolution_limited
     velocity = initial_velocity(back[::-1])
-    return res.distance, back[0], velocity, res.converged, gamma, rotation, limited
+    return (
+        res.distance,
+        back[0],
+        velocity,
+        res.converged,
+        gamma,
+        rotation,
+        limited,
+        res.coefficients,
+    )
 
 
 def _one_item(mean, item, metric, modulo, options):
-    """:func:`_one_geodesic` for a batch item: a shape, or (shape, gamma, R) to warm-start."""
+    """:func:`_one_geodesic` for a batch item: a shape, or (shape, gamma, R) to warm-start,
+    or (shape, gamma, R, C) to continue."""
     if isinstance(item, tuple):
         return _one_geodesic(mean, item[0], metric, modulo, options, item[1:])
     return _one_geodesic(mean, item, metric, modulo, options)
@@ -115,7 +140,11 @@ def _registered_pair(a, b, metric, modulo, options, start=None):
     :func:`elastic_jax.fit_metric` holds when it differentiates the distance in the metric.
 
     modulo="none": the geodesic from the path coefficients C (gamma and R are the identity).
-    Otherwise: shape_geodesic, from the registration (gamma, R) instead of the start search.
+    Otherwise: shape_geodesic's start search, or with ``start`` a pure continuation of
+    that registration and path (:func:`continued_geodesic`: no start search and no coarse
+    rounds). The coarse rounds re-register on the L2 mismatch and leave the basin; with
+    them the re-solved distances at a nearby metric moved by more than a fit's step
+    gains, and the animals' fit stalled after 6 steps.
     """
     if modulo == "none":
         init = None if start is None else start[2]
@@ -123,8 +152,10 @@ def _registered_pair(a, b, metric, modulo, options, start=None):
         m, n = a.shape[-2:]
         gamma, rotation = sphere_points(m, n, a.dtype), jnp.eye(3, dtype=a.dtype)
     else:
-        warm = None if start is None else (start[0], start[1])
-        res = shape_geodesic(a, b, metric, modulo=modulo, options=options, start=warm)
+        if start is None:
+            res = shape_geodesic(a, b, metric, modulo=modulo, options=options)
+        else:
+            res = continued_geodesic(a, b, metric, modulo, options, *start)
         gamma, rotation = res.gamma, res.rotation
     code = jnp.asarray(res.result._value, jnp.int32)
     steps = jnp.asarray(res.num_steps, jnp.int32)
@@ -135,7 +166,8 @@ def _registered_pair(a, b, metric, modulo, options, start=None):
 # (a frozen ShapeOptions) a static key, so consecutive Karcher steps reuse one compilation.
 @functools.partial(solver_jit, static_argnames=("modulo", "options", "mode"))
 def _velocities_batch(mean, batch, metric, *, modulo, options, mode):
-    """batch: shapes ``(b, 3, m, n)``, or (shapes, gammas, rotations) for warm starts."""
+    """batch: shapes ``(b, 3, m, n)``, or (shapes, gammas, rotations) for warm starts, or
+    (shapes, gammas, rotations, coefficients) for continuations."""
 
     def one(item):
         return _one_item(mean, item, metric, modulo, options)
@@ -199,8 +231,9 @@ def velocity_chunk(mean, chunk, metric, modulo, options, strategy, size, starts=
     """The geodesics from ``chunk`` (b, 3, m, n) to ``mean``: the _Solved fields.
 
     starts: None, or (gammas (b, 3, m, n), rotations (b, 3, 3)), each shape's registration
-    at the previous mean: every shape is then solved twice and the lower kept
-    (:func:`_one_geodesic`)."""
+    at the previous mean: every shape is then solved twice and the lower kept; or
+    (gammas, rotations, coefficients (b, N - 2, L)): every shape's solve continues its
+    registration and path at the previous mean (:func:`_one_geodesic`)."""
     batch = chunk if starts is None or modulo == "none" else (chunk, *starts)
 
     def batch_call(batch, mode):
@@ -275,8 +308,13 @@ def check_batch(modulo: str, strategy: str, batch_size) -> str:
     return default_strategy() if strategy == "auto" else strategy
 
 
-def check_collection(shapes, options: ShapeOptions | None, name="shapes"):
-    """The collection ``(K, 3, m, n)`` and its options, checked on its grid, tol resolved."""
+def check_collection(shapes, options: ShapeOptions | None, name="shapes", levels=False):
+    """The collection ``(K, 3, m, n)`` and its options, checked on its grid, tol resolved.
+
+    ``levels``: keep ``options.rtol`` (a caller that resolves its working grid by levels,
+    :func:`elastic_jax.karcher_mean`); otherwise rtol is dropped: the collection is
+    solved on its own grid.
+    """
     shapes = as_surface(shapes, name)
     if shapes.ndim != 4 or shapes.shape[0] < 2:
         raise InputError(f"{name} must have shape (K, 3, m, n) with K >= 2; got {shapes.shape}")
@@ -290,9 +328,10 @@ def check_collection(shapes, options: ShapeOptions | None, name="shapes"):
             f"options.grid={options.grid} differs from the collection's grid {grid}: resample "
             "the shapes to the working grid (elastic_jax.resample), or leave grid=None"
         )
-    # A collection is solved on its own grid (its members' results live there), not by
-    # levels: rtol is for single shape_geodesic calls.
-    options = options.replace(rtol=None)
+    if not levels:
+        # Solved on the collection's own grid (its members' results live there), not
+        # by levels.
+        options = options.replace(rtol=None)
     if options.tol is None:
         # Resolved here, as the solves would: one static key for every call, and a
         # fingerprint that names the tolerance used.

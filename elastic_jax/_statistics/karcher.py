@@ -33,6 +33,8 @@ from .._geometry.reparam import reparametrize_unchecked
 from .._geometry.srnf import center_unchecked
 from .._geometry.validation import as_surface
 from .._options import ShapeOptions, check_int, check_positive
+from .._registration.problem import on_grid
+from .._registration.shape import registration_at, shape_geodesic
 from .._results import RESULTS, record_repr
 from .._runtime.atomic import save_npz_atomic
 from .batching import (
@@ -93,6 +95,11 @@ class KarcherResult(NamedTuple):
             converged), ``line_search_failed``, ``resolution_limited`` (the line search
             failed while some geodesics at the mean are resolution_limited),
             ``max_steps_reached`` or ``nonfinite``; ``RESULTS.name(result)`` is its name.
+        level_distances: ``(K, L)`` for a resolved mean (``options.rtol``): each shape's
+            distance to the starting mean on each grid of ``options.levels`` (NaN on the
+            grids past the one where its levels agreed within rtol); the mean, the
+            registered shapes and the velocities are on the finest grid any shape needed.
+            None on one grid.
     """
 
     mean: Array
@@ -105,6 +112,7 @@ class KarcherResult(NamedTuple):
     num_steps: int
     num_solves: int
     result: RESULTS
+    level_distances: np.ndarray | None = None
 
     __repr__ = record_repr
 
@@ -124,6 +132,7 @@ class _Solved(NamedTuple):
     gammas: Array  # each shape's reparametrization onto the mean (its warm start next)
     rotations: Array
     limited: Array  # each solve ended resolution_limited (shape_geodesic's result)
+    coefficients: Array  # each path's coefficients (a continuation's start next)
 
 
 @functools.partial(jax.jit, static_argnames=("interpolation", "rigid"))
@@ -292,6 +301,65 @@ class _KarcherIteration(NamedTuple):
         )
 
 
+def _resolved_start(shapes, mean, metric, modulo, options: ShapeOptions, saved=None, keep=None):
+    """Step 0 of a resolved mean: every shape's distance to the starting mean by levels
+    (shape_geodesic with ``options.rtol``, math §10), and the working grid the mean is
+    then solved on, the finest grid any shape needed.
+
+    Returns the starting mean read there (its interpolant at that grid's points, as the
+    solves read it), the options of that one grid, each shape's registration and path
+    there (gamma, R, C: the first continuations' starts) and the ``(K, L)`` level
+    distances. A registration from a coarser level whose interpolant folds at that grid
+    is replaced by a search there. ``saved``: the shapes finished before (a checkpoint's
+    ``first_*`` arrays); ``keep(arrays)`` is called after each new one with all so far.
+    """
+    finished = {} if saved is None else {k: v for k, v in saved.items() if k.startswith("first_")}
+    for k, shape in enumerate(shapes):
+        if f"first_levels_{k}" in finished:
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            r = shape_geodesic(shape, mean, metric, modulo=modulo, options=options)
+        row = np.full(len(options.levels), np.nan)
+        grids = np.asarray(r.levels.grids).tolist()
+        for g, d in zip(grids, np.asarray(r.levels.distances).tolist(), strict=True):
+            row[options.levels.index(tuple(g))] = d
+        finished.update(
+            {
+                f"first_gamma_{k}": np.asarray(r.gamma),
+                f"first_rotation_{k}": np.asarray(r.rotation),
+                f"first_coefficients_{k}": np.asarray(r.coefficients),
+                f"first_levels_{k}": row,
+            }
+        )
+        if keep is not None:
+            keep(finished)
+    count = len(shapes)
+    grid = max(
+        (finished[f"first_gamma_{k}"].shape[-2:] for k in range(count)),
+        key=lambda g: g[0] * g[1],
+    )
+    grid = (int(grid[0]), int(grid[1]))
+    working = options.replace(grid=grid, rtol=None)
+    at = on_grid(mean, sphere_points(*grid, mean.dtype), options.interpolation)
+    if modulo == "rigid":
+        at = center_unchecked(at)
+    starts = []
+    for k, shape in enumerate(shapes):
+        gamma, rotation = finished[f"first_gamma_{k}"], finished[f"first_rotation_{k}"]
+        coefficients = finished[f"first_coefficients_{k}"]
+        carried = registration_at((gamma, rotation), grid, mean.dtype, modulo)
+        if carried is None:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", ConvergenceWarning)
+                r = shape_geodesic(shape, at, metric, modulo=modulo, options=working)
+            carried, coefficients = (r.gamma, r.rotation), r.coefficients
+        starts.append((*carried, jnp.asarray(coefficients, mean.dtype)))
+    stacked = tuple(jnp.stack(parts) for parts in zip(*starts, strict=True))
+    distances = np.stack([finished[f"first_levels_{k}"] for k in range(count)])
+    return at, working, stacked, distances
+
+
 def karcher_mean(
     shapes: Float[ArrayLike, "K 3 m n"],
     metric: SplitMetric,
@@ -336,6 +404,21 @@ def karcher_mean(
     end with a lower SSD (2.17540 against 2.17626) whose mean velocity stalls at 0.5 % of
     its first norm. Hence not the default.
 
+    Resolved (the default: ``options.rtol`` given, ``grid`` None; modulo "rigid" or
+    "diff"): the first geodesics, from each shape to the starting mean, are solved by
+    levels of working grids until two agree within rtol (``shape_geodesic``,
+    :ref:`math §10 <math-10>`); the mean is then read on the finest grid any shape
+    needed (its interpolant at that grid's points) and stays there, and every later solve
+    continues the shape's registration and path at the previous mean (no start search,
+    no coarse rounds; ``continued_geodesic``). The shapes themselves keep their grid: each
+    stands for its interpolant. The SSD is then a continuous function of the mean (each
+    registration follows its basin), which is what a line search needs; with a search
+    per solve it jumps between basins (cat1, cat2, horse0 and hand4 stopped
+    ``line_search_failed`` after one step at 25 x 49). The result's mean, registered
+    shapes and velocities are on that grid; ``level_distances`` records the levels.
+    ``rtol=None`` (or ``grid`` equal to the shapes' grid) solves on the shapes' grid,
+    a start search per solve, as before; modulo "none" always does.
+
     Stops converged when the RMS distance is at most sqrt(eps) x the mean's size
     sqrt(G_mu(c, c)), c the centered mean (the distance to a dilation (1 + t) mu is about
     t times it): the shapes are one orbit ("distances_at_rounding", at step 0 for copies
@@ -355,7 +438,8 @@ def karcher_mean(
         modulo: ``"rigid"``, ``"diff"`` (:func:`shape_geodesic`) or ``"none"``
             (:func:`geodesic` with the options' degree, n_times, solver, max_steps, tol
             and scheme).
-        options: :class:`ShapeOptions` of the inner solves (its defaults when None).
+        options: :class:`ShapeOptions` of the inner solves (its defaults when None);
+            its ``rtol`` and ``levels`` resolve the mean's grid (above).
         init: starting mean (default: the first shape).
         max_steps: most Karcher steps (accepted updates of the mean); 0 only evaluates.
         tol: the two convergence tests above.
@@ -363,17 +447,20 @@ def karcher_mean(
         batch_size: shapes per batched call (bounds memory); default all.
         strategy: ``"vmap"``, ``"map"``, ``"loop"`` or ``"auto"`` (``default_strategy()``).
         checkpoint: path of an .npz written atomically after the first solves and after
-            every accepted step (the mean and its geodesics).
+            every accepted step (the mean and its geodesics); for a resolved mean also
+            after each shape's first, levelled solve.
         resume: continue from ``checkpoint`` (refused if it belongs to other inputs).
         progress: called after the first solves (step 0) and after each accepted step
             with a dict (step, sum_sq_distances, mean_velocity_norm, step_size, num_solves,
             seconds since the call began).
         warm_start: the second, warm-started solve per shape described above (modulo
-            "rigid" / "diff"; twice the solves per step, the warm one without a search).
+            "rigid" / "diff" on one grid, ``rtol=None``; twice the solves per step, the
+            warm one without a search). A resolved mean continues every solve already.
         client: a ``dask.distributed.Client`` or a scheduler address: each step's
             chunks of shapes (``batch_size``; default one shape per chunk for "loop",
             all for "vmap", 8 for "map") run as tasks on its workers (the ``dask``
-            extra). The numbers equal the in-process ones. None: this process.
+            extra); a resolved mean's first, levelled solves run in this process. The
+            numbers equal the in-process ones. None: this process.
 
     Returns:
         :class:`KarcherResult`. One that did not converge also warns
@@ -391,7 +478,7 @@ def karcher_mean(
         (True, 1.5)
     """
     strategy = check_batch(modulo, strategy, batch_size)
-    shapes, options = check_collection(shapes, options)
+    shapes, options = check_collection(shapes, options, levels=True)
     max_steps = check_int("max_steps", max_steps, 0)
     tol = check_positive("tol", tol)
     step_size = check_positive("step_size", step_size)
@@ -403,7 +490,12 @@ def karcher_mean(
         )
     if modulo == "rigid":
         mean = center_unchecked(mean)
-    warm_start = check_bool("warm_start", warm_start) and modulo != "none"
+    # Resolved (options.rtol, the default): step 0 by levels, then continuations on the
+    # grid the distances needed. Modulo "none" has no registration to carry: one grid.
+    resolved = options.resolves and modulo != "none"
+    if not resolved:
+        options = options.replace(rtol=None)
+    warm_start = check_bool("warm_start", warm_start) and modulo != "none" and not resolved
     settings = job_settings(metric, modulo, options, step_size=step_size, tol=tol, warm=warm_start)
     fingerprint = fingerprint_of(shapes, mean, **settings)
     path = None if checkpoint is None else pathlib.Path(checkpoint)
@@ -413,16 +505,37 @@ def karcher_mean(
     chunks = chunk_bounds(shapes.shape[0], batch_size)
     size = chunks[0][1] - chunks[0][0]
 
+    started = time.perf_counter()
+    saved = load_checkpoint(path, fingerprint) if path is not None and resume else None
+    first_starts, level_distances = None, None
+    if resolved and saved is not None and "mean" in saved:
+        level_distances = np.asarray(saved["level_distances"])
+        options = options.replace(grid=tuple(saved["mean"].shape[-2:]), rtol=None)
+    elif resolved:
+
+        def keep(finished):  # step 0's levels, shape by shape: a kill loses one solve
+            if path is not None:
+                save_npz_atomic(path, fingerprint=fingerprint, **finished)
+
+        mean, options, first_starts, level_distances = _resolved_start(
+            shapes, mean, metric, modulo, options, saved, keep
+        )
+        saved = None
+    elif warm_start:  # the identity registration
+        k, m, n = shapes.shape[0], *shapes.shape[-2:]
+        e1 = sphere_points(m, n, shapes.dtype)
+        eye = jnp.eye(3, dtype=shapes.dtype)
+        first_starts = (jnp.broadcast_to(e1, (k, *e1.shape)), jnp.broadcast_to(eye, (k, 3, 3)))
+
     def solve_at(at, previous: _Solved | None) -> _Solved:
-        starts = None
-        if warm_start:
-            if previous is None:  # the identity registration
-                k, m, n = shapes.shape[0], *shapes.shape[-2:]
-                e1 = sphere_points(m, n, shapes.dtype)
-                eye = jnp.eye(3, dtype=shapes.dtype)
-                starts = (jnp.broadcast_to(e1, (k, *e1.shape)), jnp.broadcast_to(eye, (k, 3, 3)))
-            else:
-                starts = (previous.gammas, previous.rotations)
+        if previous is None:
+            starts = first_starts
+        elif resolved:
+            starts = (previous.gammas, previous.rotations, previous.coefficients)
+        elif warm_start:
+            starts = (previous.gammas, previous.rotations)
+        else:
+            starts = None
         if pool is not None:
             return _Solved(
                 *(jnp.asarray(x) for x in pool.velocities(velocity_chunk, at, chunks, size, starts))
@@ -444,6 +557,7 @@ def karcher_mean(
 
     def save(state: _KarcherState):
         if path is not None:
+            extra = {} if level_distances is None else {"level_distances": level_distances}
             save_npz_atomic(
                 path,
                 mean=np.asarray(state.mean),
@@ -452,6 +566,7 @@ def karcher_mean(
                 num_solves=state.num_solves,
                 fingerprint=fingerprint,
                 **{f"solved_{k}": np.asarray(v) for k, v in state.solved._asdict().items()},
+                **extra,
             )
 
     def report(state: _KarcherState):
@@ -468,7 +583,6 @@ def karcher_mean(
                 }
             )
 
-    started = time.perf_counter()
     with contextlib.ExitStack() as stack:
         pool = None
         if client is not None:
@@ -483,7 +597,6 @@ def karcher_mean(
             step_size=step_size,
             max_steps=max_steps,
         )
-        saved = load_checkpoint(path, fingerprint) if path is not None and resume else None
         if saved is not None:
             state = iteration.restore(saved)
         else:
@@ -509,6 +622,7 @@ def karcher_mean(
         num_steps=state.step,
         num_solves=state.num_solves,
         result=getattr(RESULTS, result),
+        level_distances=level_distances,
     )
     if not res.converged:
         warnings.warn(
