@@ -80,3 +80,24 @@ def cat_pair(m: int, n: int):
     if (m, n) != (50, 99):
         f1, f2 = (np.asarray(ej.resample(f, m, n)) for f in (f1, f2))
     return f1, f2
+
+
+def deformed(base, rng, *, size: float = 0.0, method: str = "bilinear"):
+    """``base`` (3, m, n) under a random stretch (log-axes within +-0.1 along random axes),
+    a random size factor exp(U(-size, size)) when size > 0, a Moebius map of its parameter
+    sphere (|a| uniform in [0, 0.3], read by ``method``) and a random rotation in R^3."""
+    import numpy as np
+
+    import elastic_jax as ej
+    from elastic_jax import shapes
+
+    m, n = base.shape[-2:]
+    axes = shapes.random_rotation(int(rng.integers(1 << 30)))
+    stretch = axes @ np.diag(np.exp(rng.uniform(-0.1, 0.1, 3))) @ axes.T
+    if size > 0:
+        stretch = stretch * np.exp(rng.uniform(-size, size))
+    a = rng.normal(size=3)
+    a = rng.uniform(0.0, 0.3) * a / np.linalg.norm(a)
+    f = np.asarray(ej.reparametrize(base, ej.moebius(ej.sphere_points(m, n), a), method=method))
+    rotation = shapes.random_rotation(int(rng.integers(1 << 30)))
+    return np.einsum("ij,jk,kmn->imn", rotation, stretch, f)

@@ -52,7 +52,7 @@ import numpy as np  # noqa: E402
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import shapes  # noqa: E402
 
-from _common import DATA, emit, environment  # noqa: E402
+from _common import DATA, deformed, emit, environment  # noqa: E402
 
 OPTIONS = {
     (13, 25): ej.ShapeOptions(degree=3, n_times=5, vf_degree=4),
@@ -72,15 +72,7 @@ def animals(m: int, n: int, members: int, seed: int):
         base = np.asarray(ej.center(ej.resample(np.load(p)["f"], m, n)))
         base = base / np.sqrt(float(ej.surface_area(base)))
         for j in range(members):
-            axes = shapes.random_rotation(int(rng.integers(1 << 30)))
-            stretch = axes @ np.diag(np.exp(rng.uniform(-0.1, 0.1, 3))) @ axes.T
-            stretch = stretch * np.exp(rng.uniform(-0.5, 0.5))
-            a = rng.normal(size=3)
-            a = rng.uniform(0.0, 0.3) * a / np.linalg.norm(a)
-            gamma = ej.moebius(ej.sphere_points(m, n), a)
-            f = np.asarray(ej.reparametrize(base, gamma))
-            rotation = shapes.random_rotation(int(rng.integers(1 << 30)))
-            f = np.einsum("ij,jk,kmn->imn", rotation, stretch, f)
+            f = deformed(base, rng, size=0.5)
             (train if j % 2 == 0 else test).append(f)
             (train_labels if j % 2 == 0 else test_labels).append(label)
     return np.stack(train), np.asarray(train_labels), np.stack(test), np.asarray(test_labels)

@@ -99,7 +99,7 @@ def resolved(args, emit, environment) -> None:
     import elastic_jax as ej
     from elastic_jax import shapes
 
-    from _common import DATA
+    from _common import DATA, deformed
 
     rng = np.random.default_rng(0)
     if args.synthetic:
@@ -116,17 +116,7 @@ def resolved(args, emit, environment) -> None:
             print("bench_karcher --resolved: ../shared/data is absent", file=sys.stderr)
             return
         coll = [np.load(p)["f"] for p in paths]
-        for i in range(args.deformations):
-            base = coll[i % 4]
-            m, n = base.shape[-2:]
-            axes = shapes.random_rotation(int(rng.integers(1 << 30)))
-            stretch = axes @ np.diag(np.exp(rng.uniform(-0.1, 0.1, 3))) @ axes.T
-            a = rng.normal(size=3)
-            a = rng.uniform(0.0, 0.3) * a / np.linalg.norm(a)
-            gamma = ej.moebius(ej.sphere_points(m, n), a)
-            turn = shapes.random_rotation(int(rng.integers(1 << 30)))
-            f = np.asarray(ej.reparametrize(base, gamma, method="spline"))
-            coll.append(np.einsum("ij,jk,kmn->imn", turn, stretch, f))
+        coll += [deformed(coll[i % 4], rng, method="spline") for i in range(args.deformations)]
         options = ej.ShapeOptions()
     coll = np.stack([np.asarray(f, args.dtype) for f in coll])
     metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
