@@ -154,7 +154,10 @@ def test_a_failed_newton_solve_says_so():
     assert int(shot.n_valid) == 2
     assert bool(jnp.all(jnp.isfinite(shot.path[:2]))) and bool(jnp.all(jnp.isnan(shot.path[2:])))
     assert float(shot.residuals[0]) > 1e-10 and bool(jnp.all(jnp.isnan(shot.residuals[1:])))
-    assert [int(x) for x in shot.newton_steps] == [1, 0, 0]
+    # The failed Newton solve is followed by a continuation from the guess (itself made of
+    # one-iteration solves here, so it fails too): more than the one iteration counted.
+    steps = [int(x) for x in shot.newton_steps]
+    assert steps[0] > 1 and steps[1:] == [0, 0]
     assert bool(jnp.isfinite(shot.speeds[0])) and bool(jnp.all(jnp.isnan(shot.speeds[1:])))
     # With enough iterations the same shot solves every node.
     full = shoot(f, in_span_velocity(3), METRIC, degree=DEGREE, n_times=N_TIMES)
@@ -195,3 +198,36 @@ def test_the_endpoint_is_differentiable_in_the_velocity():
     central = (float(objective(h)) - float(objective(-h))) / (2 * h)
     print("grad", grad, "central difference", central)
     assert abs(grad - central) <= 1e-6 * abs(central)
+
+
+@pytest.mark.slow
+def test_exp_of_log_and_transport_on_the_shared_animals():
+    # The registered logs cat1 -> cat2 and cat1 -> horse0 at 25 x 49 (defaults, modulo
+    # rigid), shot back from their own frames, and real vectors carried along cat1 -> cat2.
+    from .conftest import load_shape
+
+    grid = ej.sphere_points(25, 49)
+    cat1, cat2, horse0 = (
+        ej.reparametrize(load_shape(k), grid, method="spline") for k in ("cat1", "cat2", "horse0")
+    )
+    options = ej.ShapeOptions()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        logs = [log(cat1, f2, METRIC, modulo="rigid", options=options) for f2 in (cat2, horse0)]
+    for lg in logs:
+        shot = shoot(cat1, lg.velocity, METRIC, options=options, frames=lg.frames)
+        assert bool(shot.converged)
+        gap = ej.geodesic(shot.endpoint, lg.target, METRIC, options=options).distance
+        # Measured 3.4e-7 (cat2) and 1.3e-3 (horse0: its last node's Newton solve fails
+        # from the extrapolated guess and is reached by continuation, on a neighbouring
+        # root of the node's equation).
+        print("exp(log) gap / distance", float(gap) / float(lg.distance))
+        assert float(gap) <= 0.01 * float(lg.distance)
+    path = logs[0].path
+    scaling = cat1 - jnp.mean(cat1, axis=(1, 2), keepdims=True)
+    for w in (scaling, logs[1].velocity):
+        moved = ej.parallel_transport(w, path, METRIC, options=options)
+        # Measured +7.4e-5 (the scaling field) and +2.2e-4 (horse0's log velocity); the
+        # ladder lets the scaling field drift by 40 %.
+        print("transport drift", float(moved.norm_drift))
+        assert bool(moved.converged) and abs(float(moved.norm_drift)) <= 1e-3

@@ -158,21 +158,83 @@ def node_solve(
     def gradient(c):
         return jax.grad(lambda d: _energy_of(metric, scheme, *frames(c, d)))(zero)
 
-    # The equation is solved as J0^-1 r(c) = 0, J0 its Jacobian at the start: Newton's
-    # iterates are the same (it is affine invariant), and the residual is then the size of
-    # a Newton step, in the surface's units, whatever the scale of r: a ladder's rung
-    # along the path has nearly coinciding known nodes and a vanishing r.
+    # The equation is solved as J(c0)^-1 g(c) = 0, J(c0) its Jacobian at Newton's start:
+    # Newton's iterates are the same (it is affine invariant), and the residual is then
+    # the size of a Newton step, in the surface's units, whatever the scale of g: a
+    # ladder's rung along the path has nearly coinciding known nodes and a vanishing g.
+    solver = optx.Newton(rtol=tol, atol=tol)
     factor = jax.scipy.linalg.lu_factor(jax.jacfwd(gradient)(c_guess))
 
     def residual(c, _):
         return jax.scipy.linalg.lu_solve(factor, gradient(c))
 
-    solver = optx.Newton(rtol=tol, atol=tol)
-    sol = optx.root_find(residual, solver, c_guess, max_steps=max_newton, throw=False)
-    c = sol.value
+    def newton(c0, solve):
+        sol = optx.root_find(solve, solver, c0, max_steps=max_newton, throw=False)
+        return (
+            sol.value,
+            RESULTS.promote(sol.result),
+            jnp.asarray(sol.stats["num_steps"], jnp.int32),
+        )
+
+    first = newton(c_guess, residual)
+
+    def rescued(_):
+        # Newton from the guess fails where a step's cells nearly collapse: on a real
+        # horse's last node at 25 x 49 its first step was 4x too long and 67 degrees off
+        # a root 0.4 guess-lengths away. The root is then followed from the guess,
+        # which solves g(c) = g(c_guess), along g(c) = (1 - s) g(c_guess) to s = 1: the
+        # root continuously connected to the extrapolation (there, one 4 % of the
+        # correction's length from the boundary value solve's). No gradient flows
+        # through the following; the Newton solve that ends it carries the implicit
+        # adjoint.
+        start = jax.lax.stop_gradient(c_guess)
+        far, reached, follow_steps = _follow_root(
+            gradient, start, jax.lax.stop_gradient(gradient(start)), newton
+        )
+        far = jax.lax.stop_gradient(far)
+        local = jax.scipy.linalg.lu_factor(jax.jacfwd(gradient)(far))
+        c, result, steps = newton(far, lambda c, _: jax.scipy.linalg.lu_solve(local, gradient(c)))
+        result = RESULTS.where(reached, result, first[1])
+        return c, result, steps + follow_steps + first[2]
+
+    c, result, steps = jax.lax.cond(first[1] == RESULTS.successful, lambda _: first, rescued, None)
     node = base + (c.reshape(3, -1) @ values).reshape(3, m, n)
-    result = RESULTS.promote(sol.result)
-    return node, c, jnp.linalg.norm(residual(c, None)), sol.stats["num_steps"], result
+    return node, c, jnp.linalg.norm(residual(c, None)), steps, result
+
+
+def _follow_root(gradient, start, g0, newton, *, rounds=48, smallest=2.0**-12):
+    """Natural-parameter continuation of the root of g(c) = (1 - s) g0 from (start, 0) to
+    s = 1 (g(start) = g0): Newton from the last root at s + ds, ds doubling after a
+    solve and halving after a failure (at most 1/4, at least ``smallest``).
+    Returns (c, whether s reached 1, Newton iterations)."""
+    dtype = start.dtype
+
+    def keep_going(state):
+        _, s, ds, k, _ = state
+        return (s < 1) & (ds >= smallest) & (k < rounds)
+
+    def step(state):
+        c, s, ds, k, steps = state
+        trial = jnp.minimum(s + ds, 1.0)
+        local = jax.scipy.linalg.lu_factor(jax.jacfwd(gradient)(c))
+
+        def solve(x, _):
+            return jax.scipy.linalg.lu_solve(local, gradient(x) - (1 - trial) * g0)
+
+        c_new, result, k_new = newton(c, solve)
+        ok = (result == RESULTS.successful) & jnp.all(jnp.isfinite(c_new))
+        return (
+            jnp.where(ok, c_new, c),
+            jnp.where(ok, trial, s),
+            jnp.where(ok, jnp.minimum(2 * ds, 0.25), ds / 2),
+            k + 1,
+            steps + k_new,
+        )
+
+    zero = jnp.zeros((), jnp.int32)
+    state = (start, jnp.zeros((), dtype), jnp.asarray(0.25, dtype), zero, zero)
+    c, s, _, _, steps = jax.lax.while_loop(keep_going, step, state)
+    return c, s >= 1, steps
 
 
 def _shoot(metric, f, v, a_f, a_v, values, dframe, *, n_times, scheme, tol, max_newton):
@@ -303,11 +365,15 @@ def shoot(
             log back reproduces its path only from those (the nodes' differentials
             follow the nodes' own recursion).
 
+    A step whose Newton solve fails from the extrapolated guess is retried by
+    continuation: the root of the node's equation is followed from the guess (module
+    ``_follow_root``; docs/guides/shooting.md), at the cost of more Newton iterations.
+
     Returns:
-        :class:`ShootingResult`; a ConvergenceWarning when a step's solve failed. The
-        recursion stops there: that node and the later ones are NaN and ``n_valid``
-        counts the solved nodes. Vmappable over f and v; differentiable (optimistix's
-        implicit adjoint per step).
+        :class:`ShootingResult`; a ConvergenceWarning when a step's solve failed, also
+        by continuation. The recursion stops there: that node and the later ones are
+        NaN and ``n_valid`` counts the solved nodes. Vmappable over f and v;
+        differentiable (optimistix's implicit adjoint per step).
     """
     settings = settings_from("shoot", options, n_times=n_times, degree=degree, scheme=scheme)
     n_times, degree, scheme = settings["n_times"], settings["degree"], settings["scheme"]
