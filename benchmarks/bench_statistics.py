@@ -283,11 +283,11 @@ def statistics_records(
             w = transport_scale * lg3.velocity
             pt, timing = timed(
                 lambda: ej.parallel_transport(w, lg.path, metric, degree=DEGREE), repeat
-            )
+            )  # the default method, "galerkin" (the ladder's figures predate 2026-11-27)
             record(
                 "parallel_transport",
                 f"{transport_scale:g} x log(cat1, horse0).velocity along the cat1 -> cat2 "
-                "geodesic (N - 1 rungs)",
+                "geodesic (Galerkin transport, N - 1 segments)",
                 timing,
                 transport_scale=transport_scale,
                 norms=[float(x) for x in pt.norms],
