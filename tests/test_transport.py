@@ -31,7 +31,7 @@ def test_the_ladder_keeps_norms_and_carries_a_geodesic_along_itself():
         # A discrete geodesic one node longer than the path the vector travels along.
         shot = ej.shoot(f, v, METRIC, degree=DEGREE, n_times=n_times + 1)
         path = shot.path[:-1]
-        moved = ej.parallel_transport(w, path, METRIC, degree=DEGREE, method="ladder")
+        moved = ej.parallel_transport(w, path, METRIC, degree=DEGREE, transport="ladder")
         assert bool(moved.converged)
         drifts.append(abs(float(moved.norm_drift)))
         assert drifts[-1] <= 0.05 / (n_times - 1)  # measured 3.3e-3, 1.9e-3
@@ -44,7 +44,7 @@ def test_the_ladder_keeps_norms_and_carries_a_geodesic_along_itself():
         # The path's own velocity is carried to the velocity of the step beyond the path
         # (exactly so when rungs and steps have one length; here they differ by a factor
         # N / (N - 1)): measured 1.8e-2 and 4.8e-3.
-        tangent = ej.parallel_transport(v, path, METRIC, degree=DEGREE, method="ladder").vector
+        tangent = ej.parallel_transport(v, path, METRIC, degree=DEGREE, transport="ladder").vector
         beyond = n_times * (shot.path[-1] - shot.path[-2])
         error = float(jnp.max(jnp.abs(tangent - beyond)) / jnp.max(jnp.abs(beyond)))
         assert error <= 0.5 / (n_times - 1)
@@ -52,7 +52,7 @@ def test_the_ladder_keeps_norms_and_carries_a_geodesic_along_itself():
             # The affine midpoint ignores the metric: its drift does not shrink (measured
             # +1.2e-2 at N = 5, +1.5e-2 at 9, +1.7e-2 at 17).
             affine = ej.parallel_transport(
-                w, path, METRIC, degree=DEGREE, method="ladder", midpoint="affine"
+                w, path, METRIC, degree=DEGREE, transport="ladder", midpoint="affine"
             )
             assert abs(float(affine.norm_drift)) > 0.05 / (n_times - 1)
     assert drifts[1] < 0.7 * drifts[0]
@@ -82,8 +82,8 @@ def test_galerkin_transport_keeps_any_vectors_norm_at_fourth_order():
         drifts.append(abs(float(moved.norm_drift)))
     assert drifts[1] <= 1e-5
     assert drifts[0] / drifts[1] >= 10.0  # 2^4 = 16 for a fourth-order method
-    with pytest.raises(ej.InputError, match="method"):
-        ej.parallel_transport(w, path, METRIC, method="pole")
+    with pytest.raises(ej.InputError, match="transport"):
+        ej.parallel_transport(w, path, METRIC, transport="pole")
 
 
 def test_transport_refuses_what_it_cannot_do():
@@ -104,7 +104,7 @@ def test_a_failed_rung_ends_the_ladder():
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         moved = ej.parallel_transport(
-            in_span(1), path, METRIC, degree=DEGREE, method="ladder", max_newton=1
+            in_span(1), path, METRIC, degree=DEGREE, transport="ladder", max_newton=1
         )
     messages = [str(w.message) for w in caught if issubclass(w.category, ej.ConvergenceWarning)]
     assert len(messages) == 1 and "rung 1 of 4 did not solve" in messages[0]

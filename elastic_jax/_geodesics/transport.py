@@ -18,7 +18,7 @@ error does not shrink with N.
 
 The ladder's solves live in the surface basis, so only vectors inside it keep their
 length; a real vector (a scaling field, another geodesic's velocity) drifts by 10-40 %
-on real shapes. The default, ``method="galerkin"``, instead integrates the transport
+on real shapes. The default, ``transport="galerkin"``, instead integrates the transport
 equation of the metric's Levi-Civita connection along the path's straight segments,
 
     G_f(w', h) + Gamma_f(f', w; h) = 0 for every h in V,
@@ -245,7 +245,7 @@ def parallel_transport(
     *,
     degree: int | FromOptions = FROM_OPTIONS,
     scheme: str | FromOptions = FROM_OPTIONS,
-    method: str = "galerkin",
+    transport: str = "galerkin",
     substeps: int = 2,
     midpoint: str = "exact",
     tol: float | None = None,
@@ -255,9 +255,9 @@ def parallel_transport(
     """Carry the tangent vector w at path[0] along the path to path[-1] (the paper's
     metric's parallel transport; module docstring).
 
-    ``method="galerkin"`` (default) integrates the Levi-Civita transport equation along
+    ``transport="galerkin"`` (default) integrates the Levi-Civita transport equation along
     the path's straight segments in V = span(w, surface basis): the norm is kept exactly
-    but for the integrator's drift, for any w. ``method="ladder"`` is Schild's ladder with
+    but for the integrator's drift, for any w. ``transport="ladder"`` is Schild's ladder with
     discrete geodesic midpoints (Newton solves in the surface basis): first order in 1/N
     for vectors inside the basis; real vectors outside it drift (on cat1 -> cat2 at
     25 x 49 the scaling field by +40 %, docs/guides/limitations.md).
@@ -269,7 +269,7 @@ def parallel_transport(
         degree: the surface basis (Galerkin space, or the ladder's solves); default 7.
         scheme: the energy's scheme, ``"midpoint"`` (default) or ``"forward"`` (the
             ladder's; checked for both).
-        method: ``"galerkin"`` (default) or ``"ladder"``.
+        transport: ``"galerkin"`` (default) or ``"ladder"``.
         substeps: Galerkin only: Magnus substeps per segment (two metric evaluations
             each); the norm's drift falls as substeps^-4.
         midpoint: ladder only: ``"exact"`` (the discrete geodesic midpoint, default) or ``"affine"``
@@ -287,7 +287,7 @@ def parallel_transport(
     settings = settings_from("parallel_transport", options, degree=degree, scheme=scheme)
     degree, scheme = settings["degree"], settings["scheme"]
     check_scheme(scheme)
-    check_choice("method", method, ("galerkin", "ladder"))
+    check_choice("transport", transport, ("galerkin", "ladder"))
     check_choice("midpoint", midpoint, ("exact", "affine"))
     substeps = check_int("substeps", substeps, 1)
     path = as_path(path)
@@ -302,7 +302,7 @@ def parallel_transport(
     # In units of the path's size: vectors scale like the surfaces, norms with them.
     units = units_of(path[0], path[-1])
     s = units.scale
-    if method == "galerkin":
+    if transport == "galerkin":
         return _galerkin_result(metric, w / s, units.remove(path), values, substeps, s)
     vectors, norms, residuals, n_valid, num_steps, result = _ladder_jit(
         metric,
