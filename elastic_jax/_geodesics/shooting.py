@@ -191,15 +191,19 @@ def node_solve(
         far, reached, follow_steps = _follow_root(
             gradient, start, jax.lax.stop_gradient(gradient(start)), newton
         )
-        far = jax.lax.stop_gradient(far)
-        local = jax.scipy.linalg.lu_factor(jax.jacfwd(gradient)(far))
-        c, result, steps = newton(far, lambda c, _: jax.scipy.linalg.lu_solve(local, gradient(c)))
+        c, result, steps = _newton_from(gradient, jax.lax.stop_gradient(far), 0.0, newton)
         result = RESULTS.where(reached, result, first[1])
         return c, result, steps + follow_steps + first[2]
 
     c, result, steps = jax.lax.cond(first[1] == RESULTS.successful, lambda _: first, rescued, None)
     node = base + (c.reshape(3, -1) @ values).reshape(3, m, n)
     return node, c, jnp.linalg.norm(residual(c, None)), steps, result
+
+
+def _newton_from(gradient, c0, shift, newton):
+    """``newton`` on J(c0)^-1 (g(c) - shift) = 0 from c0 (J the Jacobian of g)."""
+    factor = jax.scipy.linalg.lu_factor(jax.jacfwd(gradient)(c0))
+    return newton(c0, lambda c, _: jax.scipy.linalg.lu_solve(factor, gradient(c) - shift))
 
 
 def _follow_root(gradient, start, g0, newton, *, rounds=48, smallest=2.0**-12):
@@ -216,12 +220,7 @@ def _follow_root(gradient, start, g0, newton, *, rounds=48, smallest=2.0**-12):
     def step(state):
         c, s, ds, k, steps = state
         trial = jnp.minimum(s + ds, 1.0)
-        local = jax.scipy.linalg.lu_factor(jax.jacfwd(gradient)(c))
-
-        def solve(x, _):
-            return jax.scipy.linalg.lu_solve(local, gradient(x) - (1 - trial) * g0)
-
-        c_new, result, k_new = newton(c, solve)
+        c_new, result, k_new = _newton_from(gradient, c, (1 - trial) * g0, newton)
         ok = (result == RESULTS.successful) & jnp.all(jnp.isfinite(c_new))
         return (
             jnp.where(ok, c_new, c),
