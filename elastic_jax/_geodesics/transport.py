@@ -202,7 +202,9 @@ def _galerkin(metric, w, path, values, *, substeps):
         u = t_steps * (f_b - f_a)
 
         def substep(x, s):
-            k1, k2 = (generator(f_a + s_i * (f_b - f_a), u) for s_i in (s[0], s[1]))
+            # Both Gauss points in one traced generator (vmap), not two copies of it.
+            at = f_a[None] + s[:, None, None, None] * (f_b - f_a)[None]
+            k1, k2 = jax.vmap(generator, in_axes=(0, None))(at, u)
             omega = 0.5 * h * (k1 + k2) + (3.0**0.5 / 12.0) * h * h * (k2 @ k1 - k1 @ k2)
             return jax.scipy.linalg.expm(omega) @ x, None
 
@@ -216,7 +218,7 @@ def _galerkin(metric, w, path, values, *, substeps):
     return vectors, norms
 
 
-_galerkin_jit = jax.jit(_galerkin, static_argnames=("substeps",))
+_galerkin_jit = solver_jit(_galerkin, static_argnames=("substeps",))
 
 
 def _galerkin_result(metric, w, path, values, substeps, scale) -> TransportResult:
