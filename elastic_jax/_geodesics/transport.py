@@ -41,21 +41,23 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .._checks import check_choice, check_int, check_positive, is_concrete
+from .._checks import check_choice, check_finite, check_int, check_positive, is_concrete, real_array
 from .._errors import ConvergenceWarning, InputError
+from .._geometry.differential import interior_frame
 from .._geometry.energy import as_path
+from .._geometry.grid import integrate_interior
 from .._geometry.harmonics import check_degree
-from .._geometry.metric import SplitMetric, metric_inner, metric_inner_unchecked
+from .._geometry.metric import SplitMetric, metric_inner, split_bilinear
 from .._geometry.units import units_of
 from .._options import FROM_OPTIONS, FromOptions, ShapeOptions, settings_from
 from .._results import RESULTS, first_failure, record_repr, unsolved_message
 from .._runtime.cache import solver_jit
 from .geodesic import basis_np
-from .shooting import as_velocity, check_scheme, default_newton_tol, node_solve
+from .shooting import _frames_of, as_velocity, check_scheme, default_newton_tol, node_solve
 
 
 class TransportResult(NamedTuple):
-    """A vector carried along a path by Schild's ladder; a pytree.
+    """A vector carried along a path by parallel transport (Galerkin or the ladder); a pytree.
 
     Attributes:
         vector: ``(3, m, n)`` the transported vector at the path's last surface.
@@ -69,7 +71,12 @@ class TransportResult(NamedTuple):
         converged: ``()`` every Newton solve met its tolerance.
         result: ``successful``, or the failed rung's Newton result (its midpoint solve's
             if that failed, else its reflection's; ``elastic_jax.RESULTS``).
-        num_steps: ``()`` Newton iterations over all rungs.
+        num_steps: ``()`` Newton iterations over all rungs (the ladder), or the Magnus
+            substeps integrated (Galerkin: (N - 1) x substeps).
+        frame: ``(2, 3, m - 2, n - 1)`` the transported vector's differentials on the
+            interior points: what :func:`shoot`'s ``frames`` takes with the path's last
+            node's (for the ladder, and without ``path_frames``, the central
+            differences of ``vector``).
     """
 
     vector: Float[Array, "3 m n"]
@@ -81,6 +88,7 @@ class TransportResult(NamedTuple):
     converged: Array
     result: RESULTS
     num_steps: Int[Array, ""]
+    frame: Float[Array, "2 3 m-2 n-1"]
 
     __repr__ = record_repr
 
@@ -152,29 +160,38 @@ def _ladder(metric, w, path, values, dframe, *, scheme, midpoint, tol, max_newto
 _ladder_jit = solver_jit(_ladder, static_argnames=("scheme", "midpoint", "max_newton"))
 
 
-def _galerkin(metric, w, path, values, *, substeps):
-    """Traceable Galerkin transport in the units of the path (module docstring).
+def _galerkin(metric, w, w_frame, path_frames, values, dframe, *, substeps):
+    """Traceable Galerkin transport in the units of the path (module docstring), on the
+    nodes' differentials: the metric sees a surface only through them, so
+    ``path_frames`` (a1, a2), each ``(N, 3, m - 2, n - 1)``, is the path and
+    ``w_frame`` (a1, a2) the vector (its values w are carried alongside).
 
     w_k = x_k[0] w_0 + sum_j x_k[j] S_j; per segment x' = K(t) x with
-    K = -A^-1 C, A_ij = G_f(V_i, V_j) and C_ij = Gamma_f(f', V_j; V_i), f(t) on the
-    straight segment and f' = T (f_{k+1} - f_k)."""
-    n_times, _, m, n = path.shape
+    K = -A^+ C, A_ij = G_f(V_i, V_j) and C_ij = Gamma_f(f', V_j; V_i), f(t) on the
+    straight segment between the nodes' frames and f' = T (f_{k+1} - f_k)."""
+    n_times = path_frames[0].shape[0]
     t_steps = n_times - 1
+    _, m, n = w.shape
     k = values.shape[0]
     size = 1 + 3 * k
+    shape = w_frame[0].shape
 
     def field(x):
         return x[0] * w + (x[1:].reshape(3, k) @ values).reshape(3, m, n)
 
+    def field_frame(x):
+        basis = _frames_of(x[1:], dframe, shape)
+        return tuple(x[0] * a + b for a, b in zip(w_frame, basis, strict=True))
+
     def inner(f, a, b):
-        return metric_inner_unchecked(metric, f, a, b)
+        return integrate_interior(split_bilinear(metric, *f, *a, *b))
 
     def half_norm2(f, x):
-        v = field(x)
+        v = field_frame(x)
         return 0.5 * inner(f, v, v)
 
     def christoffel(f, u, x, y):
-        v, h = field(x), field(y)
+        v, h = field_frame(x), field_frame(y)
 
         def along(a, b, direction):
             return jax.jvp(lambda g: inner(g, a, b), (f,), (direction,))[1]
@@ -186,7 +203,9 @@ def _galerkin(metric, w, path, values, *, substeps):
     def generator(f, u):
         a = jax.hessian(half_norm2, argnums=1)(f, zero)
         c = jax.jacfwd(jax.grad(christoffel, argnums=3), argnums=2)(f, u, zero, zero)
-        return -jnp.linalg.solve(a, c)
+        # The pseudo-inverse: when w_0 lies in the basis' span (a field of degree <= the
+        # basis'), A is singular and any solution gives the same field; solve() gave NaN.
+        return -jnp.linalg.pinv(a, hermitian=True) @ c
 
     # Two Gauss points per substep: Magnus' fourth-order exponent
     # h (K1 + K2) / 2 + sqrt(3) h^2 [K2, K1] / 12 (h the substep in t).
@@ -199,11 +218,14 @@ def _galerkin(metric, w, path, values, *, substeps):
 
     def segment(x, ends):
         f_a, f_b = ends
-        u = t_steps * (f_b - f_a)
+        u = tuple(t_steps * (b - a) for a, b in zip(f_a, f_b, strict=True))
 
         def substep(x, s):
             # Both Gauss points in one traced generator (vmap), not two copies of it.
-            at = f_a[None] + s[:, None, None, None] * (f_b - f_a)[None]
+            at = tuple(
+                a[None] + s[:, None, None, None] * (b - a)[None]
+                for a, b in zip(f_a, f_b, strict=True)
+            )
             k1, k2 = jax.vmap(generator, in_axes=(0, None))(at, u)
             omega = 0.5 * h * (k1 + k2) + (3.0**0.5 / 12.0) * h * h * (k2 @ k1 - k1 @ k2)
             return jax.scipy.linalg.expm(omega) @ x, None
@@ -212,31 +234,37 @@ def _galerkin(metric, w, path, values, *, substeps):
         return x, x
 
     start = zero.at[0].set(1.0)
-    _, xs = jax.lax.scan(segment, start, (path[:-1], path[1:]))
-    vectors = jnp.concatenate([w[None], jax.vmap(field)(xs)])
-    norms = jnp.sqrt(jnp.clip(metric_inner(metric, path, vectors, vectors), 0.0))
-    return vectors, norms
+    ends = (tuple(a[:-1] for a in path_frames), tuple(a[1:] for a in path_frames))
+    _, xs = jax.lax.scan(segment, start, ends)
+    xs = jnp.concatenate([start[None], xs])
+    vectors = jax.vmap(field)(xs)
+    frames = jax.vmap(field_frame)(xs)
+    norms = jnp.sqrt(jnp.clip(jax.vmap(inner)(path_frames, frames, frames), 0.0))
+    return vectors, jnp.stack(frames, axis=1), norms
 
 
 _galerkin_jit = solver_jit(_galerkin, static_argnames=("substeps",))
 
 
-def _galerkin_result(metric, w, path, values, substeps, scale) -> TransportResult:
-    vectors, norms = _galerkin_jit(metric, w, path, values, substeps=substeps)
-    vectors, norms = vectors * scale, norms * scale
+def _galerkin_result(metric, w, w_frame, path_frames, values, dframe, substeps, scale):
+    vectors, frames, norms = _galerkin_jit(
+        metric, w, w_frame, path_frames, values, dframe, substeps=substeps
+    )
+    vectors, frames, norms = vectors * scale, frames * scale, norms * scale
     finite = jnp.all(jnp.isfinite(vectors), axis=(1, 2, 3))
     n_valid = jnp.sum(jnp.cumprod(finite.astype(jnp.int32)))
-    converged = n_valid == path.shape[0]
+    converged = n_valid == vectors.shape[0]
     return TransportResult(
         vector=vectors[-1],
         vectors=vectors,
         norms=norms,
         norm_drift=norms[-1] / norms[0] - 1,
-        residuals=jnp.zeros((path.shape[0] - 1, 2), path.dtype),
+        residuals=jnp.zeros((vectors.shape[0] - 1, 2), vectors.dtype),
         n_valid=n_valid,
         converged=converged,
         result=RESULTS.where(converged, RESULTS.successful, RESULTS.nonfinite),
-        num_steps=jnp.zeros((), jnp.int32),
+        num_steps=jnp.asarray((vectors.shape[0] - 1) * substeps, jnp.int32),
+        frame=frames[-1],
     )
 
 
@@ -253,6 +281,8 @@ def parallel_transport(
     tol: float | None = None,
     max_newton: int = 20,
     options: ShapeOptions | None = None,
+    path_frames: Float[ArrayLike, "N 2 3 m-2 n-1"] | None = None,
+    w_frame: Float[ArrayLike, "2 3 m-2 n-1"] | None = None,
 ) -> TransportResult:
     """Carry the tangent vector w at path[0] along the path to path[-1] (the paper's
     metric's parallel transport; module docstring).
@@ -280,11 +310,29 @@ def parallel_transport(
             (as in :func:`shoot`).
         options: a :class:`ShapeOptions` whose degree and scheme are the ones not given
             as keywords (None: its defaults).
+        path_frames: Galerkin only: ``(N, 2, 3, m - 2, n - 1)`` the nodes' differentials
+            on the interior points (``path_frames[k, j]`` the j-th column of node k).
+            None (default): their central differences. A registered geodesic under
+            ``differential="chain"`` is the path its solve saw only through these
+            (:attr:`LogResult.path_frames`); its nodes' grid differences can nearly
+            collapse cells the solve never saw.
+        w_frame: Galerkin only: ``(2, 3, m - 2, n - 1)`` w's differentials (e.g.
+            ``LogResult.frames[1]`` for a registered log's velocity, or
+            ``path_frames[0]`` for the scaling field f - c). None (default): w's central
+            differences.
+
+    Transfer (a deformation f0 -> f1 carried to g0 and shot; docs/guides/shooting.md)::
+
+        a, b = log(f0, f1, metric, modulo=m), log(f0, g0, metric, modulo=m)
+        tr = parallel_transport(a.velocity, b.path, metric, path_frames=b.path_frames,
+                                w_frame=a.frames[1])
+        g1 = shoot(b.target, tr.vector, metric,
+                   frames=jnp.stack([b.path_frames[-1], tr.frame])).endpoint
 
     Returns:
         :class:`TransportResult`; a ConvergenceWarning when a ladder's solve failed. The
         Galerkin transport has no iterative solve: its ``residuals`` are 0,
-        ``num_steps`` 0, and ``n_valid`` counts the leading finite vectors.
+        ``num_steps`` its substeps, and ``n_valid`` counts the leading finite vectors.
     """
     settings = settings_from("parallel_transport", options, degree=degree, scheme=scheme)
     degree, scheme = settings["degree"], settings["scheme"]
@@ -301,11 +349,22 @@ def parallel_transport(
     max_newton = check_int("max_newton", max_newton, 1)
     tol = default_newton_tol(path.dtype) if tol is None else check_positive("tol", tol)
     values, dframe = (jnp.asarray(a, path.dtype) for a in basis_np(m, n, degree))
+    frames_given = path_frames is not None or w_frame is not None
+    if frames_given and transport != "galerkin":
+        raise InputError(
+            'path_frames and w_frame are taken by transport="galerkin" only: the ladder '
+            "solves on the nodes' central differences"
+        )
+    path_frames = _checked_frames(path_frames, path, "path_frames", (path.shape[0], 2))
+    w_frame = _checked_frames(w_frame, w, "w_frame", (2,))
     # In units of the path's size: vectors scale like the surfaces, norms with them.
+    # Frames carry no translation, so they only scale.
     units = units_of(path[0], path[-1])
     s = units.scale
     if transport == "galerkin":
-        return _galerkin_result(metric, w / s, units.remove(path), values, substeps, s)
+        frames = tuple(path_frames[:, j] / s for j in range(2))
+        w_frame = tuple(w_frame[j] / s for j in range(2))
+        return _galerkin_result(metric, w / s, w_frame, frames, values, dframe, substeps, s)
     vectors, norms, residuals, n_valid, num_steps, result = _ladder_jit(
         metric,
         w / s,
@@ -337,4 +396,22 @@ def parallel_transport(
         converged=converged,
         result=result,
         num_steps=num_steps,
+        frame=jnp.stack(interior_frame(vectors[-1])),
     )
+
+
+def _checked_frames(frames, x, name, lead):
+    """``frames`` as an array ``(*lead, 3, m - 2, n - 1)``, checked; None: the central
+    differences of x (``(3, m, n)`` or ``(N, 3, m, n)``)."""
+    m, n = x.shape[-2:]
+    if frames is None:
+        return jnp.stack(interior_frame(x), axis=x.ndim - 3)
+    frames = real_array(frames, name).astype(x.dtype)
+    want = (*lead, 3, m - 2, n - 1)
+    if frames.shape != want:
+        raise InputError(
+            f"{name} must hold differentials on the interior points, shape {want}; "
+            f"got {frames.shape}"
+        )
+    check_finite(frames, name)
+    return frames

@@ -45,6 +45,10 @@ class LogResult(NamedTuple):
             ``differential="chain"`` modulo "diff" / "rigid", whose ends' differentials
             come from the chain rule (math §2). ``shoot(f1, velocity, frames=frames)``
             reproduces ``path``.
+        path_frames: ``(N, 2, 3, m - 2, n - 1)`` every node's differentials on the
+            interior points as the solve took them (``path_frames[0]`` is
+            ``frames[0]``): the path as the solve saw it, for
+            :func:`parallel_transport`'s ``path_frames``.
     """
 
     velocity: Float[Array, "3 m n"]
@@ -55,6 +59,7 @@ class LogResult(NamedTuple):
     result: RESULTS
     num_steps: Int[Array, ""]
     frames: Float[Array, "2 2 3 m-2 n-1"]
+    path_frames: Float[Array, "N 2 3 m-2 n-1"]
 
     __repr__ = record_repr
 
@@ -118,12 +123,13 @@ def log(
         if options.differential == "chain":
             # The bases without the finer grid's (refinement): a static cfg.
             cfg = options.replace(refinement=False, rtol=None, grid=None)
-            solve_frames = _first_frames(f2, f1, metric, res, cfg, modulo == "rigid")
+            solve_frames = _solve_frames(f2, f1, metric, res, cfg, modulo == "rigid")
     t = options.n_times - 1
     velocity = t * (path[1] - path[0])
     if solve_frames is None:  # every node's differential is its grid differences
-        solve_frames = interior_frame(path[0]), interior_frame(path[1])
-    (a1, a2), (b1, b2) = solve_frames
+        solve_frames = jnp.stack(interior_frame(path), axis=1)
+    a1, a2 = solve_frames[0]
+    b1, b2 = solve_frames[1]
     return LogResult(
         velocity=velocity,
         target=path[-1],
@@ -133,17 +139,19 @@ def log(
         result=res.result,
         num_steps=res.num_steps,
         frames=jnp.stack([jnp.stack([a1, a2]), t * jnp.stack([b1 - a1, b2 - a2])]),
+        path_frames=solve_frames,
     )
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "rigid"))
-def _first_frames(f2, f1, metric, res, cfg, rigid):
-    """The differentials of the log's first two nodes as the registered solve took them:
-    its last two nodes' (the straight line between the chain-rule frames of f2 o gamma
-    and R f1, plus the path's perturbation), turned back by R^T."""
+def _solve_frames(f2, f1, metric, res, cfg, rigid):
+    """The differentials of the log's nodes as the registered solve took them,
+    ``(N, 2, 3, m - 2, n - 1)``: its nodes' (the straight line between the chain-rule
+    frames of f2 o gamma and R f1, plus the path's perturbation) in reverse order,
+    turned back by R^T."""
     m, n = res.gamma.shape[-2:]
     bases = make_bases(m, n, cfg, f1.dtype)
     prob = make_problem(metric, f2, f1, bases, rigid, cfg.interpolation)
     a1, a2 = path_frames_at(prob, cfg, res.gamma, res.rotation, res.coefficients)
-    back = res.rotation.T
-    return tuple(tuple(rotate_surface(back, a[k]) for a in (a1, a2)) for k in (-1, -2))
+    back = jax.vmap(lambda a: rotate_surface(res.rotation.T, a))
+    return jnp.stack([back(a1), back(a2)], axis=1)[::-1]
