@@ -318,7 +318,7 @@ def test_karcher_builds_one_options_record_and_keeps_its_own_steps(tmp_path, cap
     files = [_save(tmp_path, f"s{i}.npz", shapes.sample(shapes.sphere, M, N)) for i in range(2)]
     argv = ["karcher", *files, *SHAPE, "--max-steps", "7", "--karcher-steps", "3"]
     argv += ["--scheme", "forward", "--tol", "0.01", "--warm-start", "--out", str(tmp_path / "out")]
-    assert cli.main(argv) == 0
+    assert cli.main([*argv, "--rtol", "none"]) == 0
     summary = json.loads(capsys.readouterr().out)
     (kwargs,) = calls
     assert kwargs["warm_start"] is True and summary["settings"]["warm_start"] is True
@@ -327,6 +327,11 @@ def test_karcher_builds_one_options_record_and_keeps_its_own_steps(tmp_path, cap
     assert summary["history"]["step_size"] == [0.0, 0.5]
     assert summary["result"] == "mean_velocity_small" and summary["num_solves"] == 3
     assert summary["message"].startswith("converged")
+    # Without --rtol the library's default: a resolved mean (levels), as karcher_mean's.
+    assert cli.main([*argv, "--overwrite"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert calls[1]["options"].rtol == ej.ShapeOptions().rtol == summary["settings"]["rtol"]
+    assert summary["settings"]["input_grid"] == summary["settings"]["grid"] == [M, N]
 
 
 def test_distances_reports_each_pair_and_exits_3_when_one_did_not_converge(
@@ -417,6 +422,7 @@ def test_karcher_and_shape_geodesic_equal_the_library(tmp_path, capsys):
     # --max-steps (the inner solves', here their default) beside --karcher-steps: it
     # raised a TypeError when both reached karcher_mean as max_steps.
     argv = ["karcher", str(folder), *SHAPE, "--karcher-steps", "2", "--max-steps", "500"]
+    argv += ["--rtol", "none"]
     argv += ["--strategy", "loop", "--out", str(out)]
     code = cli.main(argv)
     summary = json.loads(capsys.readouterr().out)

@@ -64,7 +64,7 @@ KARCHER_OWN_FLAGS = {
     **{
         dest: "--" + dest.replace("_", "-")
         for dest in ("metric", "grid", "dtype", "modulo", "strategy", "batch_size", "workers")
-        + ("scheduler", "resume", "karcher_steps", "tol", "step_size", "warm_start")
+        + ("scheduler", "resume", "karcher_steps", "tol", "step_size", "warm_start", "rtol")
     },
 }
 
@@ -161,8 +161,8 @@ def shape_options_from(args) -> ShapeOptions:
     A bad value is BadInput naming the flag, e.g. ``--times 2: n_times must be ...``.
     """
     values = {field: getattr(args, dest) for field, (dest, _) in SHAPE_FLAGS.items()}
-    # --rtol is shape-geodesic's alone: collections are solved on their own grid (rtol
-    # None, which is what they use).
+    # --rtol is shape-geodesic's and karcher's: the other collections are solved on
+    # their own grid (rtol None, which is what they use).
     values["rtol"] = getattr(args, "rtol", None)
     try:
         return ShapeOptions(**values)

@@ -52,8 +52,14 @@ def solve_karcher(args, progress: Progress):
             f"step {info['step_size']:g}{eta} (checkpoint {checkpoint.name})"
         )
 
+    where = (
+        f"each shape's first geodesic by levels until two agree within {options.rtol:g}, "
+        "then on the finest grid any shape needed"
+        if options.rtol is not None and options.grid is None
+        else f"on {m} x {n}"
+    )
     progress(
-        f"Karcher mean of {len(args.files)} shapes modulo {args.modulo} on {m} x {n} "
+        f"Karcher mean of {len(args.files)} shapes modulo {args.modulo}, {where} "
         f"(each step solves {len(args.files)} geodesics; the first compiles)"
     )
     start = time.perf_counter()
@@ -75,6 +81,9 @@ def solve_karcher(args, progress: Progress):
     )
     seconds = time.perf_counter() - start
     mean = np.asarray(res.mean)
+    # The grid the mean, the registered shapes and the velocities are on: the finest
+    # level's for a resolved mean, else the inputs'.
+    settings.update(input_grid=[m, n], grid=list(mean.shape[-2:]))
     result = RESULTS.name(res.result)  # by name in the files: a code is this release's
     files = [
         str(
@@ -112,6 +121,9 @@ def solve_karcher(args, progress: Progress):
         },
         **result_fields(res),
         "num_solves": int(res.num_solves),
+        "level_distances": None
+        if res.level_distances is None
+        else json_floats(res.level_distances),
         "geodesics_converged": [bool(c) for c in np.asarray(res.geodesics_converged)],
         "seconds": seconds,
         "files": files,

@@ -202,6 +202,16 @@ def _batch_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _rtol_option(parser: argparse.ArgumentParser, what: str) -> None:
+    parser.add_argument(
+        "--rtol",
+        type=_rtol,
+        default=SHAPE_DEFAULTS.rtol,
+        help=f"{what}: working grids 13 x 25 ... 97 x 193 until two levels' distances agree "
+        "within this; 'none': one working grid, the inputs'",
+    )
+
+
 def _karcher_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--karcher-steps",
@@ -261,13 +271,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("source", help=SURFACE_FILE)
     p.add_argument("target", help=SURFACE_FILE)
     _shape_options(p, modulo="diff")
-    p.add_argument(
-        "--rtol",
-        type=_rtol,
-        default=SHAPE_DEFAULTS.rtol,
-        help="a resolved distance: working grids 13 x 25 ... 97 x 193 until two levels' "
-        "distances agree within this; 'none': one working grid, the inputs'",
-    )
+    _rtol_option(p, "a resolved distance")
 
     p = command(
         "karcher",
@@ -279,6 +283,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("files", nargs="+", help=SURFACE_FILES)
     _shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
+    _rtol_option(
+        p,
+        "a resolved mean: each shape's first geodesic by levels, the mean then kept on the "
+        "finest grid any shape needed",
+    )
     _batch_options(p)
     _karcher_options(p)
 
@@ -350,6 +359,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("files", nargs="+", help=SURFACE_FILES + "; or one karcher run's mean.npz")
     _shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
+    _rtol_option(
+        p,
+        "a resolved mean: each shape's first geodesic by levels, the mean then kept on the "
+        "finest grid any shape needed",
+    )
     _batch_options(p)
     _karcher_options(p)
     p.add_argument("--modes", type=int, default=3, help="modes to keep (at most shapes - 1)")
