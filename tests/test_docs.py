@@ -88,7 +88,7 @@ def test_every_public_name_has_an_api_entry(site):
 
 def test_every_notebook_page_shows_a_figure(site):
     notebooks = sorted((ROOT / "notebooks").glob("*.ipynb"))
-    assert len(notebooks) == 6
+    assert len(notebooks) == 7
     for notebook in notebooks:
         page = site / "examples" / "notebooks" / f"{notebook.stem}.html"
         images = [

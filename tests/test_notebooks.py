@@ -150,3 +150,24 @@ def test_fit_metric_notebook():
     assert out["fitted_first_tier"] > out["default_first_tier"]
     # Bending is the signal: the fitted metric weighs it most.
     assert out["metric"][2] > max(out["metric"][:2])
+
+
+@pytest.mark.slow  # about five minutes on 2 cores
+def test_shared_animals_notebook():
+    from .conftest import DATA
+
+    if not DATA.exists():
+        pytest.skip(f"{DATA} is absent")
+    out, figures = _run("07_shared_animals")
+    assert figures == 2  # the modes, then the transfer
+    assert out["karcher_converged"]
+    history = np.asarray(out["history"])
+    assert np.all(np.diff(history[:, 0]) <= 0)  # the SSD never rises
+    # The mean is a better centre than every member (the same capped levels).
+    assert history[-1, 0] < min(out["member_ssd"])
+    # The deformation keeps its size: the carried norm drifts by at most 1e-3, and both
+    # shots (from cat1 and from cat2) start at one speed and get through.
+    assert abs(out["norm_drift"]) <= 1e-3
+    assert all(out["shots_converged"])
+    assert out["speeds"][1] == pytest.approx(out["speeds"][0], rel=0.02)
+    assert out["speeds"][1] == pytest.approx(out["carried_norm"], rel=0.01)
