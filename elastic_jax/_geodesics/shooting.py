@@ -428,17 +428,26 @@ def shoot(
 def _checked_frames(frames, f, v):
     """(f's frame, v's frame), each (a1, a2): ``frames`` checked, or the central
     differences of f and v."""
-    if frames is None:
-        return interior_frame(f), interior_frame(v)
-    m, n = f.shape[-2:]
-    frames = real_array(frames, "frames").astype(f.dtype)
-    if frames.shape != (2, 2, 3, m - 2, n - 1):
-        raise InputError(
-            f"frames must hold the differentials of f and v on the interior points, shape "
-            f"(2, 2, 3, {m - 2}, {n - 1}); got {frames.shape}"
-        )
-    check_finite(frames, "frames")
+    frames = checked_frames(frames, jnp.stack([f, v]), "frames")
     return (frames[0, 0], frames[0, 1]), (frames[1, 0], frames[1, 1])
+
+
+def checked_frames(frames, x, name: str):
+    """The differentials of the fields x (``(..., 3, m, n)``) on the interior points as one
+    array ``(..., 2, 3, m - 2, n - 1)`` (``[..., j]`` the j-th column): ``frames``
+    checked, or x's central differences when it is None."""
+    m, n = x.shape[-2:]
+    if frames is None:
+        return jnp.stack(interior_frame(x), axis=x.ndim - 3)
+    frames = real_array(frames, name).astype(x.dtype)
+    want = (*x.shape[:-3], 2, 3, m - 2, n - 1)
+    if frames.shape != want:
+        raise InputError(
+            f"{name} must hold differentials on the interior points, shape {want}; "
+            f"got {frames.shape}"
+        )
+    check_finite(frames, name)
+    return frames
 
 
 def _failure_message(result: ShootingResult, tol: float, max_newton: int) -> str:

@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .._checks import check_choice, check_finite, check_int, check_positive, is_concrete, real_array
+from .._checks import check_choice, check_int, check_positive, is_concrete
 from .._errors import ConvergenceWarning, InputError
 from .._geometry.differential import interior_frame
 from .._geometry.energy import as_path
@@ -53,7 +53,14 @@ from .._options import FROM_OPTIONS, FromOptions, ShapeOptions, settings_from
 from .._results import RESULTS, first_failure, record_repr, unsolved_message
 from .._runtime.cache import solver_jit
 from .geodesic import basis_np
-from .shooting import _frames_of, as_velocity, check_scheme, default_newton_tol, node_solve
+from .shooting import (
+    _frames_of,
+    as_velocity,
+    check_scheme,
+    checked_frames,
+    default_newton_tol,
+    node_solve,
+)
 
 
 class TransportResult(NamedTuple):
@@ -355,8 +362,8 @@ def parallel_transport(
             'path_frames and w_frame are taken by transport="galerkin" only: the ladder '
             "solves on the nodes' central differences"
         )
-    path_frames = _checked_frames(path_frames, path, "path_frames", (path.shape[0], 2))
-    w_frame = _checked_frames(w_frame, w, "w_frame", (2,))
+    path_frames = checked_frames(path_frames, path, "path_frames")
+    w_frame = checked_frames(w_frame, w, "w_frame")
     # In units of the path's size: vectors scale like the surfaces, norms with them.
     # Frames carry no translation, so they only scale.
     units = units_of(path[0], path[-1])
@@ -398,20 +405,3 @@ def parallel_transport(
         num_steps=num_steps,
         frame=jnp.stack(interior_frame(vectors[-1])),
     )
-
-
-def _checked_frames(frames, x, name, lead):
-    """``frames`` as an array ``(*lead, 3, m - 2, n - 1)``, checked; None: the central
-    differences of x (``(3, m, n)`` or ``(N, 3, m, n)``)."""
-    m, n = x.shape[-2:]
-    if frames is None:
-        return jnp.stack(interior_frame(x), axis=x.ndim - 3)
-    frames = real_array(frames, name).astype(x.dtype)
-    want = (*lead, 3, m - 2, n - 1)
-    if frames.shape != want:
-        raise InputError(
-            f"{name} must hold differentials on the interior points, shape {want}; "
-            f"got {frames.shape}"
-        )
-    check_finite(frames, name)
-    return frames
