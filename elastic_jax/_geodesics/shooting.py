@@ -99,7 +99,7 @@ def default_newton_tol(dtype) -> float:
     return 1e-10 if jnp.dtype(dtype) == jnp.float64 else 1e-4
 
 
-def _frames_of(coefficients, dframe, shape):
+def frames_of(coefficients, dframe, shape):
     """The interior frames of sum_j c_j S_j, from the basis' precomputed differentials."""
     k = dframe.shape[0]
     points = dframe.shape[1] // 2
@@ -110,9 +110,7 @@ def _frames_of(coefficients, dframe, shape):
 def _frames_plus(frames, coefficients, dframe):
     """frames + the frames of sum_j c_j S_j."""
     shape = frames[0].shape
-    return tuple(
-        x + y for x, y in zip(frames, _frames_of(coefficients, dframe, shape), strict=True)
-    )
+    return tuple(x + y for x, y in zip(frames, frames_of(coefficients, dframe, shape), strict=True))
 
 
 def _energy_of(metric, scheme, *frames):

@@ -54,11 +54,11 @@ from .._results import RESULTS, first_failure, record_repr, unsolved_message
 from .._runtime.cache import solver_jit
 from .geodesic import basis_np
 from .shooting import (
-    _frames_of,
     as_velocity,
     check_scheme,
     checked_frames,
     default_newton_tol,
+    frames_of,
     node_solve,
 )
 
@@ -187,7 +187,7 @@ def _galerkin(metric, w, w_frame, path_frames, values, dframe, *, substeps):
         return x[0] * w + (x[1:].reshape(3, k) @ values).reshape(3, m, n)
 
     def field_frame(x):
-        basis = _frames_of(x[1:], dframe, shape)
+        basis = frames_of(x[1:], dframe, shape)
         return tuple(x[0] * a + b for a, b in zip(w_frame, basis, strict=True))
 
     def inner(f, a, b):
