@@ -190,6 +190,7 @@ def _statistics_at(res, metric, options, coll) -> dict:
     import numpy as np
 
     import elastic_jax as ej
+    from elastic_jax._statistics.pca import sigmas_reached
 
     mean = res.mean
     pca = ej.tangent_pca(res, metric)
@@ -198,17 +199,7 @@ def _statistics_at(res, metric, options, coll) -> dict:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ej.ConvergenceWarning)
             path = ej.mode_path(pca, mode, metric, degree=options.degree, n_times=5)
-        finite = np.isfinite(np.asarray(path)).all(axis=(1, 2, 3))
-        half = (path.shape[0] - 1) // 2
-        sigma = 2.0 / half
-        # Nodes reached on each side of the mean, as sigmas (the path's nodes are equal
-        # steps of 2 sigma / half).
-        reached.append(
-            [
-                -sigma * int(np.cumprod(finite[:half][::-1]).sum()),
-                sigma * int(np.cumprod(finite[half + 1 :]).sum()),
-            ]
-        )
+        reached.append(sigmas_reached(path, 2.0))
     grid = mean.shape[-2:]
     member = ej.reparametrize(coll[1], ej.sphere_points(*grid), method="spline")
     with warnings.catch_warnings():

@@ -362,15 +362,15 @@ def parallel_transport(
             'path_frames and w_frame are taken by transport="galerkin" only: the ladder '
             "solves on the nodes' central differences"
         )
-    path_frames = checked_frames(path_frames, path, "path_frames")
-    w_frame = checked_frames(w_frame, w, "w_frame")
     # In units of the path's size: vectors scale like the surfaces, norms with them.
     # Frames carry no translation, so they only scale.
     units = units_of(path[0], path[-1])
     s = units.scale
     if transport == "galerkin":
-        frames = tuple(path_frames[:, j] / s for j in range(2))
-        w_frame = tuple(w_frame[j] / s for j in range(2))
+        path_frames = checked_frames(path_frames, path, "path_frames") / s
+        w_frame = checked_frames(w_frame, w, "w_frame") / s
+        frames = (path_frames[:, 0], path_frames[:, 1])
+        w_frame = (w_frame[0], w_frame[1])
         return _galerkin_result(metric, w / s, w_frame, frames, values, dframe, substeps, s)
     vectors, norms, residuals, n_valid, num_steps, result = _ladder_jit(
         metric,

@@ -128,8 +128,6 @@ def log(
     velocity = t * (path[1] - path[0])
     if solve_frames is None:  # every node's differential is its grid differences
         solve_frames = jnp.stack(interior_frame(path), axis=1)
-    a1, a2 = solve_frames[0]
-    b1, b2 = solve_frames[1]
     return LogResult(
         velocity=velocity,
         target=path[-1],
@@ -138,7 +136,7 @@ def log(
         converged=res.converged,
         result=res.result,
         num_steps=res.num_steps,
-        frames=jnp.stack([jnp.stack([a1, a2]), t * jnp.stack([b1 - a1, b2 - a2])]),
+        frames=jnp.stack([solve_frames[0], t * (solve_frames[1] - solve_frames[0])]),
         path_frames=solve_frames,
     )
 

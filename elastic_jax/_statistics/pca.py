@@ -161,3 +161,20 @@ def mode_path(
     ahead = shoot(pca.mean, v, metric, **options).path
     behind = shoot(pca.mean, -v, metric, **options).path
     return jnp.concatenate([behind[::-1], ahead[1:]])
+
+
+def sigmas_reached(path, sigmas: float) -> list[float]:
+    """How far a :func:`mode_path` got on each side: ``[low, high]`` in standard
+    deviations (``-sigmas`` and ``+sigmas`` when both shots converged).
+
+    Each half of the ``(2 T + 1, 3, m, n)`` path is a shot from the mean (the centre):
+    a failed step leaves the nodes beyond it NaN, so the solved nodes are a run around
+    the centre, T nodes of sigmas / T each way.
+    """
+    import numpy as np
+
+    solved = np.isfinite(np.asarray(path)).all(axis=(1, 2, 3))
+    c = (len(solved) - 1) // 2
+    down = int(np.argmin([*solved[c::-1], False]))  # solved nodes from the centre down
+    up = int(np.argmin([*solved[c:], False]))
+    return [sigmas * (1 - down) / c, sigmas * (up - 1) / c]

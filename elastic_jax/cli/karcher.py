@@ -55,7 +55,7 @@ def solve_karcher(args, progress: Progress):
     where = (
         f"each shape's first geodesic by levels until two agree within {options.rtol:g}, "
         "then on the finest grid any shape needed"
-        if options.rtol is not None and options.grid is None
+        if options.resolves
         else f"on {m} x {n}"
     )
     progress(

@@ -16,7 +16,7 @@ def run_pca(args, progress: Progress) -> dict:
     from .. import io, plot
     from .._errors import ConvergenceWarning
     from .._runtime.atomic import save_npz_atomic, write_text_atomic
-    from .._statistics.pca import mode_path, tangent_pca
+    from .._statistics.pca import mode_path, sigmas_reached, tangent_pca
 
     if args.karcher_output is None:
         karcher, metric, options, summary = solve_karcher(args, progress)
@@ -92,15 +92,8 @@ def run_pca(args, progress: Progress) -> dict:
                 )
             )
         )
-        # Each half is a shot from the mean (frame c): a failed step leaves the frames
-        # beyond it NaN, so the solved ones are a run of frames around the centre.
-        solved = np.isfinite(path).all(axis=(1, 2, 3))
-        c = (len(path) - 1) // 2
-        down = int(np.argmin([*solved[c::-1], False]))  # solved frames from c down
-        up = int(np.argmin([*solved[c:], False]))
-        first, last = c - down + 1, c + up - 1
-        reached.append([args.sigmas * (first - c) / c, args.sigmas * (last - c) / c])
-        if solved.all():
+        reached.append(sigmas_reached(path, args.sigmas))
+        if np.isfinite(path).all():
             for end, name in ((path[0], "minus"), (path[-1], "plus")):
                 files.append(str(io.save_surface(end, args.out / f"mode{mode}_{name}.ply")))
         else:
