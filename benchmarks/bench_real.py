@@ -18,7 +18,8 @@ For each pair, modulo rigid motion, metric (1, 1, 0.1, 0), the package's default
 
 Each record has the distance, the parametrized distance, converged, the result's name,
 the refinement (distance_time, distance_grid, relative_change), the solve time (the
-first call of each configuration includes its compilation: ``compiled`` says which), and
+first call of each configuration includes its compilation: ``compiled`` says which, and
+``programs_compiled`` how many XLA programs the solve compiled), and
 then one summary record per pair with the spreads the issue's targets ask about.
 
 Pairs: cat1 -> cat2, cat1 -> horse0, horse0 -> hand4 (../shared/data, skipped when
@@ -58,6 +59,7 @@ import numpy as np  # noqa: E402
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import shapes  # noqa: E402
 from elastic_jax._options import DIFFERENTIALS, INTERPOLATIONS  # noqa: E402
+from elastic_jax._runtime.cache import CompileCounter  # noqa: E402
 
 from _common import DATA, emit, environment  # noqa: E402
 
@@ -234,7 +236,7 @@ def main() -> None:
             f1, f2 = _inputs(case, *surfaces)
             grid = tuple(f1.shape[-2:])
             start = time.perf_counter()
-            with warnings.catch_warnings():
+            with warnings.catch_warnings(), CompileCounter() as programs:
                 warnings.simplefilter("ignore", ej.ConvergenceWarning)
                 res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
                 jax.block_until_ready(res.distance)
@@ -256,6 +258,9 @@ def main() -> None:
                     "relative_change": float(res.refinement.relative_change),
                     "seconds": seconds,
                     "compiled": grid not in seen,
+                    # XLA programs this solve compiled (issue 51: few, and none once
+                    # its settings have been solved before).
+                    "programs_compiled": programs.count,
                     **_levels_record(res.levels),
                 }
             )

@@ -34,6 +34,7 @@ import numpy as np  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import shapes  # noqa: E402
+from elastic_jax._runtime.cache import CompileCounter  # noqa: E402
 
 from _common import DATA, emit, environment  # noqa: E402
 
@@ -88,7 +89,8 @@ def solve(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
         start = time.perf_counter()
-        jax.block_until_ready(ej.shape_geodesic(*surfaces, metric, options=options))
+        with CompileCounter() as programs:
+            jax.block_until_ready(ej.shape_geodesic(*surfaces, metric, options=options))
         first = time.perf_counter() - start
         start = time.perf_counter()
         res = jax.block_until_ready(ej.shape_geodesic(*surfaces, metric, options=options))
@@ -106,6 +108,8 @@ def solve(
             "options": options.as_dict(),
         },
         "compile_s_estimate": first - seconds,
+        "first_call_s": first,
+        "programs_compiled_first_call": programs.count,
         "solve_s": seconds,
         "distance": float(res.distance),
         "parametrized_distance": float(res.parametrized_distance),

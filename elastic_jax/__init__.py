@@ -59,6 +59,8 @@ from ._registration.records import Levels as Levels
 from ._registration.records import Refinement as Refinement
 from ._registration.records import ShapeGeodesicResult as ShapeGeodesicResult
 from ._registration.shape import shape_geodesic as shape_geodesic
+from ._registration.warmup import WarmupReport as WarmupReport
+from ._registration.warmup import warmup as warmup
 from ._results import RESULTS as RESULTS
 from ._runtime.cache import clear_caches as clear_caches
 from ._runtime.cache import enable_compilation_cache as enable_compilation_cache
@@ -98,6 +100,7 @@ __all__ = [
     "SrnfInversion",
     "TangentPCA",
     "TransportResult",
+    "WarmupReport",
     "base_inner",
     "center",
     "clear_caches",
@@ -150,6 +153,7 @@ __all__ = [
     "validate_surface",
     "vector_field_basis",
     "vee",
+    "warmup",
 ]
 
 _SUBMODULES = ("cli", "io", "plot")

@@ -6,6 +6,7 @@ import os
 import pathlib
 import subprocess
 import sys
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -413,3 +414,86 @@ def test_clear_caches_empties_every_cache_and_changes_no_result():
     # Rebuilt from the arguments alone: the same numbers, bit for bit.
     np.testing.assert_array_equal(ej.surface_basis(9, 17, 3), basis)
     np.testing.assert_array_equal(ej.quadrature_weights(9, 17), weights)
+
+
+def _tiny_levels():
+    """Options whose programs compile fast: the warmup test's, whose first level the
+    phases test solves too (the compiled programs are then shared through the cache)."""
+    import elastic_jax as ej
+
+    return ej.ShapeOptions(
+        degree=2, vf_degree=2, n_times=3, tol=1e-6, outer_steps=1, levels=((7, 13), (9, 17))
+    )
+
+
+def test_warmup_compiles_every_program_a_later_solve_runs():
+    """After warmup (levels 7 x 13 and 9 x 17, inputs on 9 x 17), a resolved solve of
+    another pair on the same settings compiles nothing, and warmup again compiles
+    nothing; the report names the grids."""
+    import elastic_jax as ej
+    from elastic_jax import shapes
+    from elastic_jax._runtime.cache import CompileCounter
+
+    options = _tiny_levels()
+    report = ej.warmup((9, 17), options=options)
+    assert report.grids == ((7, 13), (9, 17)) and report.input_grid == (9, 17)
+    assert report.programs > 0
+    f1 = shapes.sample(shapes.bumpy, 9, 17)
+    f2 = 1.2 * shapes.sample(shapes.bumpy, 9, 17, rotation=shapes.random_rotation(3))
+    with CompileCounter() as counter, warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        res = ej.shape_geodesic(f1, f2, ej.SplitMetric(1.0, 0.5, 0.2, 0.0), options=options)
+    assert res.levels.grids.tolist() == [[7, 13], [9, 17]]
+    assert counter.count == 0
+    assert ej.warmup((9, 17), options=options).programs == 0
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"modulo": "none"}, "modulo"),
+        ({"modulo": ()}, "modulo"),
+        ({"input_grid": (9, 16)}, "odd n"),
+        ({"input_grid": "big"}, "input_grid"),
+        ({"dtype": "int32"}, "dtype"),
+        ({"dtype": "float16"}, "dtype"),
+        ({"degree": 0}, "degree"),
+    ],
+)
+def test_warmup_refuses_bad_settings_before_compiling(kwargs, message):
+    import elastic_jax as ej
+    from elastic_jax._runtime.cache import CompileCounter
+
+    with CompileCounter() as counter, pytest.raises(ej.InputError, match=message):
+        ej.warmup(**kwargs)
+    assert counter.count == 0
+
+
+def test_the_phases_compiled_concurrently_are_the_jitted_phases():
+    """phase_chain traces each phase from the shapes of the one before and compiles them
+    in threads: the same programs as the jitted calls, so every field of the result is
+    the same to the last bit; and a second solve compiles nothing."""
+    import numpy as np
+
+    import elastic_jax as ej
+    from elastic_jax import shapes
+    from elastic_jax._registration import shape as _shape
+    from elastic_jax._runtime.cache import CompileCounter
+
+    # The first level of the warmup test's solves (its programs, when that ran first).
+    cfg = _tiny_levels().replace(grid=(7, 13), rtol=None)
+    bases = _shape.make_bases(7, 13, cfg, jnp.float64)
+    f1 = shapes.sample(shapes.bumpy, 9, 17)
+    f2 = 1.2 * shapes.sample(shapes.bumpy, 9, 17, rotation=shapes.random_rotation(5))
+    args = (ej.SplitMetric(1.0, 1.0, 0.1, 0.0), f1, f2, bases)
+    chained = _shape._solve_in_phases(args, cfg, False)
+    carried = ()
+    for name, _, _ in _shape._PHASES:
+        carried = (_shape._PHASE_JITS[name](*args, *carried, cfg=cfg, rigid=False),)
+    leaves = jax.tree_util.tree_leaves(chained), jax.tree_util.tree_leaves(carried[0])
+    for a, b in zip(*leaves, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert int(chained.rounds) >= 1 and float(chained.energy) > 0
+    with CompileCounter() as counter:
+        again = _shape._solve_in_phases(args, cfg, False)
+    assert counter.count == 0 and float(again.energy) == float(chained.energy)

@@ -158,6 +158,10 @@ def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, caps
         "shoot no v": (["shoot", good, good], "no array v"),
         "shoot shape": (["shoot", good, wrong], "shape (3, 9, 17)"),
         "workers": (["distances", good, good, "--workers", "0"], "--workers"),
+        "warmup times": (["warmup", "--times", "2"], "--times 2"),
+        "warmup rtol": (["warmup", "--rtol", "abc"], "--rtol abc"),
+        "warmup vf-degree": (["warmup", "--vf-degree", "30"], "--vf-degree 30"),
+        "warmup without a cache": (["warmup"], "--no-cache leaves none"),
     }
     for key, (argv, word) in cases.items():
         code = cli.main(

@@ -166,3 +166,43 @@ def test_float32_agrees_with_float64():
     e32 = ej.path_energy(metric, path.astype(jnp.float32))
     assert e32.dtype == jnp.float32
     assert relerr(e32, e64) < 1e-5
+
+
+@pytest.mark.parametrize("scheme", ["midpoint", "forward", "central"])
+def test_the_energy_derivatives_from_the_integrands_partials_are_autodiffs(scheme, monkeypatch):
+    """speed_density's derivative rule (partials computed once per point, issue 51)
+    gives what autodiff through split_bilinear gives: the gradient in the path and in
+    the metric, a Hessian-vector product (forward over reverse, as the saddle check and
+    shooting take it), the metric's Hessian and a vmapped gradient."""
+    from elastic_jax._geometry import differential, energy, metric
+
+    def plain(m, b1, b2, v1, v2):
+        return metric.split_bilinear(m, b1, b2, v1, v2, v1, v2)
+
+    f1 = shapes.sample(shapes.bumpy, 9, 17)
+    f2 = shapes.sample(shapes.bent_cylinder, 9, 17)
+    path = ej.straight_path(f1, f2, 5)
+    path = path + 0.01 * jnp.sin(jnp.arange(path.size, dtype=path.dtype).reshape(path.shape))
+    coefficients = jnp.asarray([1.0, 1.0, 0.1, 0.3])
+    tangent = jnp.cos(path)
+
+    def quantities(energy_of):
+        def e(c, p):
+            return energy_of(ej.SplitMetric(*c), *differential.interior_frame(p), scheme)
+
+        return [
+            e(coefficients, path),
+            jax.grad(e, argnums=1)(coefficients, path),
+            jax.grad(e, argnums=0)(coefficients, path),
+            jax.jvp(lambda p: jax.grad(e, argnums=1)(coefficients, p), (path,), (tangent,))[1],
+            jax.hessian(e, argnums=0)(coefficients, path),
+            jax.vmap(jax.grad(e, argnums=1), (None, 0))(
+                coefficients, jnp.stack([path, 1.1 * path])
+            ),
+        ]
+
+    new = jax.jit(lambda: quantities(energy.frame_energy))()
+    monkeypatch.setattr(energy, "speed_density", plain)
+    old = jax.jit(lambda: quantities(energy.frame_energy))()
+    for a, b in zip(new, old, strict=True):
+        assert float(jnp.max(jnp.abs(a - b))) <= 1e-12 * float(jnp.max(jnp.abs(b)))

@@ -188,7 +188,7 @@ PUBLIC = {
     "elastic_jax": """ConvergenceWarning DistanceMatrixResult GeodesicResult InputError
         KarcherResult Levels LogResult MetricFit RESULTS Refinement ShapeGeodesicResult ShapeOptions
         RetrievalScores ShootingResult SphericalHarmonics SplitMetric SrnfGeodesic
-        SrnfInversion TangentPCA TransportResult base_inner center clear_caches
+        SrnfInversion TangentPCA TransportResult WarmupReport base_inner center clear_caches
         diffeomorphism diffeomorphism_bound differential distance_matrix
         elastic_metric_inner enable_compilation_cache exp fit_metric geodesic grid_angles
         hat icosahedral_group integrate jacobian_determinant karcher_mean log max_degree
@@ -197,7 +197,7 @@ PUBLIC = {
         rotate_parametrization shape_geodesic shoot so3_exp so3_log sphere_points
         split_inner split_parts srnf srnf_distance srnf_geodesic srnf_invert
         srnf_path_length straight_path surface_area surface_basis tangent_pca
-        upsample_coefficients validate_surface vector_field_basis vee""",
+        upsample_coefficients validate_surface vector_field_basis vee warmup""",
     "elastic_jax.io": """MESH_FORMATS DegenerateFaceError FrameWarning InconsistentWindingError
         MeshError MeshFrame mesh_frame NonManifoldVertexError NotGenusZeroError
         NotStarShapedError NotWatertightError

@@ -53,6 +53,7 @@ from .process import (
 )
 from .shape_geodesic import run_shape_geodesic
 from .shoot import run_shoot
+from .warmup import run_warmup
 
 __all__ = [
     "COMMANDS",
@@ -78,6 +79,7 @@ COMMANDS = {
     "shoot": run_shoot,
     "demo": run_demo,
     "bench": run_bench,
+    "warmup": run_warmup,
 }
 
 

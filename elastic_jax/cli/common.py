@@ -37,7 +37,7 @@ SURFACE_FILES = SURFACE_FILE.replace("a surface", "surfaces") + ", or a director
 KARCHER_OUTPUT_KEYS = ("f", "velocities", "distances", "settings", "inputs", "result", "converged")
 
 
-SHAPE_COMMANDS = ("shape-geodesic", "karcher", "pca", "distances", "fit-metric")
+SHAPE_COMMANDS = ("shape-geodesic", "karcher", "pca", "distances", "fit-metric", "warmup")
 
 
 SHAPE_DEFAULTS = ShapeOptions()
@@ -136,7 +136,7 @@ def metric_from(args):
         raise BadInput(str(err)) from err
 
 
-def _check_degrees(args, m: int, n: int) -> None:
+def check_degrees(args, m: int, n: int) -> None:
     from .._geometry.harmonics import check_degree
 
     for name in ("degree", "vf_degree"):
@@ -229,7 +229,7 @@ def prepare(args, progress: Progress, files, options_of: Callable, surfaces=None
     """The surfaces ``(K, 3, m, n)`` (read unless given), checked degrees, metric, options."""
     if surfaces is None:
         surfaces = _load_all(files, args.grid, args.dtype, progress, args.frame)
-    _check_degrees(args, *surfaces.shape[-2:])
+    check_degrees(args, *surfaces.shape[-2:])
     return surfaces, metric_from(args), options_of(args)
 
 

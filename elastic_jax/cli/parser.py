@@ -411,6 +411,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--max-newton", type=int, default=20, help="Newton iterations per step")
 
+    p = command(
+        "warmup",
+        help="compile a batch job's shape solves into the cache ahead of it",
+        description="Solves a built-in pair with the job's shape options on every working "
+        "grid (each level of --rtol), so that the compilation cache (--cache-dir) holds "
+        "every program the job's shape geodesics, distances and resolved Karcher means run "
+        "for inputs on --grid (default 50 99): later runs load them instead of compiling.",
+    )
+    _shape_options(p, modulo="diff", moduli=("diff", "rigid", "both"))
+    _rtol_option(p, "the job's resolved distances")
+
     p = command("demo", help="a geodesic between two built-in surfaces, with figures")
     _common(p, degree=7, times=10)
 

@@ -26,6 +26,7 @@ from .common import (
     shape_options_from,
 )
 from .parser import build_parser
+from .warmup import check_warmup
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_NOT_CONVERGED = 0, 1, 2, 3
 
@@ -110,6 +111,8 @@ def preflight(args) -> None:
         checked_flag("--times", check_int, args.times, 3)
         if getattr(args, "max_steps", None) is not None:
             checked_flag("--max-steps", check_int, args.max_steps, 1)
+    if args.command == "warmup":
+        check_warmup(args)
     if args.command in ("karcher", "pca", "distances") and args.karcher_output is None:
         if len(args.files) < 2:
             also = " (or one karcher run's mean.npz)" if args.command == "pca" else ""
