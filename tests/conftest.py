@@ -35,9 +35,12 @@ def _fresh_jit_caches():
     """Drop this module's compiled executables when it ends (the persistent cache keeps
     them for later modules): a process that held the whole suite's executables aborted
     inside XLA late in the suite (in compilation and in cache serialization; each test
-    passes in a fresh process)."""
+    passes in a fresh process). The package's own caches too: its compiled solve phases
+    (phase_chain) are held apart from JAX's."""
     yield
-    jax.clear_caches()
+    from elastic_jax import clear_caches
+
+    clear_caches()
 
 
 @pytest.fixture(autouse=True)

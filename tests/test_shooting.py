@@ -258,16 +258,19 @@ def test_exp_of_log_and_transport_on_the_shared_animals():
     assert abs(drifts[1]) <= 3e-3 and abs(drifts[0]) >= 5 * abs(drifts[1])
 
     # A transfer: horse0's deformation of cat1, carried to the registered cat2 on the
-    # frames and shot from there with them. A quarter of it gets through (13 of 13
-    # nodes; 0.35 of it stops at the last node, and on grid differences the quarter
-    # stopped at node 9).
+    # frames and shot from there with them. A fifth of it gets through (13 of 13 nodes).
+    # How much more does depends on the horse0 log's minimum: with the one the kernel
+    # before issue 51 rounded to, a quarter got through and 0.35 stopped at the last
+    # node; with the one it reaches now, a quarter stops at node 7 (on grid differences
+    # the quarter stopped at node 9).
     moved = ej.parallel_transport(
         b.velocity, a.path, METRIC, options=options, path_frames=a.path_frames, w_frame=b.frames[1]
     )
-    frames = jnp.stack([a.path_frames[-1], 0.25 * moved.frame])
-    shot = shoot(a.target, 0.25 * moved.vector, METRIC, options=options, frames=frames)
+    frames = jnp.stack([a.path_frames[-1], 0.2 * moved.frame])
+    shot = shoot(a.target, 0.2 * moved.vector, METRIC, options=options, frames=frames)
     assert bool(shot.converged)
     # The first step's speed (at its midpoint) is the carried norm's to O(1/T): measured
-    # 0.3891 against 0.3883. The speed then rises to 0.423: the shot is a geodesic of the
+    # 0.3891 against 0.3883 (a quarter), 0.3133 against 0.3134 (a fifth). The speed of
+    # the quarter's shot then rose to 0.423: the shot is a geodesic of the
     # basis-restricted recursion, which does not keep the speed.
-    np.testing.assert_allclose(shot.speeds[0], 0.25 * moved.norms[-1], rtol=0.01)
+    np.testing.assert_allclose(shot.speeds[0], 0.2 * moved.norms[-1], rtol=0.01)

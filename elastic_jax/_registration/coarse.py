@@ -12,6 +12,7 @@ from .._geodesics.solvers import minimize
 from .problem import (
     MATCH_STEPS,
     State,
+    gamma_source,
     iterate,
     kabsch,
     make_problem,
@@ -41,10 +42,11 @@ def _straight_round(prob, cfg, rigid, weight, cap, state: State) -> State:
     dtype = state.energy.dtype
     criterion = matching_criterion(prob, cfg, weight)
     reference = jnp.maximum(state.energy, jnp.finfo(dtype).tiny)
+    source = gamma_source(cfg, state.gamma)
 
     def objective(y):
         x, r_step = registration_variables(prob, y, rigid)
-        gamma = stepped_gamma(prob, cfg, state.gamma, x)
+        gamma = stepped_gamma(prob, cfg, source, x)
         return criterion(gamma, r_step @ state.rotation) / reference
 
     y0 = zero_registration(prob, rigid, dtype)

@@ -235,10 +235,20 @@ def registered_f1(prob, cfg, gamma):
     return reparametrize_unchecked(prob.source1, gamma, method=source_method(cfg.interpolation))
 
 
-def stepped_gamma(prob, cfg, gamma, x):
-    """gamma o Proj(Id + sum x_k v_k): the reparametrization after one more Diff step."""
+def gamma_source(cfg, gamma):
+    """gamma as a round's objective reads it, for :func:`stepped_gamma`: with spline
+    reads its spline's coefficients, computed once per round instead of in each
+    evaluation (the same numbers; 25 x 49, degree 7 / 8: the step's value and gradient
+    0.97 -> 0.80 ms)."""
+    return spline_coefficients(gamma) if cfg.interpolation == "spline" else gamma
+
+
+def stepped_gamma(prob, cfg, source, x):
+    """gamma o Proj(Id + sum x_k v_k): the reparametrization after one more Diff step,
+    gamma given by ``source = gamma_source(cfg, gamma)``."""
     step = _step_field(x, prob.bases.fields, prob.bases.field_scale, prob.e1)
-    return compose(gamma, step, cfg.interpolation)
+    g = reparametrize_unchecked(source, step, method=source_method(cfg.interpolation))
+    return g / jnp.linalg.norm(g, axis=-3, keepdims=True)
 
 
 @cached
@@ -368,11 +378,12 @@ def registration_variables(prob, y, rigid):
 def joint_objective(prob, cfg, rigid, gamma, rotation, scaling):
     """Energy / scale as a function of (whitened path coefficients z, registration step y)."""
     end_frame = rotated_end_frame(prob, cfg, rotation)
+    source = gamma_source(cfg, gamma)
 
     def objective(variables):
         z, y = variables
         x, r_step = registration_variables(prob, y, rigid)
-        start = registered_frame(prob, cfg, stepped_gamma(prob, cfg, gamma, x))
+        start = registered_frame(prob, cfg, stepped_gamma(prob, cfg, source, x))
         end = [rotate_surface(r_step, a) for a in end_frame]
         straight = frames_between(start, end, cfg.n_times)
         frames = perturbed_frames(straight, scaling.coefficients(z), prob.bases.dframe)

@@ -87,6 +87,16 @@ _PHASE_JITS = {
 }
 
 
+def _phases(starts_given: bool, carried_given: bool) -> list[tuple]:
+    """(name, function, jitted, skeleton) of each phase a solve runs: all five, or from
+    the coarse rounds with its starts given, or the continuation and the last three."""
+    if carried_given:
+        phases = (_CONTINUATION, *_PHASES[2:])
+    else:
+        phases = _PHASES[1:] if starts_given else _PHASES
+    return [(name, f, _PHASE_JITS[name], skeleton) for name, f, skeleton in phases]
+
+
 def _solve_in_phases(
     args: tuple, cfg: ShapeOptions, rigid: bool, starts=None, carried=None
 ) -> ShapeGeodesicResult:
@@ -105,12 +115,9 @@ def _solve_in_phases(
     about 1e-11 relative). Inside a caller's trace (karcher_mean, distance_matrix) the
     phases are part of the caller's one program.
     """
-    if carried is not None:
-        phases, carried = (_CONTINUATION, *_PHASES[2:]), (carried,)
-    else:
-        phases, carried = (_PHASES, ()) if starts is None else (_PHASES[1:], (starts,))
-    phases = [(name, f, _PHASE_JITS[name], skeleton) for name, f, skeleton in phases]
-    return phase_chain(phases, args, carried, {"cfg": cfg, "rigid": rigid})
+    phases = _phases(starts is not None, carried is not None)
+    given = (carried,) if carried is not None else () if starts is None else (starts,)
+    return phase_chain(phases, args, given, {"cfg": cfg, "rigid": rigid})
 
 
 def _shape_solve(metric, f1, f2, bases, cfg, rigid) -> ShapeGeodesicResult:
@@ -256,23 +263,34 @@ def shape_geodesic(
     return result
 
 
+def _grid_setup(f1, f2, metric, cfg):
+    """(cfg, units, g1, g2, args) of a solve on cfg's working grid: the static record,
+    f1 and f2 in the solve's units, and the phases' arguments (the metric, g1, g2 and the
+    bases) as constants: the solve runs on constants and shape_finish differentiates."""
+    m, n = working_grid_of(cfg, f1, f2)
+    check_grid_options(cfg, m, n)
+    # One static record per grid and settings, however the grid was asked for (grid=,
+    # the inputs' grid, a level): one compiled program for each.
+    cfg = cfg.replace(grid=(m, n), rtol=None)
+    if cfg.tol is None:
+        cfg = cfg.replace(tol=default_tol(f1.dtype))
+    # Solve in units of the surfaces' size (see _geometry/units.py): float32 works at any scale.
+    units, (g1, g2) = in_units(f1, f2)
+    bases = make_bases(m, n, cfg, f1.dtype)
+    args = (constant(metric), jax.lax.stop_gradient(g1), jax.lax.stop_gradient(g2), bases)
+    return cfg, units, g1, g2, args
+
+
 def _one_grid_solve(f1, f2, metric, modulo, cfg, start, carry=None) -> ShapeGeodesicResult:
     """shape_geodesic on one working grid; ``carry`` = (gamma, R, coefficients or None)
     continues a registration instead of searching starts (``start`` is then not used):
     the level below's registration and path in the user's units (_levels_solve), or an
     inverted registration from its straight line (None; _symmetric_solve)."""
-    m, n = working_grid_of(cfg, f1, f2)
-    check_grid_options(cfg, m, n)
+    cfg, units, g1, g2, args = _grid_setup(f1, f2, metric, cfg)
+    m, n = cfg.grid
     dtype = f1.dtype
-    # One static record per grid and settings, however the grid was asked for (grid=,
-    # the inputs' grid, a level): one compiled program for each.
-    cfg = cfg.replace(grid=(m, n), rtol=None)
-    if cfg.tol is None:
-        cfg = cfg.replace(tol=default_tol(dtype))
     rigid = modulo == "rigid"
-    # Solve in units of the surfaces' size (see _geometry/units.py): float32 works at any scale.
-    units, (g1, g2) = in_units(f1, f2)
-    bases = make_bases(m, n, cfg, dtype)
+    bases = args[3]
     starts = None if start is None else given_start(start, m, n, dtype, rigid)
     carried = None
     if carry is not None:
@@ -288,7 +306,6 @@ def _one_grid_solve(f1, f2, metric, modulo, cfg, start, carry=None) -> ShapeGeod
     # differentiably, at the solution (envelope theorem: the derivative of the minimal
     # energy in f1, f2 and the metric, with gamma, R and C held).
     def solve(starts, carried=None):
-        args = (constant(metric), jax.lax.stop_gradient(g1), jax.lax.stop_gradient(g2), bases)
         solved = _solve_in_phases(args, cfg, rigid, starts, carried)
         return shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
 

@@ -294,13 +294,9 @@ def phase_chain(phases, args: tuple, carried: tuple, static: dict):
 
     Inside a caller's trace, the phases are part of its program. With the exported
     programs on, each phase goes through :func:`exported_call`. Otherwise the phases'
-    programs are traced one after the other, each from the shapes of the one before's
-    result, and each is compiled in a thread as soon as it is traced: XLA compiles
-    without Python's lock, so tracing the next phase and compiling the earlier ones
-    overlap (the paper's low row, cats, 2 cores: tracing and compiling the five phases
-    25.3 s one after the other, 19.2 s so). The compiled programs are kept (one per
-    phase, options and argument shapes) and called directly; they are the jitted
-    functions' own (same program, same compiler options): the results are identical.
+    programs come from :func:`compile_phases` and are called directly; they are the
+    jitted functions' own (same program, same compiler options): the results are
+    identical.
     """
     leaves = jax.tree_util.tree_leaves((args, carried))
     if not is_concrete(leaves):
@@ -311,28 +307,51 @@ def phase_chain(phases, args: tuple, carried: tuple, static: dict):
         for name, function, jitted, skeleton in phases:
             carried = (exported_call(name, function, jitted, (*args, *carried), static, skeleton),)
         return carried[0]
+    for key, program in compile_phases(phases, args, carried, static):
+        try:
+            compiled = program.result()
+        except BaseException:
+            _PHASE_PROGRAMS.pop(key, None)  # compiled again next time
+            raise
+        carried = (compiled(*args, *carried),)
+    return carried[0]
+
+
+def compile_phases(phases, args: tuple, carried: tuple, static: dict) -> list:
+    """Start compiling the programs of :func:`phase_chain`'s ``phases``; returns
+    ``[(key, future of the compiled program)]``.
+
+    The phases are traced here one after the other, each from the shapes of the one
+    before's result (``args`` and ``carried`` may be arrays or ``jax.ShapeDtypeStruct``),
+    and each is compiled in a worker thread as soon as it is traced: XLA compiles
+    without Python's lock, so tracing the next phase and compiling the earlier ones
+    overlap (the paper's low row, cats, 2 cores: tracing and compiling the five phases
+    25.3 s one after the other, 19.2 s so). The programs are kept by phase, options and
+    argument shapes: a phase traced before is not traced or compiled again. (Compiling
+    a resolved distance's second level while its first solves, from shapes alone, was
+    measured too: 36.1 s against 36.8 s for the cats' two levels on 2 cores, whose
+    compilations already keep both cores busy; not kept.)
+    """
     programs = []
     shapes = carried
-    with ThreadPoolExecutor(max_workers=min(len(phases), os.cpu_count() or 1)) as pool:
-        for name, _, jitted, _ in phases:
-            flat, treedef = jax.tree_util.tree_flatten((args, shapes))
-            key = (name, jax.default_backend(), tuple(sorted(static.items())), str(treedef))
-            key += _avals(flat)
-            entry = _PHASE_PROGRAMS.get(key)
-            if entry is None:
-                traced = jitted.jitted().trace(*args, *shapes, **static)
-                entry = (pool.submit(lambda t=traced: t.lower().compile()), traced.out_info)
-                _PHASE_PROGRAMS[key] = entry
-            programs.append((key, entry[0]))
-            shapes = (entry[1],)
-        for key, program in programs:
-            try:
-                compiled = program.result()
-            except BaseException:
-                _PHASE_PROGRAMS.pop(key, None)  # compiled again next time
-                raise
-            carried = (compiled(*args, *carried),)
-    return carried[0]
+    for name, _, jitted, _ in phases:
+        flat, treedef = jax.tree_util.tree_flatten((args, shapes))
+        key = (name, jax.default_backend(), tuple(sorted(static.items())), str(treedef))
+        key += _avals(flat)
+        entry = _PHASE_PROGRAMS.get(key)
+        if entry is None:
+            traced = jitted.jitted().trace(*args, *shapes, **static)
+            entry = (_compiler_pool().submit(lambda t=traced: t.lower().compile()), traced.out_info)
+            _PHASE_PROGRAMS[key] = entry
+        programs.append((key, entry[0]))
+        shapes = (entry[1],)
+    return programs
+
+
+@cached
+def _compiler_pool() -> ThreadPoolExecutor:
+    """The worker threads that compile phases, one per core, first come first served."""
+    return ThreadPoolExecutor(max_workers=os.cpu_count() or 1, thread_name_prefix="ej-compile")
 
 
 def _compiled(name, key, function, quick, static, treedef, leaves, n_outputs):
