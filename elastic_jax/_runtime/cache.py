@@ -22,6 +22,7 @@ import hashlib
 import numbers
 import os
 import pathlib
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import jax
@@ -299,13 +300,16 @@ def phase_chain(phases, args: tuple, carried: tuple, static: dict):
     identical.
     """
     leaves = jax.tree_util.tree_leaves((args, carried))
-    if not is_concrete(leaves):
-        for _, _, jitted, _ in phases:
-            carried = (jitted(*args, *carried, **static),)
-        return carried[0]
-    if _EXPORT_DIR is not None:
+    if _EXPORT_DIR is not None and is_concrete(leaves):
         for name, function, jitted, skeleton in phases:
             carried = (exported_call(name, function, jitted, (*args, *carried), static, skeleton),)
+        return carried[0]
+    # From a thread other than the main one (a Dask worker's task) the compilations in
+    # worker threads hung: a distances run on a local Dask cluster never finished its
+    # first pair (tests/test_cli.py's Ctrl-C test). There each phase compiles when called.
+    if not is_concrete(leaves) or threading.current_thread() is not threading.main_thread():
+        for _, _, jitted, _ in phases:
+            carried = (jitted(*args, *carried, **static),)
         return carried[0]
     for key, program in compile_phases(phases, args, carried, static):
         try:
