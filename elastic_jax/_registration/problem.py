@@ -247,8 +247,7 @@ def stepped_gamma(prob, cfg, source, x):
     """gamma o Proj(Id + sum x_k v_k): the reparametrization after one more Diff step,
     gamma given by ``source = gamma_source(cfg, gamma)``."""
     step = _step_field(x, prob.bases.fields, prob.bases.field_scale, prob.e1)
-    g = reparametrize_unchecked(source, step, method=source_method(cfg.interpolation))
-    return g / jnp.linalg.norm(g, axis=-3, keepdims=True)
+    return compose(source, step, source_method(cfg.interpolation))
 
 
 @cached

@@ -64,6 +64,14 @@ def _pair(m: int, n: int, dtype) -> tuple[np.ndarray, np.ndarray]:
     return e1.astype(dtype), np.einsum("ij,jmn->imn", stretch, e1).astype(dtype)
 
 
+def working_grids(options: ShapeOptions, input_grid: tuple[int, int]) -> tuple:
+    """The working grids a solve with ``options`` runs on, for inputs on ``input_grid``:
+    every level of ``options.levels`` with rtol, else ``options.grid`` or the inputs'."""
+    if options.resolves:
+        return tuple(options.levels)
+    return (tuple(options.grid or input_grid),)
+
+
 def warmup(
     input_grid: tuple[int, int] = (50, 99),
     *,
@@ -127,10 +135,9 @@ def warmup(
             "dtype='float64' needs jax.config.update('jax_enable_x64', True) first "
             "(the CLI sets it for --dtype float64)"
         )
+    grids = working_grids(cfg, (m, n))
     if cfg.resolves:
-        grids, cfg = cfg.levels, cfg.replace(rtol=_EVERY_LEVEL)
-    else:
-        grids = (cfg.grid or (m, n),)
+        cfg = cfg.replace(rtol=_EVERY_LEVEL)
     f1, f2 = _pair(m, n, dtype)
     metric = SplitMetric(1.0, 1.0, 0.1, 0.0)
     counter = CompileCounter()

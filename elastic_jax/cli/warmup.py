@@ -10,9 +10,10 @@ DEFAULT_INPUT_GRID = (50, 99)
 
 def _grids(args) -> tuple[tuple[int, int], tuple[tuple[int, int], ...]]:
     """The inputs' grid and the working grids the job's options solve on."""
+    from .._registration.warmup import working_grids
+
     grid = tuple(args.grid) if args.grid else DEFAULT_INPUT_GRID
-    options = args.shape_options
-    return grid, options.levels if options.resolves else (options.grid or grid,)
+    return grid, working_grids(args.shape_options, grid)
 
 
 def check_warmup(args) -> None:
