@@ -41,6 +41,14 @@ Run: python benchmarks/bench_real.py [--pairs cats,cat-horse,horse-hand,syntheti
      [--init moebius|energy|icosahedral|none]
      [--differential chain|grid] [--interpolation spline|bicubic|bilinear] [--rtol 0.03|none]
      [--levels 13x25,25x49,49x97]   (differential and interpolation: the package's defaults)
+     [--dtype float64|float32] [--repeat K]   (each case solved K times in this process:
+     the first of a configuration compiles, the others are the warm figure)
+
+Measured on one H200 (2026-11-28, cats, data, the defaults, four benchmark processes on
+the GPU at once; records/bench_real_levels_h200_2026-11-28.jsonl): float64 first call 209
+and 228 s (64 programs), warm 16.9 and 9.9 s, distances 2.180 and 2.208 (two runs; levels
+to 97 x 193, estimate 0.4 % and 2.2 %). float32 ended at 0.0 on the 97 x 193 level in both
+runs (docs/guides/limitations.md).
 """
 
 from __future__ import annotations
@@ -194,6 +202,8 @@ def main() -> None:
         default=None,
         help="the levels' grids for --rtol, e.g. 13x25,25x49,49x97 (default: the package's)",
     )
+    parser.add_argument("--dtype", default="float64", choices=("float64", "float32"))
+    parser.add_argument("--repeat", type=int, default=1, help="solves per case")
     args = parser.parse_args()
     options = ej.ShapeOptions(
         init=args.init,
@@ -223,6 +233,7 @@ def main() -> None:
             "interpolation": args.interpolation,
             "rtol": args.rtol,
             "levels": [list(g) for g in options.levels] if args.rtol else None,
+            "dtype": args.dtype,
         }
     )
     seen = set()
@@ -232,8 +243,8 @@ def main() -> None:
             emit({"kind": "skipped", "pair": name, "why": "data or nilearn absent"})
             continue
         distances = {}
-        for case in cases:
-            f1, f2 = _inputs(case, *surfaces)
+        for case, repeat in ((c, r) for c in cases for r in range(args.repeat)):
+            f1, f2 = (jnp.asarray(f, args.dtype) for f in _inputs(case, *surfaces))
             grid = tuple(f1.shape[-2:])
             start = time.perf_counter()
             with warnings.catch_warnings(), CompileCounter() as programs:
@@ -247,6 +258,8 @@ def main() -> None:
                     "kind": "solve",
                     "pair": name,
                     "case": case,
+                    "repeat": repeat,
+                    "dtype": args.dtype,
                     "grid": list(grid),
                     "distance": float(res.distance),
                     "parametrized_distance": float(res.parametrized_distance),

@@ -156,6 +156,21 @@ __all__ = [
     "warmup",
 ]
 
+
+def _trace_at_full_precision() -> None:
+    # Each public function traces its float32 products at float32's own precision (on
+    # recent GPUs JAX's default is TensorFloat-32, ~1e-3: _runtime/precision.py), unless
+    # the caller has chosen a precision. The internal modules are called from these.
+    from ._runtime.precision import full_precision
+
+    for name in __all__:
+        obj = globals()[name]
+        if callable(obj) and not isinstance(obj, type):
+            globals()[name] = full_precision(obj)
+
+
+_trace_at_full_precision()
+
 _SUBMODULES = ("cli", "io", "plot")
 
 

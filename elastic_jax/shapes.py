@@ -25,6 +25,7 @@ from ._checks import check_int
 from ._errors import InputError
 from ._geometry.grid import sphere_points
 from ._geometry.reparam import moebius as _moebius_map
+from ._runtime.precision import full_precision
 
 __all__ = [
     "sphere",
@@ -95,6 +96,7 @@ def bent_cylinder(
     return jnp.stack([u * jnp.cos(beta) + sideways, v, along - u * jnp.sin(beta)])
 
 
+@full_precision  # the rotation's product at float32's precision on GPUs
 def sample(
     shape: Callable[..., Array],
     m: int,

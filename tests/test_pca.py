@@ -59,6 +59,17 @@ def test_pca_of_a_two_factor_family_finds_two_modes():
     assert float(jnp.max(jnp.abs(path[N_TIMES - 1] - mean))) == 0.0
 
 
+def test_default_modes_stop_at_the_rank_in_float32():
+    # K centred velocities have rank K - 1; in float32 the missing direction's eigenvalue
+    # is rounding (3e-8 of the total), not a mode.
+    mean = shapes.sample(shapes.bumpy, 9, 17)
+    velocities = jnp.asarray(np.random.default_rng(0).normal(size=(3, 3, 9, 17)))
+    reference = tangent_pca((mean, velocities), METRIC)
+    single = tangent_pca((mean.astype(jnp.float32), velocities.astype(jnp.float32)), METRIC)
+    assert reference.modes.shape[0] == single.modes.shape[0] == 2
+    np.testing.assert_allclose(single.variances, reference.variances, rtol=1e-5)
+
+
 def test_pca_refuses_bad_input():
     mean = ej.sphere_points(M, N_GRID)
     with pytest.raises(ej.InputError, match="at least 2"):

@@ -94,7 +94,7 @@ class GeodesicResult(NamedTuple):
     def message(self) -> str:
         """Why the solver stopped, in its own words ('' when it converged)."""
         message = result_message(self.result)
-        if bool(self.result == RESULTS.saddle_point):
+        if RESULTS.name(self.result) == "saddle_point":  # no eager == (a program of its own)
             message += f" (smallest Hessian eigenvalue {float(self.min_curvature):.3g})"
         return message
 
@@ -397,9 +397,10 @@ def constant(tree):
 
 def safe_sqrt(x: Array) -> Array:
     """sqrt(x) with a zero, not an infinite, derivative at x = 0 (the double-where pattern:
-    the branch not taken never sees 0, so its derivative is finite too)."""
+    the branch not taken never sees 0, so its derivative is finite too). NaN stays NaN: a
+    non-finite energy must not read as a zero distance."""
     positive = x > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), jnp.where(x == x, 0.0, x))
 
 
 def upsample_coefficients(
@@ -664,7 +665,7 @@ def geodesic(
         metric, g1, g2, f1, f2, solved, units, values, dframe, n_times=n_times, scheme=scheme
     )
     if is_concrete(result.converged, result.num_steps) and not bool(result.converged):
-        if result.result == RESULTS.saddle_point:
+        if RESULTS.name(result.result) == "saddle_point":
             reason = f"and {saddle_checks} saddle escapes: {result.message}"
         else:
             reason = f"without meeting tol={tol:g}: {result.message}"

@@ -299,7 +299,7 @@ def _shoot(metric, f, v, a_f, a_v, values, dframe, *, n_times, scheme, tol, max_
     known = zip(a_f, first[1], node_frames, strict=True)
     frames = tuple(jnp.concatenate([a[None], b[None], c]) for a, b, c in known)
     speeds2, _ = frame_speeds2(metric, *frames, scheme)
-    speeds = jnp.where(jnp.isnan(speeds2), jnp.nan, safe_sqrt(speeds2))
+    speeds = safe_sqrt(speeds2)
     n_valid = 2 + jnp.sum(ok.astype(jnp.int32))
     result = first_failure(results, ok)
     return path, speeds, residuals, coefficients, newton_steps, n_valid, result

@@ -356,7 +356,7 @@ def _pole_planes(f, method):
     # smoothed along the row by the B-spline's (1, 4, 1) / 6, which scales the first
     # Fourier mode by (2 + cos dtheta) / 3.
     n = f.shape[-1]
-    smoothing = (2.0 + np.cos(2.0 * np.pi / (n - 1))) / 3.0
+    smoothing = float(2.0 + np.cos(2.0 * np.pi / (n - 1))) / 3.0  # a weak scalar: keeps f32
     rows = pole_phi_derivative(spline_coefficients(f) if method == "spline" else f)
     return tuple(tuple(smoothing * v for v in pole_fourier1(row)) for row in rows)
 

@@ -152,6 +152,8 @@ def end_phase(metric, f1, f2, bases, solved, cfg, rigid) -> ShapeGeodesicResult:
     )
     result = RESULTS.where(final.converged, rounds_result, final.result)
     result = RESULTS.where(not_registered, RESULTS.not_registered, result)
+    finite = jnp.isfinite(final.energy)
+    result = RESULTS.where(finite, result, RESULTS.nonfinite)
     if cfg.refinement:
         refinement = _refinement(prob, cfg, gamma, rotation, final.coefficients, final.energy)
     else:
@@ -169,7 +171,7 @@ def end_phase(metric, f1, f2, bases, solved, cfg, rigid) -> ShapeGeodesicResult:
         energy_history=history,
         rounds=rounds.rounds,
         num_steps=steps,
-        converged=final.converged & rounds.done & ~state.shrunk & ~not_registered,
+        converged=final.converged & rounds.done & ~state.shrunk & ~not_registered & finite,
         result=result,
         grad_norm=grad_norm,
         min_curvature=final.min_curvature,

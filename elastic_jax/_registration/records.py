@@ -128,7 +128,7 @@ class ShapeGeodesicResult(NamedTuple):
         than the step gained) says so.
         """
         message = result_message(self.result)
-        if bool(self.result == RESULTS.saddle_point):
+        if RESULTS.name(self.result) == "saddle_point":  # no eager == (a program of its own)
             message += f" (smallest Hessian eigenvalue {float(self.min_curvature):.3g})"
         history, k = np.asarray(self.energy_history), int(self.rounds)
         # After at least one accepted round: a first round refused at once is a match at

@@ -310,7 +310,8 @@ def _one_grid_solve(f1, f2, metric, modulo, cfg, start, carry=None) -> ShapeGeod
         return shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
 
     result = solve(starts, carried)
-    if is_concrete(result.result) and bool(result.result == RESULTS.not_registered):
+    # By name: an eager == would compile a program of its own in each process.
+    if is_concrete(result.result) and RESULTS.name(result.result) == "not_registered":
         # The rounds ended above the pair as given: carry the pair as given (and its best
         # rotation) through the rounds as well, and keep the lower of the two.
         again = solve(given_only_starts(m, n, dtype))
@@ -391,8 +392,8 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
             seconds.append(time.perf_counter() - begin)
             grids.append(grid)
             change = _change(distances, result.parametrized_distance, noise)
-            if change <= cfg.rtol and bool(result.converged):
-                break
+            if not np.isfinite(distances[-1]) or (change <= cfg.rtol and bool(result.converged)):
+                break  # a non-finite level (RESULTS.nonfinite) ends the levels too
     result = _with_levels(result, grids, distances, seconds, cfg.rtol, noise)
     _warn_unless_converged(result, stacklevel=4)
     return result
@@ -512,7 +513,7 @@ def _warn_unless_converged(result: ShapeGeodesicResult, stacklevel: int = 3) -> 
         history = np.asarray(result.energy_history)
         # Every other ending's words (stalled, saddle, resolution-limited) say what to
         # change; running out of steps is the one that does not.
-        ran_out = bool(result.result == RESULTS.nonlinear_max_steps_reached)
+        ran_out = RESULTS.name(result.result) == "nonlinear_max_steps_reached"
         advice = "; raise outer_steps or max_steps" if ran_out else ""
         if result.levels is not None:
             steps = ", ".join(

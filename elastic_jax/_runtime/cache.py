@@ -29,6 +29,7 @@ import jax
 
 from .._checks import check_bool, check_positive, is_concrete
 from .atomic import atomic_path
+from .precision import chosen
 
 # XLA:CPU compiles fusions with its MLIR fusion emitters by default. On the shape solve
 # (about 2000 fusions) they hold about 780 MB more while compiling (peak RSS 1445 MB
@@ -254,6 +255,7 @@ def _key(name: str, static: dict, treedef, leaves) -> str:
         jax.__version__,
         jaxlib.__version__,
         str(jax.config.jax_enable_x64),
+        str(chosen()),  # the matmul precision the program was traced under
         jax.default_backend(),
         _source_digest(),
     ]
@@ -340,7 +342,7 @@ def compile_phases(phases, args: tuple, carried: tuple, static: dict) -> list:
     shapes = carried
     for name, _, jitted, _ in phases:
         flat, treedef = jax.tree_util.tree_flatten((args, shapes))
-        key = (name, jax.default_backend(), tuple(sorted(static.items())), str(treedef))
+        key = (name, jax.default_backend(), chosen(), tuple(sorted(static.items())), str(treedef))
         key += _avals(flat)
         entry = _PHASE_PROGRAMS.get(key)
         if entry is None:

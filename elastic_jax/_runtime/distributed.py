@@ -12,14 +12,17 @@ task of a worker that died. This module only cuts a job into tasks and collects 
   for the whole job, and each pair's numbers do not depend on where it ran (lax.map and
   the loop solve every item on its own; vmap runs a chunk in lockstep, as in process).
 - The collection is scattered to the workers once; a task carries only its indices.
-- A task runs under the caller's 64-bit setting (``jax.enable_x64`` as a context, so the
-  worker's global configuration is left alone): float64 stays float64 on every worker.
+- A task runs under the caller's 64-bit setting and matmul precision (``jax.enable_x64``
+  and ``jax.default_matmul_precision`` as contexts, so the worker's global configuration
+  is left alone): float64 stays float64, and float32 products stay at float32's
+  precision (_runtime/precision.py), on every worker.
 - Results are handed back as they finish (``as_completed``): the caller checkpoints
   each one, so a job stopped at any point resumes with what had arrived.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Callable
 
@@ -27,6 +30,7 @@ import jax
 import numpy as np
 
 from .._errors import InputError
+from .precision import chosen
 
 try:
     import distributed
@@ -65,20 +69,28 @@ def connect(client):
     )
 
 
-def _pairs_task(chunk, shapes, rows, cols, settings, size, x64):
-    with jax.enable_x64(x64):
+@contextlib.contextmanager
+def _as_caller(modes):
+    """The caller's 64-bit setting and matmul precision (Pool._modes) in a worker."""
+    x64, precision = modes
+    with jax.enable_x64(x64), jax.default_matmul_precision(precision):
+        yield
+
+
+def _pairs_task(chunk, shapes, rows, cols, settings, size, modes):
+    with _as_caller(modes):
         out = chunk(shapes[rows], shapes[cols], *settings, size)
         return tuple(np.asarray(x) for x in out)
 
 
-def _shapes_task(chunk, shapes, index, mean, starts, settings, size, x64):
-    with jax.enable_x64(x64):
+def _shapes_task(chunk, shapes, index, mean, starts, settings, size, modes):
+    with _as_caller(modes):
         out = chunk(mean, shapes[index], *settings, size, starts)
         return tuple(np.asarray(x) for x in out)
 
 
-def _solved_pairs_task(chunk, shapes, rows, cols, starts, settings, size, x64):
-    with jax.enable_x64(x64):
+def _solved_pairs_task(chunk, shapes, rows, cols, starts, settings, size, modes):
+    with _as_caller(modes):
         out = chunk(shapes[rows], shapes[cols], *settings, size, starts)
         return tuple(np.asarray(x) for x in out)
 
@@ -92,7 +104,7 @@ class Pool:
 
     def __init__(self, client, shapes, metric, modulo, options, strategy):
         self.client, self._owned = connect(client)
-        self._x64 = bool(jax.config.read("jax_enable_x64"))
+        self._modes = (bool(jax.config.read("jax_enable_x64")), chosen())
         self._dtype = np.asarray(shapes).dtype
         # Every worker gets the collection once (broadcast): tasks carry indices only.
         self._shapes = self.client.scatter(np.asarray(shapes), broadcast=True, hash=False)
@@ -132,7 +144,7 @@ class Pool:
         """One task on the scattered collection with this job's settings; never cached
         by Dask (pure=False): a rerun after a resume solves again."""
         return self.client.submit(
-            task, chunk, self._shapes, *args, self._settings, size, self._x64, pure=False
+            task, chunk, self._shapes, *args, self._settings, size, self._modes, pure=False
         )
 
     def distances(self, chunk, rows, cols, chunks, size: int, finished: Callable) -> None:
@@ -161,7 +173,7 @@ class Pool:
                 None if starts is None else tuple(np.asarray(x[a:b]) for x in starts),
                 settings,
                 size,
-                self._x64,
+                self._modes,
                 pure=False,
             ): i
             for i, (a, b) in enumerate(chunks)

@@ -175,13 +175,19 @@ def distance_matrix(
     """Pairwise shape distances: K(K-1)/2 geodesics, batched (:ref:`math §7 <math-7>`).
 
     Pair (i, j), i < j, uses shape_geodesic(shapes[i], shapes[j]) (or geodesic for
-    modulo="none"); the record is symmetrized from the upper triangle. With
+    modulo="none") on the collection's own grid: ``options.rtol`` and ``levels`` are not
+    used here, so these distances are not resolved by levels as shape_geodesic's and a
+    resolved karcher_mean's are (:ref:`math §10 <math-10>`). For resolved distances,
+    resample the shapes to the grid their levels resolve at (a resolved mean's
+    ``level_distances`` tells which) or solve the pairs with shape_geodesic. The record
+    is symmetrized from the upper triangle. With
     ``checkpoint`` every finished chunk of pairs is saved atomically; ``resume=True``
     skips the chunks already done.
 
     Args:
         shapes: ``(K, 3, m, n)`` surfaces on one grid; metric: split metric coefficients.
-        modulo, options, strategy, checkpoint, resume: as in :func:`karcher_mean`.
+        modulo, options, strategy, checkpoint, resume: as in :func:`karcher_mean`
+            (options without its levels: above).
         progress: called after each chunk with a dict: pairs_done, pairs (in all),
             seconds (since the call began) and eta_s (the time left at this run's rate).
         batch_size: pairs per chunk (one batched call, one checkpoint); default all pairs

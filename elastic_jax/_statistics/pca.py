@@ -99,8 +99,9 @@ def tangent_pca(
             ``(mean (3, m, n), velocities (K, 3, m, n))``.
         metric: the split metric the mean was computed with.
         n_modes: modes to keep (default: every mode whose variance exceeds ``rtol`` times
-            the total; at most K - 1, the centred velocities' rank).
-        rtol: that relative floor.
+            the total, at most K - 1, the centred velocities' rank).
+        rtol: that relative floor; never below K times the dtype's epsilon, where the
+            rank's missing direction lies in float32.
 
     Returns:
         :class:`TangentPCA`.
@@ -109,8 +110,13 @@ def tangent_pca(
     rtol = check_positive("rtol", rtol)
     centred, lam, vec = _pca(metric, mean, velocities)
     total = jnp.sum(jnp.clip(lam, 0.0))
+    k = velocities.shape[0]
     if n_modes is None:
-        n_modes = max(1, int(jnp.sum(lam > rtol * total)))
+        # The centring leaves one eigenvalue at rounding level: 3e-8 of the total in
+        # float32 (three random fields), above a floor of 1e-10, which then asked for K
+        # modes and was refused.
+        floor = max(rtol, k * float(jnp.finfo(lam.dtype).eps))
+        n_modes = min(max(1, int(jnp.sum(lam > floor * total))), max(1, k - 1))
     n_modes = check_int("n_modes", n_modes, 1)
     if n_modes > velocities.shape[0] - 1:
         raise InputError(
@@ -120,7 +126,6 @@ def tangent_pca(
     lam, vec = lam[:n_modes], vec[:, :n_modes]
     if not bool(jnp.all(lam > 0)):
         raise InputError(f"mode {int(jnp.argmin(lam > 0))} has zero variance: ask for fewer modes")
-    k = velocities.shape[0]
     norms = jnp.sqrt(k * lam)
     modes = jnp.einsum("ik,i...->k...", vec / norms[None, :], centred)
     return TangentPCA(

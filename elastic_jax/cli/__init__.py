@@ -28,6 +28,7 @@ import warnings
 from collections.abc import Sequence
 
 from .._errors import InputError
+from .._runtime.precision import full_products
 from .bench import run_bench
 from .common import BadInput, Progress, one_line, write_summary
 from .demo import run_demo
@@ -111,7 +112,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     progress = Progress(args.quiet)
     previous = signal.signal(signal.SIGTERM, raise_terminated)
     try:
-        with warnings.catch_warnings(), contextlib.ExitStack() as stack:
+        # The commands call internal solvers: their float32 products at full precision,
+        # as the public functions trace them (_runtime/precision.py).
+        with warnings.catch_warnings(), contextlib.ExitStack() as stack, full_products():
             # Non-convergence is reported in the summary and the exit code instead.
             warnings.simplefilter("ignore", ConvergenceWarning)
             preflight(args)
