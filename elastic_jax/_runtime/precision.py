@@ -29,13 +29,13 @@ def chosen() -> str | None:
 
 
 @contextlib.contextmanager
-def full_products(value: str | None = None) -> Iterator[None]:
-    """Trace (and run) the block with float32 products at ``value`` (default
-    ``"highest"``), unless a precision is already in force, which is kept."""
+def full_products() -> Iterator[None]:
+    """Trace (and run) the block with float32 products at full precision, unless a
+    precision is already in force, which is kept."""
     if chosen() is not None:
         yield
         return
-    with jax.default_matmul_precision(value or FULL):
+    with jax.default_matmul_precision(FULL):
         yield
 
 
