@@ -88,7 +88,9 @@ class ShapeGeodesicResult(NamedTuple):
         result: an ``elastic_jax.RESULTS`` code: the final solve's failure if it failed, else
             ``resolution_limited`` when the last round's step had to shrink until the grid
             resolved it (J > 0, area floor) and then lowered the energy little or not at
-            all, else ``nonlinear_max_steps_reached`` when the rounds ran out, else successful.
+            all, else ``nonlinear_max_steps_reached`` when the rounds ran out, else successful;
+            ``nonfinite`` over all of these when the energy is not finite (the distance is
+            then NaN, never 0; levels stop at such a level).
         grad_norm: ``()`` 2-norm of the gradient of the joint objective (path in whitened
             coefficients and the next Diff step, energy / its scale) at the result.
         min_curvature: ``()`` the final geodesic solve's estimate of the smallest Hessian
