@@ -87,14 +87,18 @@ _PHASE_JITS = {
 }
 
 
-def _phases(starts_given: bool, carried_given: bool) -> list[tuple]:
-    """(name, function, jitted, skeleton) of each phase a solve runs: all five, or from
-    the coarse rounds with its starts given, or the continuation and the last three."""
-    if carried_given:
-        phases = (_CONTINUATION, *_PHASES[2:])
+def _phases(starts, carried) -> tuple[list[tuple], tuple]:
+    """The phases a solve runs, each as (name, function, jitted, skeleton), and what the
+    first of them is given besides the arguments: all five phases from nothing, the
+    coarse rounds on from ``starts``, or the continuation and the last three from
+    ``carried``."""
+    if carried is not None:
+        phases, given = (_CONTINUATION, *_PHASES[2:]), (carried,)
+    elif starts is not None:
+        phases, given = _PHASES[1:], (starts,)
     else:
-        phases = _PHASES[1:] if starts_given else _PHASES
-    return [(name, f, _PHASE_JITS[name], skeleton) for name, f, skeleton in phases]
+        phases, given = _PHASES, ()
+    return [(name, f, _PHASE_JITS[name], skeleton) for name, f, skeleton in phases], given
 
 
 def _solve_in_phases(
@@ -115,8 +119,7 @@ def _solve_in_phases(
     about 1e-11 relative). Inside a caller's trace (karcher_mean, distance_matrix) the
     phases are part of the caller's one program.
     """
-    phases = _phases(starts is not None, carried is not None)
-    given = (carried,) if carried is not None else () if starts is None else (starts,)
+    phases, given = _phases(starts, carried)
     return phase_chain(phases, args, given, {"cfg": cfg, "rigid": rigid})
 
 
@@ -290,7 +293,7 @@ def _one_grid_solve(f1, f2, metric, modulo, cfg, start, carry=None) -> ShapeGeod
     m, n = cfg.grid
     dtype = f1.dtype
     rigid = modulo == "rigid"
-    bases = args[3]
+    *_, bases = args  # the phases' arguments end with the bases
     starts = None if start is None else given_start(start, m, n, dtype, rigid)
     carried = None
     if carry is not None:
