@@ -105,7 +105,8 @@ class RESULTS(optx.RESULTS, metaclass=_NamedEnumeration):  # pyright: ignore
     )
     mean_velocity_small = "Converged: the mean velocity's norm is at most tol x RMS distance."
     sum_sq_stalled = (
-        "Converged: a full step changed the sum of squared distances by less than tol (relative)."
+        "Converged: the line search's step (full, or halved after the full one raised the sum) "
+        "changed the sum of squared distances by less than tol (relative)."
     )
     line_search_failed = (
         "The line search failed: no step along the mean velocity, halved as often as "

@@ -382,8 +382,11 @@ def test_solver_options_apply_at_the_top_and_give_way_inside_a_callers_trace():
 
     options = dict(_cache._compiler_options(jax.default_backend()))
     if jax.default_backend() == "cpu":
-        # The jaxlib this was written against knows the option: the probe keeps it.
-        assert options == {"xla_cpu_use_fusion_emitters": False}
+        # The jaxlib this was written against knows the options: the probe keeps them.
+        assert options == {
+            "xla_cpu_use_fusion_emitters": False,
+            "xla_cpu_experimental_ynn_fusion_type": "",
+        }
         quick = dict(_cache._compiler_options(jax.default_backend(), True))
         assert quick == {**options, "xla_backend_optimization_level": 0}
     solve = _cache.solver_jit(_solve, static_argnames=("max_steps",))

@@ -73,6 +73,37 @@ def test_vector_fields_are_tangent():
         assert np.all(v[..., 0, :] == v[..., 0, :1])  # one vector per pole
 
 
+def test_the_diff_steps_separable_sum_is_the_dense_one():
+    """The registration's Diff step sums its vector fields in separable form
+    (harmonics.FieldTables): the same step and gradient as the dense sum, at the degree
+    limit of an odd-sized grid too."""
+    import jax
+
+    from elastic_jax._geometry.harmonics import vector_fields_np
+    from elastic_jax._registration.problem import _step_field, make_bases
+
+    for m, n, degree in [(7, 13, 2), (12, 25, 5), (25, 49, 8)]:
+        bases = make_bases(m, n, ej.ShapeOptions(vf_degree=degree, degree=2), jnp.float64)
+        fields = jnp.asarray(vector_fields_np(m, n, degree))
+        e1 = ej.sphere_points(m, n)
+        rng = np.random.default_rng(m)
+        y = jnp.asarray(0.05 * rng.normal(size=fields.shape[0]))
+        weights = jnp.asarray(rng.normal(size=(3, m, n)))
+
+        def dense(y, fields=fields, e1=e1, scale=bases.field_scale):
+            w = e1 + jnp.einsum("k,kimn->imn", y * scale, fields)
+            return w / jnp.linalg.norm(w, axis=0, keepdims=True)
+
+        def separable(y, bases=bases, e1=e1):
+            return _step_field(y, bases, e1)
+
+        np.testing.assert_allclose(separable(y), dense(y), rtol=0, atol=1e-14)
+        g1, g2 = (
+            jax.grad(lambda y, f=f, w=weights: jnp.sum(w * f(y)))(y) for f in (separable, dense)
+        )
+        np.testing.assert_allclose(g1, g2, rtol=1e-12, atol=1e-12)
+
+
 def test_degree_limits():
     assert (
         ej.max_degree(50, 99) == 47 and ej.max_degree(25, 49) == 22 and ej.max_degree(12, 25) == 9

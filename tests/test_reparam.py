@@ -6,7 +6,12 @@ from jax.test_util import check_grads
 
 import elastic_jax as ej
 from elastic_jax import shapes
-from elastic_jax._geometry.reparam import _field_derivatives_np, reparametrize_unchecked
+from elastic_jax._geometry.reparam import (
+    _field_derivatives_np,
+    directional_derivatives,
+    reparametrize_unchecked,
+    sample_points,
+)
 
 DEGREE = 5
 
@@ -178,6 +183,37 @@ def test_derivative_in_gamma_holds_one_rounding_off_the_poles(method):
     # / h = 1.1 %). The chart gave 0.48 against 0.59 here.
     bound = 1e-4 if method == "spline" else 4e-2
     assert error <= bound * float(jnp.linalg.norm(exact[:, i, j]))
+
+
+@pytest.mark.parametrize("method", ["bicubic", "spline", "coefficients"])
+def test_directional_derivatives_are_the_reads_jvp(method):
+    """The chain rule's reader (one stencil gather, the weights' slopes) gives the jvp of
+    sample_points along each direction, the pole rule included (points on both poles and
+    one rounding off the axis), and so does its reverse-mode derivative in the points."""
+    rng = np.random.default_rng(11)
+    f = shapes.sample(shapes.bumpy, 25, 49)
+    points = rng.standard_normal((3, 6, 7))
+    points[:, 0, :3] = np.asarray([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1e-17, 0.0, 1.0]]).T
+    points = jnp.asarray(points / np.linalg.norm(points, axis=0))
+    directions = tuple(jnp.asarray(rng.standard_normal((3, 6, 7))) for _ in range(2))
+
+    def by_jvp(p, ds):
+        return tuple(jax.jvp(lambda q: sample_points(f, q, method), (p,), (d,))[1] for d in ds)
+
+    for new, old in zip(
+        directional_derivatives(f, points, directions, method),
+        by_jvp(points, directions),
+        strict=True,
+    ):
+        np.testing.assert_allclose(new, old, rtol=0, atol=1e-12 * float(jnp.abs(old).max()))
+    w = jnp.asarray(rng.standard_normal((3, 6, 7)))
+
+    def pairing(read):  # the direction moves with the points, as gamma's frame does
+        return lambda p: jnp.sum(read(p, (p + directions[0],))[0] * w)
+
+    new = jax.grad(pairing(lambda p, ds: directional_derivatives(f, p, ds, method)))(points)
+    old = jax.grad(pairing(by_jvp))(points)
+    np.testing.assert_allclose(new, old, rtol=0, atol=1e-10 * float(jnp.abs(old).max()))
 
 
 def test_inputs_are_made_well_formed_at_the_poles_and_seam():

@@ -303,6 +303,40 @@ def test_vmap_over_targets_equals_a_loop():
         np.testing.assert_allclose(batched.gamma[i], single.gamma, atol=1e-2)
 
 
+@pytest.mark.slow  # 45 s on 2 cores, most of it compiling the vmapped rounds
+def test_batched_candidates_equal_the_scanned_ones():
+    """The coarse registration's candidates side by side (vmap, the accelerators' way)
+    and one after another (a scan, CPU's) end in the same registration: the same rounds
+    from the same starts, apart from how a batched product rounds."""
+    from elastic_jax._registration import problem
+    from elastic_jax._registration.coarse import _coarse_registration
+    from elastic_jax._registration.starts import starts_phase
+
+    m, n = 9, 17
+    f1 = shapes.sample(shapes.bumpy, m, n)
+    f2 = shapes.sample(
+        shapes.bumpy,
+        m,
+        n,
+        rotation=shapes.random_rotation(3),
+        moebius=jnp.asarray([0.2, -0.1, 0.1]),
+    )
+    metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+    cfg = ej.ShapeOptions(degree=3, vf_degree=3, n_times=4, grid=(m, n), rtol=None)
+    cfg = cfg.replace(tol=1e-6)
+    bases = problem.make_bases(m, n, cfg, jnp.float64)
+    starts = jax.jit(starts_phase, static_argnums=(4, 5))(metric, f1, f2, bases, cfg, True)
+    assert starts[0].shape[0] == cfg.init_candidates  # candidates to batch
+    prob = problem.make_problem(metric, f1, f2, bases, True, cfg.interpolation)
+    scanned, batched = (
+        jax.jit(lambda p, s, b=b: _coarse_registration(p, cfg, True, s, batched=b))(prob, starts)
+        for b in (False, True)
+    )
+    assert int(batched.steps) == int(scanned.steps)
+    for a, b in zip(scanned, batched, strict=True):
+        np.testing.assert_allclose(np.asarray(b, float), np.asarray(a, float), rtol=0, atol=1e-10)
+
+
 def test_errors(bumpy_pair):
     f1, f2, _ = bumpy_pair
     with pytest.raises(ValueError, match="modulo must be one of"):

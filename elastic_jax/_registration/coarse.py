@@ -85,7 +85,16 @@ def _straight_rounds(prob, cfg, rigid, state: State, weight, cap) -> State:
     return state
 
 
-def _coarse_registration(prob, cfg, rigid, starts) -> State:
+def batch_candidates() -> bool:
+    """Whether the candidates' L2 rounds run side by side (vmap) rather than one after
+    another (a scan): on accelerators. Side by side they step in lockstep, so a batch
+    takes the longest candidate's steps, each step costing about one candidate's on a
+    GPU at these grids (its kernels are far from filling it); on CPU a step costs the
+    batch's size, and the scan's sum of steps is cheaper."""
+    return jax.default_backend() != "cpu"
+
+
+def _coarse_registration(prob, cfg, rigid, starts, batched=None) -> State:
     """From the starts (_initialize's result) to the registration the rounds with the
     whole path begin from.
 
@@ -125,11 +134,16 @@ def _coarse_registration(prob, cfg, rigid, starts) -> State:
         jnp.zeros((), bool),
     )
 
-    # Every start's L2 rounds and then the best start's energy rounds are jobs of one
-    # scan, and so one compiled copy of the rounds (weight and step limit traced).
     starts = jax.tree_util.tree_map(
         lambda x: jnp.broadcast_to(x, (gammas.shape[0], *x.shape)), zero
     )._replace(gamma=gammas, rotation=rotations, energy=energies)
+    if batched is None:
+        batched = batch_candidates()
+    if batched and n_starts > 0:
+        return _batched_candidates(prob, cfg, rigid, starts, steps)
+
+    # Every start's L2 rounds and then the best start's energy rounds are jobs of one
+    # scan, and so one compiled copy of the rounds (weight and step limit traced).
 
     def job(ends, j):
         matching = j < n_starts
@@ -156,6 +170,30 @@ def _coarse_registration(prob, cfg, rigid, starts) -> State:
     ends, states = jax.lax.scan(job, starts, jnp.arange(n_starts + 1, dtype=jnp.int32))
     state = jax.tree_util.tree_map(lambda x: x[-1], states)
     best = jnp.argmin(jnp.where(jnp.isfinite(ends.energy), ends.energy, jnp.inf))
+    others = jnp.sum(ends.steps).astype(jnp.int32) - ends.steps[best]
+    return state._replace(steps=state.steps + steps + others)
+
+
+def _batched_candidates(prob, cfg, rigid, starts: State, steps) -> State:
+    """_coarse_registration with the searched starts' L2 rounds vmapped (batch_candidates):
+    the same rounds, ranking and energy rounds as the scan's jobs."""
+    dtype = prob.f1.dtype
+
+    def match(state):
+        weight = jnp.ones((), dtype)
+        state = _straight_rounds(prob, cfg, rigid, state, weight, jnp.asarray(MATCH_STEPS))
+        frames = (
+            registered_frame(prob, cfg, state.gamma),
+            rotated_end_frame(prob, cfg, state.rotation),
+        )
+        return state._replace(energy=straight_line_energy(prob, cfg, *frames))
+
+    ends = jax.vmap(match)(starts)
+    best = jnp.argmin(jnp.where(jnp.isfinite(ends.energy), ends.energy, jnp.inf))
+    state = jax.tree_util.tree_map(lambda x: x[best], ends)
+    state = _straight_rounds(
+        prob, cfg, rigid, state, jnp.zeros((), dtype), jnp.asarray(cfg.max_steps)
+    )
     others = jnp.sum(ends.steps).astype(jnp.int32) - ends.steps[best]
     return state._replace(steps=state.steps + steps + others)
 

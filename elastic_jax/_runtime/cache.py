@@ -39,7 +39,19 @@ from .precision import chosen
 # 25 x 49, degree 7, N 13: compile 10.4 -> 7.9 s, the solve 3.0 s both). Given to the
 # large solver programs only (solver_jit: the shape solve's phases, the batches, geodesic,
 # shoot, parallel_transport, srnf_invert), never to JAX's configuration.
-_CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+#
+# XLA:CPU hands matrix products to YNNPACK by default; for the wide products of these
+# programs (a few dozen coefficients times a basis over every grid point) its float64
+# kernels were 1.6-3x slower than XLA's own (Eigen) and float32 3-10x ((24, 63) x (63,
+# 36480): 4.6 against 1.6 ms in float64, 3.2 against 0.3 ms in float32), and in a
+# registration objective its fusions kept XLA from fusing around them: the rounds' joint
+# objective, cats, degree 7 / 8, N 10, value and gradient 2.15 -> 1.64 ms at 25 x 49 and
+# 64.5 -> 51.4 ms at 97 x 193 (2 cores); the parametrized geodesics unchanged (6.1 against
+# 5.9 ms per step, cats, 50 x 99).
+_CPU_COMPILER_OPTIONS = {
+    "xla_cpu_use_fusion_emitters": False,
+    "xla_cpu_experimental_ynn_fusion_type": "",
+}
 # Added for programs that run for milliseconds once per solve (solver_jit(quick=True)):
 # LLVM's optimizations cost more than they save there. The shape solve's last phase (the
 # result's gradient norm and refinement check, 25 x 49, degree 7 / 8, N 10): compile

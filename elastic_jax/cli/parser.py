@@ -223,8 +223,8 @@ def _karcher_options(parser: argparse.ArgumentParser) -> None:
         "--tol",
         type=float,
         default=1e-3,
-        help="Karcher convergence: |mean velocity| <= tol x RMS distance, or a full step "
-        "lowers the sum of squared distances by less than tol (relative)",
+        help="Karcher convergence: |mean velocity| <= tol x RMS distance, or the line "
+        "search's step changes the sum of squared distances by less than tol (relative)",
     )
     parser.add_argument(
         "--step-size",
