@@ -643,3 +643,22 @@ def test_mesh_files_are_read_in_the_frame_asked_for(tmp_path):
     with pytest.raises(SystemExit) as exit_:
         cli.main(["geodesic", *files, "--frame", "sideways"])
     assert exit_.value.code == 2
+
+
+def test_the_version_is_one_number_everywhere(capsys):
+    """--version prints the package's __version__, which is also the installed
+    distribution's version (pyproject reads it from the package) and the one the citation
+    files give."""
+    import re
+    from importlib import metadata
+
+    with pytest.raises(SystemExit) as stopped:
+        cli.main(["--version"])
+    assert stopped.value.code == 0
+    assert capsys.readouterr().out.strip() == f"elastic-jax {ej.__version__}"
+    assert metadata.version("elastic-jax") == ej.__version__
+    root = pathlib.Path(__file__).resolve().parents[1]
+    cff = (root / "CITATION.cff").read_text()
+    assert re.search(r'^version: "([^"]+)"$', cff, re.M).group(1) == ej.__version__
+    bibtex = (root / "docs" / "citing.md").read_text()
+    assert re.search(r"version = \{([^}]+)\}", bibtex).group(1) == ej.__version__

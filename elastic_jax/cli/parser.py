@@ -7,6 +7,7 @@ import os
 import pathlib
 
 from .._options import INITS, METHODS, SCHEMES, SHOOTING_SCHEMES, SOLVERS
+from .._version import VERSION
 from .common import DEFAULT_METRIC, SHAPE_DEFAULTS, SURFACE_FILE, SURFACE_FILES
 
 
@@ -256,6 +257,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Elastic shape analysis of spherical surfaces (split metrics, Su et al. 2020).",
         epilog="Exit codes: 0 ok, 2 bad input, 3 not converged, 130 interrupted, 143 terminated.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {VERSION}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     add = sub.add_parser
 
