@@ -51,7 +51,7 @@ myst_heading_anchors = 3
 # The notebooks are stored with their outputs (docs/execute_notebooks.py writes them).
 nb_execution_mode = "off"
 html_theme = "pydata_sphinx_theme"
-html_title = "elastic_jax"
+html_title = f"elastic_jax {version}"
 html_theme_options = {"navigation_with_keys": False, "show_toc_level": 2}
 
 

@@ -1,7 +1,14 @@
 """elastic_jax: elastic shape analysis of spherical surfaces (split metrics, Su et al. 2020)."""
 
 from . import shapes as shapes
+from ._errors import ConvergenceWarning as ConvergenceWarning
 from ._errors import InputError as InputError
+from ._geodesics.geodesic import GeodesicResult as GeodesicResult
+from ._geodesics.geodesic import geodesic as geodesic
+from ._geodesics.geodesic import upsample_coefficients as upsample_coefficients
+from ._geodesics.shooting import ShootingResult as ShootingResult
+from ._geodesics.shooting import exp as exp
+from ._geodesics.shooting import shoot as shoot
 from ._geodesics.srnf_inverse import SrnfGeodesic as SrnfGeodesic
 from ._geodesics.srnf_inverse import SrnfInversion as SrnfInversion
 from ._geodesics.srnf_inverse import srnf_geodesic as srnf_geodesic
@@ -16,33 +23,18 @@ from ._geometry.grid import grid_angles as grid_angles
 from ._geometry.grid import integrate as integrate
 from ._geometry.grid import quadrature_weights as quadrature_weights
 from ._geometry.grid import sphere_points as sphere_points
-from ._geometry.metric import SplitMetric as SplitMetric
-from ._geometry.metric import base_inner as base_inner
-from ._geometry.metric import elastic_metric_inner as elastic_metric_inner
-from ._geometry.metric import metric_inner as metric_inner
-from ._geometry.metric import split_inner as split_inner
-from ._geometry.metric import split_parts as split_parts
-from ._geometry.srnf import center as center
-from ._geometry.srnf import srnf as srnf
-from ._geometry.srnf import srnf_distance as srnf_distance
-from ._geometry.srnf import srnf_path_length as srnf_path_length
-from ._geometry.srnf import surface_area as surface_area
-from ._geometry.validation import validate_surface as validate_surface
-
-__version__ = "0.1.0"
-from ._errors import ConvergenceWarning as ConvergenceWarning
-from ._geodesics.geodesic import GeodesicResult as GeodesicResult
-from ._geodesics.geodesic import geodesic as geodesic
-from ._geodesics.geodesic import upsample_coefficients as upsample_coefficients
-from ._geodesics.shooting import ShootingResult as ShootingResult
-from ._geodesics.shooting import exp as exp
-from ._geodesics.shooting import shoot as shoot
 from ._geometry.harmonics import SphericalHarmonics as SphericalHarmonics
 from ._geometry.harmonics import max_degree as max_degree
 from ._geometry.harmonics import real_sph_harm as real_sph_harm
 from ._geometry.harmonics import surface_basis as surface_basis
 from ._geometry.harmonics import vector_field_basis as vector_field_basis
 from ._geometry.interp import resample as resample
+from ._geometry.metric import SplitMetric as SplitMetric
+from ._geometry.metric import base_inner as base_inner
+from ._geometry.metric import elastic_metric_inner as elastic_metric_inner
+from ._geometry.metric import metric_inner as metric_inner
+from ._geometry.metric import split_inner as split_inner
+from ._geometry.metric import split_parts as split_parts
 from ._geometry.reparam import diffeomorphism as diffeomorphism
 from ._geometry.reparam import diffeomorphism_bound as diffeomorphism_bound
 from ._geometry.reparam import jacobian_determinant as jacobian_determinant
@@ -54,6 +46,12 @@ from ._geometry.so3 import icosahedral_group as icosahedral_group
 from ._geometry.so3 import so3_exp as so3_exp
 from ._geometry.so3 import so3_log as so3_log
 from ._geometry.so3 import vee as vee
+from ._geometry.srnf import center as center
+from ._geometry.srnf import srnf as srnf
+from ._geometry.srnf import srnf_distance as srnf_distance
+from ._geometry.srnf import srnf_path_length as srnf_path_length
+from ._geometry.srnf import surface_area as surface_area
+from ._geometry.validation import validate_surface as validate_surface
 from ._options import ShapeOptions as ShapeOptions
 from ._registration.records import Levels as Levels
 from ._registration.records import Refinement as Refinement
@@ -77,6 +75,7 @@ from ._statistics.pca import mode_path as mode_path
 from ._statistics.pca import tangent_pca as tangent_pca
 from ._statistics.retrieval import RetrievalScores as RetrievalScores
 from ._statistics.retrieval import retrieval_scores as retrieval_scores
+from ._version import VERSION as __version__  # noqa: F401  (elastic_jax.__version__)
 
 # The public API (docs/api.md documents each; tests/test_structure.py pins the list).
 __all__ = [

@@ -643,3 +643,44 @@ def test_mesh_files_are_read_in_the_frame_asked_for(tmp_path):
     with pytest.raises(SystemExit) as exit_:
         cli.main(["geodesic", *files, "--frame", "sideways"])
     assert exit_.value.code == 2
+
+
+def test_the_version_is_one_number_everywhere(capsys):
+    """--version prints the package's __version__, which is also the installed
+    distribution's version (pyproject reads it from the package) and the one the citation
+    files give."""
+    import re
+    from importlib import metadata
+
+    with pytest.raises(SystemExit) as stopped:
+        cli.main(["--version"])
+    assert stopped.value.code == 0
+    assert capsys.readouterr().out.strip() == f"elastic-jax {ej.__version__}"
+    assert metadata.version("elastic-jax") == ej.__version__
+    root = pathlib.Path(__file__).resolve().parents[1]
+    cff = (root / "CITATION.cff").read_text()
+    assert re.search(r'^version: "([^"]+)"$', cff, re.M).group(1) == ej.__version__
+    bibtex = (root / "docs" / "citing.md").read_text()
+    assert re.search(r"version = \{([^}]+)\}", bibtex).group(1) == ej.__version__
+
+
+@pytest.mark.parametrize("metric", [["--metric", "-1,1,0.1,0"], ["--metric=-1,1,0.1,0"]])
+def test_a_negative_metric_coefficient_gets_the_metrics_own_error(capsys, metric):
+    # Before any file is read (the files named here do not exist), and as the metric's
+    # message, not argparse's "expected one argument" for a value that starts with "-".
+    with pytest.raises(SystemExit) as stopped:
+        cli.main(["shape-geodesic", "missing1.ply", "missing2.ply", *metric])
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err
+    assert "coefficient a=-1.0 is negative" in err and "missing" not in err.split("error:")[-1]
+
+
+def test_the_degree_error_comes_before_any_mesh_is_read(tmp_path, capsys):
+    # With --grid the degrees are checked against it before the meshes are mapped to the
+    # sphere (seconds to minutes each): the log shows no file read.
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    files = [str(mesh.export(tmp_path / name) and tmp_path / name) for name in ("a.ply", "b.ply")]
+    code = cli.main(["shape-geodesic", *files, "--grid", "9", "17", "--degree", "12"])
+    assert code == cli.EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "--degree 12" in err and "reading" not in err

@@ -90,7 +90,23 @@ def test_identical_inputs_converge_at_once(bumpy_pair):
 
 def test_recovers_a_reparametrization(bumpy_pair):
     f1, f2, _ = bumpy_pair
-    res = _solve(f1, f2)
+    reports = []
+    res = _solve(f1, f2, progress=reports.append)
+    # A report per phase, in order, each with the energy the phase reached (the inputs'
+    # units: the coarse registration's is the history's [1], the last the result's).
+    stages = [r["stage"] for r in reports]
+    assert stages == [
+        "start search",
+        "coarse registration",
+        "registration rounds",
+        "geodesics",
+        "checks",
+    ]
+    assert reports[0]["energy"] is None and all(r["grid"] == (M, N) for r in reports)
+    assert reports[1]["energy"] == pytest.approx(float(res.energy_history[1]), rel=1e-12)
+    assert reports[-1]["energy"] == pytest.approx(float(res.energy), rel=1e-10)
+    assert reports[2]["energy"] <= reports[1]["energy"]
+    assert np.all(np.diff([r["seconds"] for r in reports]) >= 0)
     assert float(res.distance) < 0.05 * float(res.parametrized_distance)
     np.testing.assert_allclose(res.f1_registered, res.path[0], atol=0)
     np.testing.assert_allclose(res.rotation, np.eye(3), atol=0)

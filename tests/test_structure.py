@@ -13,9 +13,9 @@ import re
 PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "elastic_jax"
 # Each module's layer is its subpackage (or, for a top-level module, its own name). A
 # layer imports only layers of a lower rank and itself: the tree shows the architecture.
-LEAVES = {"_errors", "_checks", "_options", "_results"}
+LEAVES = {"_errors", "_checks", "_options", "_results", "_version"}
 RANKS = {
-    "leaves": 0,  # errors, argument checks, options, result codes: at most each other
+    "leaves": 0,  # errors, argument checks, options, result codes, the version
     "_runtime": 1,  # atomic writes, compilation caches, the Dask pool: below every solver
     "_geometry": 2,
     "_geodesics": 3,

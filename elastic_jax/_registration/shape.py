@@ -20,6 +20,7 @@ from __future__ import annotations
 import functools
 import time
 import warnings
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -102,7 +103,7 @@ def _phases(starts, carried) -> tuple[list[tuple], tuple]:
 
 
 def _solve_in_phases(
-    args: tuple, cfg: ShapeOptions, rigid: bool, starts=None, carried=None
+    args: tuple, cfg: ShapeOptions, rigid: bool, starts=None, carried=None, after=None
 ) -> ShapeGeodesicResult:
     """_shape_solve(*args, cfg, rigid), one compiled program per phase; ``starts`` (the
     first phase's result, given) skips the start search; ``carried`` (gamma, R and the
@@ -120,7 +121,52 @@ def _solve_in_phases(
     phases are part of the caller's one program.
     """
     phases, given = _phases(starts, carried)
-    return phase_chain(phases, args, given, {"cfg": cfg, "rigid": rigid})
+    return phase_chain(phases, args, given, {"cfg": cfg, "rigid": rigid}, after)
+
+
+# What each phase has done when it reports (shape_geodesic's progress).
+_STAGES = {
+    "shape_starts": "start search",
+    "shape_coarse": "coarse registration",
+    "shape_continue": "registration carried from the level below",
+    "shape_rounds": "registration rounds",
+    "shape_geodesics": "geodesics",
+    "shape_end": "checks",
+}
+
+
+def _phase_energy(out):
+    """The path energy a phase's result holds (the solve's units), None for the starts."""
+    if isinstance(out, ShapeGeodesicResult):
+        return out.energy
+    head = out[0] if type(out) is tuple else out
+    if isinstance(head, Rounds):
+        head = head.state
+    return head.energy if isinstance(head, State) else None
+
+
+class _Reporter:
+    """shape_geodesic's ``progress``: one dict per phase of each solve and per level,
+    with the time since the call began."""
+
+    def __init__(self, progress, **fixed):
+        self.progress, self.fixed = progress, fixed
+        self.begin = time.perf_counter()
+        self.level: dict = {}
+
+    def send(self, **record):
+        seconds = time.perf_counter() - self.begin
+        self.progress({**self.fixed, **self.level, **record, "seconds": seconds})
+
+    def phases(self, grid, scale):
+        """phase_chain's ``after`` for a solve on ``grid`` in units of size ``scale``."""
+
+        def after(name, out):
+            energy = _phase_energy(out)
+            energy = None if energy is None else float(energy) * scale**2
+            self.send(stage=_STAGES[name], grid=tuple(grid), energy=energy)
+
+        return after
 
 
 def _shape_solve(metric, f1, f2, bases, cfg, rigid) -> ShapeGeodesicResult:
@@ -161,6 +207,7 @@ def shape_geodesic(
     options: ShapeOptions | None = None,
     start: ShapeGeodesicResult | tuple[ArrayLike, ArrayLike] | None = None,
     symmetric: bool = False,
+    progress: Callable[[dict], None] | None = None,
     **changes,
 ) -> ShapeGeodesicResult:
     """Geodesic between the shapes of f1 and f2, modulo reparametrization (and rigid motion).
@@ -235,6 +282,15 @@ def shape_geodesic(
             the result's ``levels`` are then those of the order that found its basin,
             the last distance its own. Two or three solves; concrete inputs only (not
             under jit or vmap).
+        progress: called with a dict after each phase of a solve (``stage``: "start
+            search", "coarse registration", "registration carried from the level below",
+            "registration rounds", "geodesics", "checks"; ``grid``; ``energy``, the path
+            energy the phase reached in the inputs' units, None after the start search)
+            and after each level (``stage`` "level", ``level`` and ``levels`` counted
+            from 1, ``distance``, ``converged``); every dict has ``seconds`` since the
+            call began, and during levels ``level`` and ``levels``; with ``symmetric``,
+            ``order`` ("f1 -> f2", "f2 -> f1", "f1 -> f2 from f2 -> f1"). Concrete inputs
+            only (no report inside a caller's trace). None (default): silent.
         **changes: fields of ShapeOptions to change, e.g. ``degree=5, n_times=9``.
 
     Returns:
@@ -258,10 +314,11 @@ def shape_geodesic(
     cfg = resolve_options(options, changes)
     f1, f2 = check_pair(f1, f2, same_grid=False)
     if symmetric:
-        return _symmetric_solve(f1, f2, metric, modulo, cfg, start)
+        return _symmetric_solve(f1, f2, metric, modulo, cfg, start, progress)
+    reporter = None if progress is None else _Reporter(progress)
     if cfg.resolves:
-        return _levels_solve(f1, f2, metric, modulo, cfg, start)
-    result = _one_grid_solve(f1, f2, metric, modulo, cfg, start)
+        return _levels_solve(f1, f2, metric, modulo, cfg, start, reporter)
+    result = _one_grid_solve(f1, f2, metric, modulo, cfg, start, reporter=reporter)
     _warn_unless_converged(result)
     return result
 
@@ -284,7 +341,9 @@ def _grid_setup(f1, f2, metric, cfg):
     return cfg, units, g1, g2, args
 
 
-def _one_grid_solve(f1, f2, metric, modulo, cfg, start, carry=None) -> ShapeGeodesicResult:
+def _one_grid_solve(
+    f1, f2, metric, modulo, cfg, start, carry=None, reporter=None
+) -> ShapeGeodesicResult:
     """shape_geodesic on one working grid; ``carry`` = (gamma, R, coefficients or None)
     continues a registration instead of searching starts (``start`` is then not used):
     the level below's registration and path in the user's units (_levels_solve), or an
@@ -308,8 +367,12 @@ def _one_grid_solve(f1, f2, metric, modulo, cfg, start, carry=None) -> ShapeGeod
     # As in geodesic: the solve runs on constants and the energy is evaluated again,
     # differentiably, at the solution (envelope theorem: the derivative of the minimal
     # energy in f1, f2 and the metric, with gamma, R and C held).
+    after = None
+    if reporter is not None and is_concrete(units.scale):
+        after = reporter.phases(cfg.grid, float(units.scale))
+
     def solve(starts, carried=None):
-        solved = _solve_in_phases(args, cfg, rigid, starts, carried)
+        solved = _solve_in_phases(args, cfg, rigid, starts, carried, after)
         return shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
 
     result = solve(starts, carried)
@@ -342,7 +405,7 @@ def continued_geodesic(f1, f2, metric, modulo, cfg, gamma, rotation, coefficient
     return _one_grid_solve(f1, f2, metric, modulo, cfg, None, carry=carry)
 
 
-def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
+def _levels_solve(f1, f2, metric, modulo, cfg, start, reporter=None) -> ShapeGeodesicResult:
     """shape_geodesic with ``cfg.rtol``: the working grids of ``cfg.levels`` coarse to
     fine, each level continuing the one below (its registration and path: no new start
     search, no coarse rounds; continuation_phase), until two successive distances agree
@@ -377,8 +440,10 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
     noise = _noise_distance(f1, f2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
-        for grid in cfg.levels:
+        for index, grid in enumerate(cfg.levels, 1):
             begin = time.perf_counter()
+            if reporter is not None:
+                reporter.level = {"level": index, "levels": len(cfg.levels)}
             # A level above the first continues the one below (continuation_phase): its
             # registration and path, without a new start search or coarse rounds. The
             # coarser gamma's interpolant can fold between its points (the cats at
@@ -388,15 +453,27 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
             level = cfg.replace(rtol=None, grid=grid)
             if result is not None and carried is not None:
                 carry = (*carried, result.coefficients)
-                result = _one_grid_solve(f1, f2, metric, modulo, level, None, carry=carry)
+                result = _one_grid_solve(
+                    f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter
+                )
             else:
-                result = _one_grid_solve(f1, f2, metric, modulo, level, carried)
+                result = _one_grid_solve(f1, f2, metric, modulo, level, carried, reporter=reporter)
             distances.append(float(jax.block_until_ready(result.distance)))
             seconds.append(time.perf_counter() - begin)
             grids.append(grid)
+            if reporter is not None:
+                reporter.send(
+                    stage="level",
+                    grid=tuple(grid),
+                    energy=float(result.energy),
+                    distance=distances[-1],
+                    converged=bool(result.converged),
+                )
             change = _change(distances, result.parametrized_distance, noise)
             if not np.isfinite(distances[-1]) or (change <= cfg.rtol and bool(result.converged)):
                 break  # a non-finite level (RESULTS.nonfinite) ends the levels too
+    if reporter is not None:
+        reporter.level = {}
     result = _with_levels(result, grids, distances, seconds, cfg.rtol, noise)
     _warn_unless_converged(result, stacklevel=4)
     return result
@@ -466,7 +543,7 @@ def registration_at(start, grid, dtype, modulo):
     return gammas[0], rotations[0]
 
 
-def _symmetric_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
+def _symmetric_solve(f1, f2, metric, modulo, cfg, start, progress=None) -> ShapeGeodesicResult:
     """shape_geodesic(symmetric=True): the lower of this order's solve and its solve from
     the other order's registration inverted (when that one ends lower)."""
     if not is_concrete(f1, f2, metric):
@@ -475,10 +552,17 @@ def _symmetric_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
             "(call it outside jax.jit and jax.vmap)"
         )
     solve = functools.partial(shape_geodesic, metric=metric, modulo=modulo, options=cfg)
+    begin = time.perf_counter()
+
+    def order(name):  # the order's reports, timed from this call's beginning
+        if progress is None:
+            return None
+        return lambda r: progress({**r, "order": name, "seconds": time.perf_counter() - begin})
+
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
-        best = solve(f1, f2, start=start)
-        other = solve(f2, f1)
+        best = solve(f1, f2, start=start, progress=order("f1 -> f2"))
+        other = solve(f2, f1, progress=order("f2 -> f1"))
         if float(other.distance) < float(best.distance):
             inverse, residual = inverse_gamma(other.gamma)
             tol = 10.0 * float(np.sqrt(np.finfo(np.dtype(inverse.dtype)).eps))
@@ -492,7 +576,11 @@ def _symmetric_solve(f1, f2, metric, modulo, cfg, start) -> ShapeGeodesicResult:
                 begin = time.perf_counter()
                 carry = (inverse, other.rotation.T, None)
                 level = cfg.replace(rtol=None, grid=grid)
-                again = _one_grid_solve(f1, f2, metric, modulo, level, None, carry=carry)
+                third = order("f1 -> f2 from f2 -> f1")
+                reporter = None if third is None else _Reporter(third)
+                again = _one_grid_solve(
+                    f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter
+                )
                 if other.levels is not None:
                     # The levels that found this basin (the other order's), the last
                     # distance and time this solve's.

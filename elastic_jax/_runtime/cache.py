@@ -302,10 +302,11 @@ def exported_call(name: str, function, jitted, args: tuple, static: dict, skelet
     return jax.tree_util.tree_unflatten(out_tree, call(*leaves))
 
 
-def phase_chain(phases, args: tuple, carried: tuple, static: dict):
+def phase_chain(phases, args: tuple, carried: tuple, static: dict, after=None):
     """Run ``phases`` in turn, each ``(name, function, jitted, skeleton)`` called as
     ``jitted(*args, *carried, **static)`` with ``carried`` the previous phase's result
-    (given for the first); the last phase's result.
+    (given for the first); the last phase's result. ``after(name, result)`` is called
+    after each phase on concrete arguments (a progress report; never inside a trace).
 
     Inside a caller's trace, the phases are part of its program. With the exported
     programs on, each phase goes through :func:`exported_call`. Otherwise the phases'
@@ -317,21 +318,28 @@ def phase_chain(phases, args: tuple, carried: tuple, static: dict):
     if _EXPORT_DIR is not None and is_concrete(leaves):
         for name, function, jitted, skeleton in phases:
             carried = (exported_call(name, function, jitted, (*args, *carried), static, skeleton),)
+            if after is not None:
+                after(name, carried[0])
         return carried[0]
     # From a thread other than the main one (a Dask worker's task) the compilations in
     # worker threads hung: a distances run on a local Dask cluster never finished its
     # first pair (tests/test_cli.py's Ctrl-C test). There each phase compiles when called.
     if not is_concrete(leaves) or threading.current_thread() is not threading.main_thread():
-        for _, _, jitted, _ in phases:
+        for name, _, jitted, _ in phases:
             carried = (jitted(*args, *carried, **static),)
+            if after is not None and is_concrete(leaves):
+                after(name, carried[0])
         return carried[0]
-    for key, program in compile_phases(phases, args, carried, static):
+    programs = compile_phases(phases, args, carried, static)
+    for (name, *_), (key, program) in zip(phases, programs, strict=True):
         try:
             compiled = program.result()
         except BaseException:
             _PHASE_PROGRAMS.pop(key, None)  # compiled again next time
             raise
         carried = (compiled(*args, *carried),)
+        if after is not None:
+            after(name, carried[0])
     return carried[0]
 
 

@@ -36,7 +36,7 @@ from .distances import run_distances
 from .fit_metric import run_fit_metric
 from .geodesic import run_geodesic
 from .karcher import run_karcher
-from .parser import build_parser
+from .parser import build_parser, join_negative_values
 from .pca import run_pca
 from .process import (
     EXIT_BAD_INPUT,
@@ -86,7 +86,8 @@ COMMANDS = {
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``elastic-jax`` (and ``python -m elastic_jax``); returns the exit code."""
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser().parse_args(join_negative_values(argv))
     import jax
 
     if args.dtype == "float64":

@@ -226,11 +226,18 @@ def write_path(out: pathlib.Path, path, settings: dict, progress: Progress) -> l
 
 
 def prepare(args, progress: Progress, files, options_of: Callable, surfaces=None):
-    """The surfaces ``(K, 3, m, n)`` (read unless given), checked degrees, metric, options."""
+    """The surfaces ``(K, 3, m, n)`` (read unless given), checked degrees, metric, options.
+
+    Every check that needs no file comes first: the options, the metric and, with
+    ``--grid``, the degrees against that grid (reading a mesh maps it to the sphere, which
+    takes seconds to minutes)."""
+    options, metric = options_of(args), metric_from(args)
     if surfaces is None:
+        if args.grid is not None:
+            check_degrees(args, *args.grid)
         surfaces = _load_all(files, args.grid, args.dtype, progress, args.frame)
     check_degrees(args, *surfaces.shape[-2:])
-    return surfaces, metric_from(args), options_of(args)
+    return surfaces, metric, options
 
 
 def json_float(x) -> float | None:

@@ -5,8 +5,12 @@ from __future__ import annotations
 import argparse
 import os
 import pathlib
+import re
 
+from .._errors import InputError
+from .._geometry.metric import SplitMetric
 from .._options import INITS, METHODS, SCHEMES, SHOOTING_SCHEMES, SOLVERS
+from .._version import VERSION
 from .common import DEFAULT_METRIC, SHAPE_DEFAULTS, SURFACE_FILE, SURFACE_FILES
 
 
@@ -21,7 +25,24 @@ def _metric(text: str) -> tuple[float, float, float, float]:
         raise argparse.ArgumentTypeError(
             f"--metric wants four numbers a,b,c,d; got {len(values)} in {text!r}"
         )
+    try:  # the metric's own checks, before any input is read
+        SplitMetric(*values)
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
     return values  # type: ignore[return-value]
+
+
+def join_negative_values(argv: list[str]) -> list[str]:
+    """``--metric -1,1,0.1,0`` as ``--metric=-1,1,0.1,0``: argparse takes a value that
+    starts with "-" and is not one plain number for an option, and says "expected one
+    argument" instead of what is wrong with the value."""
+    out: list[str] = []
+    for token in argv:
+        if out and out[-1] == "--metric" and re.match(r"-\.?\d", token):
+            out[-1] = f"--metric={token}"
+        else:
+            out.append(token)
+    return out
 
 
 def _default_cache_dir() -> pathlib.Path:
@@ -256,6 +277,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Elastic shape analysis of spherical surfaces (split metrics, Su et al. 2020).",
         epilog="Exit codes: 0 ok, 2 bad input, 3 not converged, 130 interrupted, 143 terminated.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {VERSION}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     add = sub.add_parser
 

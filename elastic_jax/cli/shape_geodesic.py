@@ -17,6 +17,24 @@ from .common import (
 )
 
 
+def solve_reporter(progress: Progress):
+    """shape_geodesic's progress dicts as the command's lines: the level, the phase done,
+    the energy reached (the line's own time is the command's)."""
+
+    def report(r: dict) -> None:
+        grid = "{} x {}".format(*r["grid"])
+        where = f"level {r['level']}/{r['levels']} ({grid})" if "level" in r else grid
+        if r["stage"] == "level":
+            state = "converged" if r["converged"] else "not converged"
+            progress(f"{where}: distance {r['distance']:.6g} ({state})")
+        elif r["energy"] is None:
+            progress(f"{where}: {r['stage']} done")
+        else:
+            progress(f"{where}: {r['stage']} done, energy {r['energy']:.6g}")
+
+    return report
+
+
 def run_shape_geodesic(args, progress: Progress) -> dict:
     import jax
     import numpy as np
@@ -40,7 +58,11 @@ def run_shape_geodesic(args, progress: Progress) -> dict:
         f"at most {options.outer_steps} registration rounds each (the first call compiles)"
     )
     start = time.perf_counter()
-    res = jax.block_until_ready(shape_geodesic(f1, f2, metric, modulo=args.modulo, options=options))
+    res = jax.block_until_ready(
+        shape_geodesic(
+            f1, f2, metric, modulo=args.modulo, options=options, progress=solve_reporter(progress)
+        )
+    )
     seconds = time.perf_counter() - start
     levels = None
     if res.levels is not None:
@@ -51,8 +73,6 @@ def run_shape_geodesic(args, progress: Progress) -> dict:
             "estimate": json_float(res.levels.estimate),
             "rtol": float(res.levels.rtol),
         }
-        for (a, b), d in zip(levels["grids"], levels["distances"], strict=True):
-            progress(f"level {a} x {b}: distance {d:.6g}")
     progress(
         f"shape distance {float(res.distance):.6g} "
         f"(parametrized {float(res.parametrized_distance):.6g}) "
