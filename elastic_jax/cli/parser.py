@@ -7,8 +7,6 @@ import os
 import pathlib
 import re
 
-from .._errors import InputError
-from .._geometry.metric import SplitMetric
 from .._options import INITS, METHODS, SCHEMES, SHOOTING_SCHEMES, SOLVERS
 from .._version import VERSION
 from .common import DEFAULT_METRIC, SHAPE_DEFAULTS, SURFACE_FILE, SURFACE_FILES
@@ -25,10 +23,6 @@ def _metric(text: str) -> tuple[float, float, float, float]:
         raise argparse.ArgumentTypeError(
             f"--metric wants four numbers a,b,c,d; got {len(values)} in {text!r}"
         )
-    try:  # the metric's own checks, before any input is read
-        SplitMetric(*values)
-    except InputError as error:
-        raise argparse.ArgumentTypeError(str(error)) from None
     return values  # type: ignore[return-value]
 
 
