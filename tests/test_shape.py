@@ -372,6 +372,8 @@ def test_errors(bumpy_pair):
         ej.shape_geodesic(f1, f2, METRIC, degrees=3)
     with pytest.raises(TypeError, match="options must be a ShapeOptions"):
         ej.shape_geodesic(f1, f2, METRIC, options={"degree": 3})
+    with pytest.raises(ValueError, match="progress must be a callable"):
+        ej.shape_geodesic(f1, f2, METRIC, progress="stderr")
 
 
 @pytest.mark.parametrize(

@@ -378,8 +378,6 @@ def directional_derivatives(f, points, directions, method):
     m, n = f.shape[-2:]
     x, y, z = points[0], points[1], points[2]
     r2 = x * x + y * y
-    eps = jnp.finfo(points.dtype).eps
-    on_axis = r2 <= eps
     # As in _angles_of: a safe radius keeps every branch (and its derivative) finite.
     r2 = jnp.where(r2 > 0, r2, 1.0)
     r = jnp.sqrt(r2)
@@ -391,27 +389,39 @@ def directional_derivatives(f, points, directions, method):
     )
     f_phi = jnp.einsum("...ab,...a,...b->...", patch, s_r, w_c) * ((m - 1) / np.pi)
     f_theta = jnp.einsum("...ab,...a,...b->...", patch, w_r, s_c) * ((n - 1) / (2.0 * np.pi))
-    (xn, yn), (xs, ys) = _pole_planes(f, method)
-    k = points.ndim - 1
-
-    def per_coordinate(c):  # (..., 3) -> (..., 3, 1, ..., 1)
-        return c.reshape(c.shape + (1,) * k)
-
-    def per_point(a):  # (*points) -> (1, ..., 1, *points)
-        return a.reshape((1,) * (f.ndim - 2) + a.shape)
-
-    xn, yn, xs, ys = map(per_coordinate, (xn, yn, xs, ys))
-    north = per_point(z > 0)
+    at_pole, on_axis = _pole_rule(f, points, method)
     out = []
     for d in directions:
         dx, dy, dz = d[0], d[1], d[2]
         dphi = (z * (x * dx + y * dy) / r - r * dz) / (r2 + z * z)
         dtheta = (x * dy - y * dx) / r2
-        moved = f_phi * per_point(dphi) + f_theta * per_point(dtheta)
-        dx, dy = per_point(dx), per_point(dy)
-        at_pole = jnp.where(north, xn * dx + yn * dy, -(xs * dx + ys * dy))
-        out.append(jnp.where(per_point(on_axis), at_pole, moved))
+        moved = f_phi * _per_point(f, dphi) + f_theta * _per_point(f, dtheta)
+        out.append(jnp.where(on_axis, at_pole(d), moved))
     return tuple(out)
+
+
+def _per_point(f, a):
+    """``a (*points)`` as ``(1, ..., 1, *points)``: results are laid out as f's leading
+    axes (batch and coordinate) then the points'."""
+    return a.reshape((1,) * (f.ndim - 2) + a.shape)
+
+
+def _pole_rule(f, points, method):
+    """(along, on_axis): ``along(d)`` is f's differential at the pole applied to the
+    tangents ``d (3, *points)`` (see _sample_points_jvp), ``on_axis`` where it replaces
+    the angles' chart (within sqrt(eps) of the z axis), both laid out as _per_point's."""
+    (xn, yn), (xs, ys) = _pole_planes(f, method)
+    k = points.ndim - 1
+    xn, yn, xs, ys = (c.reshape(c.shape + (1,) * k) for c in (xn, yn, xs, ys))
+    north = _per_point(f, points[2] > 0)
+    eps = jnp.finfo(points.dtype).eps
+    on_axis = _per_point(f, points[0] * points[0] + points[1] * points[1] <= eps)
+
+    def along(d):
+        dx, dy = _per_point(f, d[0]), _per_point(f, d[1])
+        return jnp.where(north, xn * dx + yn * dy, -(xs * dx + ys * dy))
+
+    return along, on_axis
 
 
 def _sample_in_angles(f, points, method):
@@ -457,19 +467,7 @@ def _sample_points_jvp(method, primals, tangents):
     f, points = primals
     df, dpoints = tangents
     value, moved = jax.jvp(lambda p: _sample_in_angles(f, p, method), (points,), (dpoints,))
-    (xn, yn), (xs, ys) = _pole_planes(f, method)
-    # Results are laid out as f's leading axes (batch and coordinate) then the points'.
-    k = points.ndim - 1
-
-    def per_coordinate(c):  # (..., 3) -> (..., 3, 1, ..., 1)
-        return c.reshape(c.shape + (1,) * k)
-
-    def per_point(x):  # (*points) -> (1, ..., 1, *points)
-        return x.reshape((1,) * (f.ndim - 2) + x.shape)
-
-    xn, yn, xs, ys = map(per_coordinate, (xn, yn, xs, ys))
-    dx, dy = per_point(dpoints[0]), per_point(dpoints[1])
-    at_pole = jnp.where(per_point(points[2] > 0), xn * dx + yn * dy, -(xs * dx + ys * dy))
+    at_pole, on_axis = _pole_rule(f, points, method)
     # Within sqrt(eps) of the axis as well: the chart's derivative divides f_theta, whose
     # rounding is ~eps, by the distance rho to the axis, so its error is ~eps / rho, and
     # the pole's differential is off by ~rho there; the two meet at rho = sqrt(eps). A
@@ -477,9 +475,7 @@ def _sample_points_jvp(method, primals, tangents):
     # icosahedral starts at 13 x 25 map the equator's theta = 0 there): the chart gave
     # gradients wrong by O(1), which moved 10 of the 60 start searches of cat1 -> cat2
     # when the data changed by 1e-10.
-    eps = jnp.finfo(points.dtype).eps
-    on_axis = per_point(points[0] * points[0] + points[1] * points[1] <= eps)
-    tangent = jnp.where(on_axis, at_pole, moved) + _sample_in_angles(df, points, method)
+    tangent = jnp.where(on_axis, at_pole(dpoints), moved) + _sample_in_angles(df, points, method)
     return value, tangent
 
 

@@ -85,6 +85,17 @@ def _straight_rounds(prob, cfg, rigid, state: State, weight, cap) -> State:
     return state
 
 
+def _ranked_rounds(prob, cfg, rigid, state: State, weight, cap):
+    """_straight_rounds from ``state``, and the straight line's energy where they end: a
+    matched start is ranked by it."""
+    state = _straight_rounds(prob, cfg, rigid, state, weight, cap)
+    frames = (
+        registered_frame(prob, cfg, state.gamma),
+        rotated_end_frame(prob, cfg, state.rotation),
+    )
+    return state, straight_line_energy(prob, cfg, *frames)
+
+
 def batch_candidates() -> bool:
     """Whether the candidates' L2 rounds run side by side (vmap) rather than one after
     another (a scan): on accelerators. Side by side they step in lockstep, so a batch
@@ -152,13 +163,7 @@ def _coarse_registration(prob, cfg, rigid, starts, batched=None) -> State:
         state = jax.tree_util.tree_map(lambda x: x[i], ends)
         weight = jnp.where(matching, 1.0, 0.0).astype(dtype)
         cap = jnp.where(matching, MATCH_STEPS, cfg.max_steps)
-        state = _straight_rounds(prob, cfg, rigid, state, weight, cap)
-        # A matched start is ranked by its straight line's energy.
-        frames = (
-            registered_frame(prob, cfg, state.gamma),
-            rotated_end_frame(prob, cfg, state.rotation),
-        )
-        straight = straight_line_energy(prob, cfg, *frames)
+        state, straight = _ranked_rounds(prob, cfg, rigid, state, weight, cap)
         slot = jnp.minimum(j, n_starts - 1)
         ends = jax.tree_util.tree_map(
             lambda e, x: jnp.where(matching, e.at[slot].set(x), e),
@@ -180,13 +185,9 @@ def _batched_candidates(prob, cfg, rigid, starts: State, steps) -> State:
     dtype = prob.f1.dtype
 
     def match(state):
-        weight = jnp.ones((), dtype)
-        state = _straight_rounds(prob, cfg, rigid, state, weight, jnp.asarray(MATCH_STEPS))
-        frames = (
-            registered_frame(prob, cfg, state.gamma),
-            rotated_end_frame(prob, cfg, state.rotation),
-        )
-        return state._replace(energy=straight_line_energy(prob, cfg, *frames))
+        weight, cap = jnp.ones((), dtype), jnp.asarray(MATCH_STEPS)
+        state, straight = _ranked_rounds(prob, cfg, rigid, state, weight, cap)
+        return state._replace(energy=straight)
 
     ends = jax.vmap(match)(starts)
     best = jnp.argmin(jnp.where(jnp.isfinite(ends.energy), ends.energy, jnp.inf))

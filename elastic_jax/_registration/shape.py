@@ -311,6 +311,8 @@ def shape_geodesic(
         True
     """
     check_choice("modulo", modulo, MODULI)
+    if progress is not None and not callable(progress):
+        raise InputError(f"progress must be a callable taking a dict; got {progress!r}")
     cfg = resolve_options(options, changes)
     f1, f2 = check_pair(f1, f2, same_grid=False)
     if symmetric:
