@@ -298,6 +298,11 @@ def _fake_karcher(calls):
     def karcher_mean(shapes, metric, **kwargs):
         calls.append(kwargs)
         k = shapes.shape[0]
+        # A resolved mean's first solves report their levels; a phase is not a line.
+        level = {"level": 2, "levels": 4, "grid": (25, 49), "energy": 0.5, "step": 0}
+        level.update({"shape": 1, "shapes": k, "seconds": 12.3})
+        kwargs["progress"]({**level, "stage": "registration rounds"})
+        kwargs["progress"]({**level, "stage": "level", "distance": 0.25, "converged": True})
         return ej.KarcherResult(
             mean=shapes[0],
             distances=np.zeros(k),
@@ -322,8 +327,10 @@ def test_karcher_builds_one_options_record_and_keeps_its_own_steps(tmp_path, cap
     files = [_save(tmp_path, f"s{i}.npz", shapes.sample(shapes.sphere, M, N)) for i in range(2)]
     argv = ["karcher", *files, *SHAPE, "--max-steps", "7", "--karcher-steps", "3"]
     argv += ["--scheme", "forward", "--tol", "0.01", "--warm-start", "--out", str(tmp_path / "out")]
-    assert cli.main([*argv, "--rtol", "none"]) == 0
-    summary = json.loads(capsys.readouterr().out)
+    # Without --quiet: the progress lines.
+    assert cli.main([*[a for a in argv if a != "--quiet"], "--rtol", "none"]) == 0
+    captured = capsys.readouterr()
+    summary = json.loads(captured.out)
     (kwargs,) = calls
     assert kwargs["warm_start"] is True and summary["settings"]["warm_start"] is True
     assert kwargs["options"] == SHAPE_OPTIONS.replace(max_steps=7, scheme="forward")
@@ -331,6 +338,10 @@ def test_karcher_builds_one_options_record_and_keeps_its_own_steps(tmp_path, cap
     assert summary["history"]["step_size"] == [0.0, 0.5]
     assert summary["result"] == "mean_velocity_small" and summary["num_solves"] == 3
     assert summary["message"].startswith("converged")
+    lines = [line for line in captured.err.splitlines() if "first solves" in line]
+    assert [line.split("] ")[1] for line in lines] == [
+        "first solves, shape 2/2: level 2/4 (25 x 49) distance 0.25 (converged), 12 s"
+    ]
     # Without --rtol the library's default: a resolved mean (levels), as karcher_mean's.
     assert cli.main([*argv, "--overwrite"]) == 0
     summary = json.loads(capsys.readouterr().out)

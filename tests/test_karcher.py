@@ -128,8 +128,20 @@ def test_resolved_mean_of_moebius_read_concentric_spheres(modulo, tmp_path, monk
     monkeypatch.setattr(
         karcher, "save_npz_atomic", lambda p, **arrays: written.append(arrays) or save(p, **arrays)
     )
-    res = ej.karcher_mean(spheres, METRIC, **kwargs)
+    reports = []
+    res = ej.karcher_mean(spheres, METRIC, progress=reports.append, **kwargs)
     assert res.converged, res.message
+    # Step 0's levelled solves report each level of each shape as it ends, with the
+    # distance the result records; then one report per step.
+    ends = [r for r in reports if r.get("stage") == "level"]
+    assert [(r["shape"], r["shapes"]) for r in ends] == sorted((r["shape"], 3) for r in ends)
+    assert len(ends) == int(np.isfinite(res.level_distances).sum())
+    for r in ends:
+        assert r["distance"] == pytest.approx(res.level_distances[r["shape"], r["level"] - 1])
+    steps = [r["step"] for r in reports if "shape" not in r]
+    assert steps == list(range(int(res.num_steps) + 1))
+    seconds = [r["seconds"] for r in reports]
+    assert seconds == sorted(seconds)
     sum_sq = res.history[:, 0]
     assert np.all(np.diff(sum_sq) <= 0)
     # The levels: each row stops where two grids agree within rtol; the mean lives on

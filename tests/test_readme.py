@@ -1,17 +1,24 @@
-"""README's example runs and prints the closed form; README and CI run the same test command;
-the site's front page shows README's commands and example; every command line shown parses."""
+"""README's examples run: the closed form, and a shape distance converged at the defaults;
+README and CI run the same test command; the site's front page shows README's commands and
+examples; every command line shown parses."""
 
 import pathlib
 import re
 
+import numpy as np
+import pytest
+
+import elastic_jax as ej
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
-def test_readme_example_prints_the_closed_form(capsys):
+def test_readme_examples_print_the_closed_form_and_a_converged_shape_distance(capsys):
     text = (ROOT / "README.md").read_text()
-    code = re.search(r"```python\n(.*?)```", text, re.S).group(1)
-    assert len(code.strip().splitlines()) <= 15
-    exec(compile(code, "README.md", "exec"), {})
+    first, second = re.findall(r"```python\n(.*?)```", text, re.S)
+    assert len(first.strip().splitlines()) <= 15
+    namespace = {}
+    exec(compile(first, "README.md", "exec"), namespace)
     out = capsys.readouterr().out
     distance, closed = map(
         float, re.search(r"distance ([\d.]+), closed form ([\d.]+)", out).groups()
@@ -22,6 +29,20 @@ def test_readme_example_prints_the_closed_form(capsys):
         float, re.search(r"energy ([\d.]+) < straight line ([\d.]+)", out).groups()
     )
     assert energy < 0.9 * straight
+    # The second block continues the first: a shape distance resolved at the defaults.
+    exec(compile(second, "README.md", "exec"), namespace)
+    out = capsys.readouterr().out
+    res = namespace["res"]
+    assert bool(res.converged) and res.result == ej.RESULTS.successful
+    assert out.strip() == repr(res) and len(out) <= 2000
+    levels = np.asarray(res.levels.distances)
+    assert abs(levels[-1] - levels[-2]) <= 0.03 * levels[-1]
+    # The comment's figures are this run's, to the printed digits.
+    claimed, agree = map(
+        float, re.search(r"# distance ([\d.]+), converged: .* within ([\d.]+) %", second).groups()
+    )
+    assert float(res.distance) == pytest.approx(claimed, abs=1e-5)
+    assert 100 * float(res.levels.estimate) == pytest.approx(agree, abs=0.05)
 
 
 def test_ci_runs_the_readme_test_command():
@@ -73,9 +94,11 @@ def test_readme_is_short_and_the_site_front_page_repeats_it():
     readme = (ROOT / "README.md").read_text()
     assert len(readme) <= 8000  # the pitch, the commands, the example; the rest is the site
     index = (ROOT / "docs" / "index.md").read_text()
-    for fence in ("```bash\n", "```python\n"):
-        block = readme.split(fence)[1].split("```")[0]
-        assert block in index, fence
+    # The install-and-test commands and both examples (the site's own build command is
+    # on its contributing page).
+    blocks = [readme.split("```bash\n")[1], *readme.split("```python\n")[1:]]
+    for block in blocks:
+        assert block.split("```")[0] in index
     # README's links into the site point at pages that exist.
     links = re.findall(r"\]\((docs/[^)#]+)", readme)
     assert len(links) >= 8

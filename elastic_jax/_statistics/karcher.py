@@ -308,7 +308,9 @@ class _KarcherIteration(NamedTuple):
         )
 
 
-def _resolved_start(shapes, mean, metric, modulo, options: ShapeOptions, saved=None, keep=None):
+def _resolved_start(
+    shapes, mean, metric, modulo, options: ShapeOptions, saved=None, keep=None, report=None
+):
     """Step 0 of a resolved mean: every shape's distance to the starting mean by levels
     (shape_geodesic with ``options.rtol``, math §10), and the working grid the mean is
     then solved on, the finest grid any shape needed.
@@ -318,7 +320,8 @@ def _resolved_start(shapes, mean, metric, modulo, options: ShapeOptions, saved=N
     there (gamma, R, C: the first continuations' starts) and the ``(K, L)`` level
     distances. A registration from a coarser level whose interpolant folds at that grid
     is replaced by a search there. ``saved``: the shapes finished before (a checkpoint's
-    ``first_*`` arrays); ``keep(arrays)`` is called after each new one with all so far.
+    ``first_*`` arrays); ``keep(arrays)`` is called after each new one with all so far;
+    ``report(k, info)`` with shape k's ``shape_geodesic`` progress dicts.
     """
     finished = {} if saved is None else {k: v for k, v in saved.items() if k.startswith("first_")}
     for k, shape in enumerate(shapes):
@@ -326,7 +329,8 @@ def _resolved_start(shapes, mean, metric, modulo, options: ShapeOptions, saved=N
             continue
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
-            r = shape_geodesic(shape, mean, metric, modulo=modulo, options=options)
+            told = None if report is None else functools.partial(report, k)
+            r = shape_geodesic(shape, mean, metric, modulo=modulo, options=options, progress=told)
         row = np.full(len(options.levels), np.nan)
         grids = np.asarray(r.levels.grids).tolist()
         for g, d in zip(grids, np.asarray(r.levels.distances).tolist(), strict=True):
@@ -460,7 +464,10 @@ def karcher_mean(
         resume: continue from ``checkpoint`` (refused if it belongs to other inputs).
         progress: called after the first solves (step 0) and after each accepted step
             with a dict (step, sum_sq_distances, mean_velocity_norm, step_size, num_solves,
-            seconds since the call began).
+            seconds since the call began). A resolved mean also reports its first,
+            levelled solves as they go: :func:`shape_geodesic`'s dicts (stage, level,
+            levels, grid, energy; distance and converged when a level ends) with step 0,
+            shape (its index), shapes (K) and seconds since the call began.
         warm_start: the second, warm-started solve per shape described above (modulo
             "rigid" / "diff" on one grid, ``rtol=None``; twice the solves per step, the
             warm one without a search). A resolved mean continues every solve already.
@@ -525,8 +532,26 @@ def karcher_mean(
             if path is not None:
                 save_npz_atomic(path, fingerprint=fingerprint, **finished)
 
+        def level_report(k, info):  # step 0's levelled solves, phase by phase
+            progress(
+                {
+                    **info,
+                    "step": 0,
+                    "shape": k,
+                    "shapes": shapes.shape[0],
+                    "seconds": time.perf_counter() - started,
+                }
+            )
+
         mean, options, first_starts, level_distances = _resolved_start(
-            shapes, mean, metric, modulo, options, saved, keep
+            shapes,
+            mean,
+            metric,
+            modulo,
+            options,
+            saved,
+            keep,
+            None if progress is None else level_report,
         )
         saved = None
     elif warm_start:  # the identity registration

@@ -40,6 +40,16 @@ def solve_karcher(args, progress: Progress):
     checkpoint = args.out / CHECKPOINTS["karcher"]
 
     def report(info):
+        if "shape" in info:
+            # A resolved mean's first solves, one line per level of each shape's solve.
+            if info["stage"] == "level":
+                state = "converged" if info["converged"] else "not converged"
+                progress(
+                    f"first solves, shape {info['shape'] + 1}/{info['shapes']}: level "
+                    f"{info['level']}/{info['levels']} ({info['grid'][0]} x {info['grid'][1]}) "
+                    f"distance {info['distance']:.6g} ({state}), {info['seconds']:.0f} s"
+                )
+            return
         # The pace so far (step 0: the first solves, compilation included) times the
         # steps left: the most the run can still take at that pace; it stops earlier
         # when it converges.
