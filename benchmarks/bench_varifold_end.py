@@ -1,5 +1,5 @@
-"""The varifold-relaxed end condition, measured (docs/guides/registration_notes.md section 8, issue
-29).
+"""The varifold-relaxed end condition, measured (docs/guides/registration_notes.md, "Tried and
+not adopted"; issue 29).
 
 The route of H2_SurfaceMatch and BaRe-ESA, put on the package's grid: the path starts at
 f1 (fixed, on its own grid) and ends at a free surface f_end = f1 + sum_k c_k Y_k (real

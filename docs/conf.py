@@ -1,10 +1,11 @@
 """Sphinx configuration of the elastic_jax site (build: see docs/contributing.md).
 
-The site is built with warnings as errors (``-W``); three parts are generated here at each
+The site is built with warnings as errors (``-W``); four parts are generated here at each
 build so that they cannot drift from the code: the notebooks are copied in from
 ``notebooks/`` (rendered with their stored outputs, not executed), the command-line
-reference is printed from the argument parser, and the gallery's tables are read from the
-benchmark JSON in ``docs/gallery/``. A public name without an API entry fails the build.
+reference is printed from the argument parser, the gallery's tables are read from the
+benchmark JSON in ``docs/gallery/``, and the API reference's summary tables are read from
+the directives of its pages (``docs/api/``). A public name without an API entry fails the build.
 """
 
 import pathlib
@@ -66,12 +67,13 @@ def _check_public_names(app, env) -> None:
     """Every public name has an entry in the API reference, or the build fails."""
     from sphinx.util import logging
 
-    documented = set(env.domains["py"].objects)
+    objects = env.domains["py"].objects
+    documented = {name for name, entry in objects.items() if entry.docname.startswith("api/")}
     missing = [name for name in _generate.public_names() if name not in documented]
     if missing:
         logging.getLogger(__name__).warning(
-            "public names without an API entry (add them to docs/api.md): %s",
-            ", ".join(missing),
+            "public names without an API entry (add an autodoc directive for each): %s",
+            "; ".join(f"{name} to {_generate.api_page_for(name)}" for name in missing),
         )
 
 
@@ -79,4 +81,5 @@ def setup(app):
     _copy_notebooks()
     _generate.cli_reference(DOCS / "guides" / "_cli_reference.md")
     _generate.gallery_tables(DOCS / "gallery")
+    _generate.api_summaries(DOCS / "api")
     app.connect("env-check-consistency", _check_public_names)

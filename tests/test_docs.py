@@ -1,9 +1,10 @@
 """The documentation site builds with warnings as errors and holds what it promises.
 
-One build per test session (about 10-20 s): every public name has an API entry, every
-notebook page shows a figure, every link inside the site resolves (file and anchor), the
-command-line reference lists every option of the parser, and the gallery's tables carry
-the stored benchmark numbers.
+One build per test session (about 10-20 s): every public name has an API entry on its
+group's page and a row in the reference's summary tables, every notebook page shows a
+figure, every link inside the site resolves (file and anchor), the command-line reference
+lists every option of the parser, and the gallery's tables carry the stored benchmark
+numbers.
 """
 
 import html.parser
@@ -81,9 +82,29 @@ def test_every_public_name_has_an_api_entry(site):
     names = _generate.public_names()
     assert len(names) >= 100  # 71 in elastic_jax, the rest in io, plot and shapes
     assert [n for n in names if n not in documented] == []
-    # ...and each entry is on the API page, with its anchor.
-    api = _parse(site / "api.html")
-    assert [n for n in names if n not in api.ids] == []
+    # ...each entry is on the page of the API reference its directive is on, with its anchor...
+    entries = _generate.api_entries(DOCS / "api")
+    placed = [n for page_names in entries.values() for n in page_names]
+    assert sorted(placed) == sorted(set(placed))  # one entry per name
+    for page, page_names in entries.items():
+        ids = _parse(site / "api" / f"{page}.html").ids
+        assert [n for n in page_names if n not in ids] == [], page
+    assert [n for n in names if n not in placed] == []
+    # ...and the reference's index lists it in its group's table, linked to the entry.
+    index = _parse(site / "api" / "index.html").links
+    for page, page_names in entries.items():
+        linked = {link.partition("#")[2] for link in index if link.startswith(f"{page}.html#")}
+        assert [n for n in page_names if n not in linked] == [], page
+
+
+def test_a_missing_api_entry_names_its_page():
+    assert _generate.api_page_for("elastic_jax.io.load_surface") == "docs/api/io.md"
+    assert _generate.api_page_for("elastic_jax.io.a_new_name") == "docs/api/io.md"
+    # A name of elastic_jax belongs on the page that documents its neighbours.
+    entries = _generate.api_entries(DOCS / "api")
+    for name in _generate.public_names():
+        (page,) = [p for p, page_names in entries.items() if name in page_names]
+        assert _generate.api_page_for(name) == f"docs/api/{page}.md", name
 
 
 def test_every_notebook_page_shows_a_figure(site):

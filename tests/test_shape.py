@@ -288,7 +288,7 @@ def test_shape_distance_is_below_the_parametrized_one_on_real_shapes(other):
     # property tested is that registration finds the shape distance given enough starts.
     # cat1 -> cat2 ends in one of several basins by rounding as well: 1.392 (0.58 of the
     # parametrized 2.387) before the pole-derivative fix of 2026-11-27, 1.494 (0.63) after
-    # it; 1.428 and 1.420 with 6 starts (registration_notes, section 13).
+    # it; 1.428 and 1.420 with 6 starts (registration_notes, "Where rounding picks the basin").
     starts = {"init_candidates": 6} if other == "horse0" else {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
@@ -455,7 +455,7 @@ def test_self_recovery_on_the_shared_shapes_at_their_grid(name):
     # d(cat1, R cat1 o phi) was 1.78 at |a| = 0.3, above d(cat1, cat2). Grid differences:
     # f o phi sampled on f's own grid is their target, not the chain rule's (1.09 for
     # cat2 under the chain rule: a coarser surface, and the animals' poles are not
-    # differentiable; docs/guides/registration_notes.md, section 10).
+    # differentiable; docs/guides/registration_notes.md, "Inputs on their own grids").
     grid = {"differential": "grid", "interpolation": "bicubic", "rtol": None}
     f = jnp.asarray(load_shape(name))
     m, n = f.shape[-2:]
