@@ -77,7 +77,7 @@ from ._statistics.retrieval import RetrievalScores as RetrievalScores
 from ._statistics.retrieval import retrieval_scores as retrieval_scores
 from ._version import VERSION as __version__  # noqa: F401  (elastic_jax.__version__)
 
-# The public API (docs/api.md documents each; tests/test_structure.py pins the list).
+# The public API (the pages of docs/api/ document each; tests/test_structure.py pins the list).
 __all__ = [
     "ConvergenceWarning",
     "DistanceMatrixResult",

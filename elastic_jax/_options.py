@@ -74,10 +74,10 @@ class ShapeOptions:
             search over the Moebius group of S^2 (rotations and conformal boosts) on the
             L2 mismatch int ‖f1 o gamma - R f2‖^2, the 60 ranked by that mismatch, the best
             ``init_candidates`` that lie apart refined to the tolerance: these are the
-            starts (:doc:`/guides/registration_notes`); ``"energy"`` (the default until
-            2026-11-24): the 60 rotations refined over rotations and ranked by
-            straight-line energy, the best ``init_candidates`` refined over rotations and,
-            as that many more starts, over the Moebius group; ``"icosahedral"``: the
+            starts (:doc:`/guides/registration_notes`); ``"energy"``: the 60 rotations
+            refined over rotations and ranked by straight-line energy, the best
+            ``init_candidates`` refined over rotations and, as that many more starts, over
+            the Moebius group; ``"icosahedral"``: the
             same over rotations only (the paper's Remark 4); ``"none"``: the identity
             alone. Every start then gets registration rounds on the L2 mismatch; the
             candidate whose straight line then has the lowest energy gets rounds on that
