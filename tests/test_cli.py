@@ -696,3 +696,92 @@ def test_the_degree_error_comes_before_any_mesh_is_read(tmp_path, capsys):
     assert code == cli.EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert "--degree 12" in err and "reading" not in err
+
+
+def _ellipsoid_and_its_sphere(tmp_path, name: str, scale: float):
+    """An ellipsoid meshed from an icosphere (.ply, float32 vertices, in the icosphere's
+    order) and its map, the icosphere scaled by 100 (as FreeSurfer's spheres are)."""
+    ico = trimesh.creation.icosphere(subdivisions=2)
+    mesh = trimesh.Trimesh(ico.vertices * scale * np.array([1.0, 0.8, 0.6]), ico.faces)
+    sphere = trimesh.Trimesh(100.0 * ico.vertices, ico.faces)
+    paths = (tmp_path / f"{name}.ply", tmp_path / f"{name}_sphere.ply")
+    mesh.export(paths[0])
+    sphere.export(paths[1])
+    return str(paths[0]), str(paths[1])
+
+
+def test_sphere_files_must_match_the_inputs_before_any_work(tmp_path, capsys):
+    a, sa = _ellipsoid_and_its_sphere(tmp_path, "a", 1.0)
+    b, sb = _ellipsoid_and_its_sphere(tmp_path, "b", 1.5)
+    grid = _save(tmp_path, "g.npz", shapes.sample(shapes.sphere, M, N))
+    out = tmp_path / "out"
+    cases = {
+        "count": (["shape-geodesic", a, b, "--sphere", sa], "1 sphere file(s) for 2 input"),
+        "grid": (["geodesic", a, grid, "--sphere", sa, sb], "g.npz is a grid file"),
+        "missing": (["distances", a, b, "--sphere", sa, "nope.ply"], "--sphere nope.ply"),
+        "target": (["shape-geodesic", a, grid, "--on-target-mesh"], "--on-target-mesh"),
+    }
+    for key, (argv, words) in cases.items():
+        code = cli.main([*argv, "--no-cache", "--out", str(out)])
+        err = capsys.readouterr().err
+        assert code == cli.EXIT_BAD_INPUT, key
+        assert words in err and "reading" not in err, (key, err)
+        assert len(err.strip().splitlines()) == 1, key
+    assert not out.exists()
+
+
+def test_geodesic_through_sphere_files_reads_the_librarys_grids(tmp_path, capsys):
+    a, sa = _ellipsoid_and_its_sphere(tmp_path, "a", 1.0)
+    b, sb = _ellipsoid_and_its_sphere(tmp_path, "b", 1.5)
+    out = tmp_path / "out"
+    code = cli.main(["geodesic", a, b, *SMALL, "--sphere", sa, sb, "--out", str(out)])
+    summary = json.loads(capsys.readouterr().out)
+    assert code == 0 and summary["settings"]["sphere"] == [sa, sb]
+    path = np.load(out / "path" / "path.npz")["path"]
+    np.testing.assert_array_equal(path[0], io.load_surface(a, M, N, sphere=sa))
+    np.testing.assert_array_equal(path[-1], io.load_surface(b, M, N, sphere=sb))
+    # the sphere map is not the one the command computes without it
+    assert np.abs(path[0] - io.load_surface(a, M, N, frame="input")).max() > 1e-3
+
+
+def test_normalize_area_compares_shapes_without_size(tmp_path, capsys):
+    # Concentric spheres: sqrt(8 pi b) |r2 - r1| apart (math §9); normalized to area 4 pi
+    # both are the unit sphere of the grid, 0 apart.
+    f1 = shapes.sample(shapes.sphere, M, N, radius=1.0)
+    f2 = shapes.sample(shapes.sphere, M, N, radius=2.0)
+    a, b = _save(tmp_path, "a.npz", f1), _save(tmp_path, "b.npz", f2)
+    out = tmp_path / "out"
+    code = cli.main(["geodesic", a, b, *SMALL, "--normalize", "area", "--out", str(out)])
+    summary = json.loads(capsys.readouterr().out)
+    assert code == 0 and summary["settings"]["normalize"] == "area"
+    assert summary["distance"] < 1e-12
+    path = np.load(out / "path" / "path.npz")["path"]
+    np.testing.assert_allclose(ej.surface_area(path[[0, -1]]), 4 * np.pi, rtol=1e-12)
+
+
+@pytest.mark.slow  # 55 s on 2 cores
+@pytest.mark.filterwarnings("ignore::elastic_jax.ConvergenceWarning")
+def test_shape_geodesic_paints_its_path_on_the_target_mesh(tmp_path, capsys):
+    a, sa = _ellipsoid_and_its_sphere(tmp_path, "a", 1.0)
+    b, sb = _ellipsoid_and_its_sphere(tmp_path, "b", 1.5)
+    out = tmp_path / "out"
+    argv = ["shape-geodesic", a, b, *SHAPE, "--rtol", "none", "--outer-steps", "2"]
+    code = cli.main([*argv, "--sphere", sa, sb, "--on-target-mesh", "--out", str(out)])
+    summary = json.loads(capsys.readouterr().out)
+    assert code in (0, cli.EXIT_NOT_CONVERGED)
+    painted = sorted((out / "path").glob("target_mesh_*.ply"))
+    assert len(painted) == 5 and all(str(p) in summary["files"] for p in painted)
+    target = trimesh.load(b, process=False)
+    last = trimesh.load(painted[-1], process=False)
+    np.testing.assert_array_equal(last.faces, target.faces)
+    # The path ends at the target's grid (modulo diff: no rotation), read back at its
+    # vertices through the icosphere map: the vertices to the 13 x 25 grid's resolution
+    # (4.2e-3 of the diagonal, measured).
+    np.testing.assert_allclose(
+        np.load(out / "path" / "path.npz")["path"][-1],
+        io.load_surface(b, M, N, sphere=sb),
+        rtol=0,
+        atol=1e-14,
+    )
+    error = np.linalg.norm(last.vertices - target.vertices, axis=1).max()
+    assert error / np.linalg.norm(np.ptp(target.vertices, axis=0)) < 1e-2

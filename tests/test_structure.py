@@ -201,8 +201,9 @@ PUBLIC = {
     "elastic_jax.io": """MESH_FORMATS DegenerateFaceError FrameWarning InconsistentWindingError
         MeshError MeshFrame mesh_frame NonManifoldVertexError NotGenusZeroError
         NotStarShapedError NotWatertightError
-        ParametrizationError SphericalParametrization grid_to_mesh load_surface mesh_to_grid
-        save_path save_surface spherical_parametrization star_center surface_files""",
+        ParametrizationError SphericalParametrization VertexMap grid_to_mesh grid_to_vertices
+        load_surface mesh_to_grid normalize_scale save_path save_surface
+        spherical_parametrization star_center surface_files""",
     "elastic_jax.plot": """parametrization_colors plot_path plot_modes plot_energy
         plot_distance_matrix save_figure""",
     "elastic_jax.shapes": "sphere ellipsoid bumpy bent_cylinder sample random_rotation two_classes "

@@ -65,6 +65,7 @@ KARCHER_OWN_FLAGS = {
         dest: "--" + dest.replace("_", "-")
         for dest in ("metric", "grid", "dtype", "modulo", "strategy", "batch_size", "workers")
         + ("scheduler", "resume", "karcher_steps", "tol", "step_size", "warm_start", "rtol")
+        + ("sphere", "normalize")
     },
 }
 
@@ -99,22 +100,83 @@ def environment_record() -> dict:
     }
 
 
-def _load_all(files: Sequence[str], grid, dtype, progress: Progress, frame: str = "principal"):
+def is_grid_file(name) -> bool:
+    return str(name).lower().endswith((".npz", ".mat"))
+
+
+def input_files(args) -> list[str]:
+    """The surface files a command reads (its positional inputs; [] for demo, bench, warmup)."""
+    if getattr(args, "files", None) is not None:
+        return list(args.files)
+    return [getattr(args, k) for k in ("source", "target") if getattr(args, k, None) is not None]
+
+
+def check_spheres(args) -> None:
+    """--sphere: one existing file per input, every input a mesh (before any file is read)."""
+    spheres = getattr(args, "sphere", None)
+    if spheres is None:
+        return
+    files = input_files(args)
+    if len(spheres) != len(files):
+        raise BadInput(
+            f"--sphere: {len(spheres)} sphere file(s) for {len(files)} input surface(s); give "
+            "one per input mesh, in the inputs' order"
+        )
+    for name, sphere in zip(files, spheres, strict=True):
+        if is_grid_file(name):
+            raise BadInput(
+                f"--sphere: {name} is a grid file; a sphere map resamples a mesh (every input "
+                "must be a mesh when --sphere is given)"
+            )
+        if not pathlib.Path(sphere).is_file():
+            raise BadInput(f"--sphere {sphere}: no such file")
+
+
+def input_settings(args) -> dict:
+    """How the inputs were read: their scale normalization and sphere maps."""
+    return {
+        "normalize": getattr(args, "normalize", "none"),
+        "sphere": getattr(args, "sphere", None),
+    }
+
+
+def _load_all(
+    files: Sequence[str],
+    grid,
+    dtype,
+    progress: Progress,
+    frame: str = "principal",
+    spheres: Sequence[str] | None = None,
+    normalize: str = "none",
+    maps: list | None = None,
+):
     """Surfaces as one (K, 3, m, n) array on a common grid; BadInput names the file.
 
     ``frame``: the axes mesh files are resampled in (io.mesh_to_grid's ``frame``); grid
-    files keep their own parametrization."""
+    files keep their own parametrization. ``spheres``: one sphere map file per input
+    (io.load_surface's ``sphere``). ``normalize``: "none" or "area" (io.normalize_scale).
+    ``maps``: a list that receives each input's io.VertexMap (None for a grid file)."""
     import numpy as np
 
     from .. import io
 
     out = []
     m, n = (None, None) if grid is None else grid
-    for name in files:
-        progress(f"reading {name}")
+    for k, name in enumerate(files):
+        progress(f"reading {name}" + ("" if spheres is None else f" through {spheres[k]}"))
         try:
-            mesh_frame = None if str(name).endswith((".npz", ".mat")) else frame
-            f = io.load_surface(name, m=m, n=n, frame=mesh_frame, progress=progress)
+            options = {"frame": None if is_grid_file(name) else frame}
+            if spheres is not None:
+                # A given map is in its own axes: no frame (io.mesh_to_grid).
+                options = {"sphere": spheres[k]}
+            wants_map = maps is not None and not is_grid_file(name)
+            f = io.load_surface(name, m=m, n=n, progress=progress, return_map=wants_map, **options)
+            if maps is not None:
+                f, vertex_map = f if wants_map else (f, None)
+                maps.append(vertex_map)
+            if normalize == "area":
+                f, scale = io.normalize_scale(f)
+                progress(f"{name}: scaled by {float(scale):.6g} to area 4 pi")
         except (InputError, KeyError) as err:  # their messages name the file
             raise BadInput(err.args[0] if err.args else str(err)) from err
         except (OSError, ValueError) as err:
@@ -225,8 +287,11 @@ def write_path(out: pathlib.Path, path, settings: dict, progress: Progress) -> l
     return written + write_figure(out / "path.png", lambda: plot.plot_path(path), progress)
 
 
-def prepare(args, progress: Progress, files, options_of: Callable, surfaces=None):
+def prepare(args, progress: Progress, files, options_of: Callable, surfaces=None, main_inputs=True):
     """The surfaces ``(K, 3, m, n)`` (read unless given), checked degrees, metric, options.
+
+    ``main_inputs``: ``files`` are the command's positional inputs, which ``--sphere``
+    maps one to one (fit-metric's ``--test`` files are not).
 
     Every check that needs no file comes first: the options, the metric and, with
     ``--grid``, the degrees against that grid (reading a mesh maps it to the sphere, which
@@ -235,7 +300,13 @@ def prepare(args, progress: Progress, files, options_of: Callable, surfaces=None
     if surfaces is None:
         if args.grid is not None:
             check_degrees(args, *args.grid)
-        surfaces = _load_all(files, args.grid, args.dtype, progress, args.frame)
+        spheres = getattr(args, "sphere", None) if main_inputs else None
+        normalize = getattr(args, "normalize", "none")
+        maps = [] if getattr(args, "on_target_mesh", False) and main_inputs else None
+        surfaces = _load_all(
+            files, args.grid, args.dtype, progress, args.frame, spheres, normalize, maps
+        )
+        args.vertex_maps = maps
     check_degrees(args, *surfaces.shape[-2:])
     return surfaces, metric, options
 
@@ -267,6 +338,7 @@ def collection_settings(args, m: int, n: int, options: ShapeOptions) -> dict:
         # The inputs' grid, which is the working grid here (ShapeOptions.grid is None).
         "grid": [m, n],
         "dtype": args.dtype,
+        **input_settings(args),
     }
 
 

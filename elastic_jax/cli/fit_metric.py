@@ -74,7 +74,9 @@ def run_fit_metric(args, progress: Progress) -> dict:
     test_labels = None
     if args.test:
         test_labels = read_labels(args.test_labels, args.test)
-        test_shapes = prepare(args, progress, args.test, shape_geodesic_options)[0]
+        test_shapes = prepare(args, progress, args.test, shape_geodesic_options, main_inputs=False)[
+            0
+        ]
         if test_shapes.shape[2:] != shapes.shape[2:]:
             raise BadInput(
                 f"--test surfaces are on a {test_shapes.shape[2]} x {test_shapes.shape[3]} "

@@ -8,6 +8,7 @@ from .common import (
     Progress,
     environment_record,
     geodesic_options_from,
+    input_settings,
     prepare,
     result_fields,
     write_path,
@@ -31,7 +32,13 @@ def run_geodesic(args, progress: Progress, surfaces=None, label=None) -> dict:
     res = jax.block_until_ready(geodesic(f1, f2, metric, **options))
     seconds = time.perf_counter() - start
     progress(f"distance {float(res.distance):.6g} after {int(res.num_steps)} steps")
-    settings = {"metric": list(args.metric), "grid": [m, n], **options, "dtype": args.dtype}
+    settings = {
+        "metric": list(args.metric),
+        "grid": [m, n],
+        **options,
+        "dtype": args.dtype,
+        **input_settings(args),
+    }
     summary = {
         "command": args.command,
         "inputs": label or [args.source, args.target],

@@ -101,6 +101,30 @@ def _io_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _input_options(parser: argparse.ArgumentParser) -> None:
+    """The options of commands that read surface files: sphere maps and scale."""
+    parser.add_argument(
+        "--sphere",
+        nargs="+",
+        default=None,
+        metavar="PATH",
+        help="a spherical map of each input mesh to resample it through instead of computing "
+        "one (FreeSurfer's ?h.sphere, a sphere_left.gii, or a mesh file with the same "
+        "vertices in the same order): one file per input surface, in the inputs' order "
+        "(place it after them); meshes only; the map is in its own axes, so --frame "
+        "does not apply",
+    )
+    parser.add_argument(
+        "--normalize",
+        choices=("none", "area"),
+        default="none",
+        help="area: scale each input about its area centroid to the unit sphere's area 4 pi "
+        "(io.normalize_scale), so that shapes are compared with size removed; distances "
+        "are then in units of that normalized size (a distance scales with the surfaces: "
+        "d(s f1, s f2) = s d(f1, f2))",
+    )
+
+
 def _common(
     parser: argparse.ArgumentParser,
     *,
@@ -282,12 +306,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("source", help=SURFACE_FILE)
     p.add_argument("target", help=SURFACE_FILE)
     _common(p, degree=7, times=13)
+    _input_options(p)
 
     p = command("shape-geodesic", help="geodesic between shapes (registration)")
     p.add_argument("source", help=SURFACE_FILE)
     p.add_argument("target", help=SURFACE_FILE)
     _shape_options(p, modulo="diff")
     _rtol_option(p, "a resolved distance")
+    _input_options(p)
+    p.add_argument(
+        "--on-target-mesh",
+        action="store_true",
+        help="also write the path's frames as meshes with the target mesh's faces, each "
+        "frame read at the target's vertices through the map that brought it in "
+        "(io.VertexMap): path/target_mesh_NNN.ply, the last one the target's own vertices "
+        "(rotated and centred under --modulo rigid) to the grid's resolution; the path "
+        "starts at the source reparametrized onto the target, so this paints the "
+        "deformation on the target's mesh (a mesh target only)",
+    )
 
     p = command(
         "karcher",
@@ -299,6 +335,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("files", nargs="+", help=SURFACE_FILES)
     _shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
+    _input_options(p)
     _rtol_option(
         p,
         "a resolved mean: each shape's first geodesic by levels, the mean then kept on the "
@@ -310,6 +347,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = command("distances", help="matrix of pairwise shape distances")
     p.add_argument("files", nargs="+", help=SURFACE_FILES)
     _shape_options(p, modulo="rigid")
+    _input_options(p)
     _batch_options(p)
 
     p = command(
@@ -333,6 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--targets", default=None, help="(K, K) dissimilarities: .npy, .npz, .csv or text"
     )
     _shape_options(p, modulo="rigid", moduli=("rigid", "diff", "none"))
+    _input_options(p)
     _batch_options(p)
     p.add_argument("--learn", default="abc", help="the coefficients that move (of abcd)")
     p.add_argument(
@@ -375,6 +414,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("files", nargs="+", help=SURFACE_FILES + "; or one karcher run's mean.npz")
     _shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
+    _input_options(p)
     _rtol_option(
         p,
         "a resolved mean: each shape's first geodesic by levels, the mean then kept on the "
@@ -408,6 +448,7 @@ def build_parser() -> argparse.ArgumentParser:
         "(3, m, n), e.g. the pca command's modeK_velocity.npz",
     )
     _io_options(p)
+    _input_options(p)
     p.add_argument(
         "--degree", type=int, default=7, help="spherical-harmonic degree of each step's solve"
     )

@@ -21,7 +21,9 @@ from .common import (
     SHAPE_COMMANDS,
     BadInput,
     Progress,
+    check_spheres,
     checked_flag,
+    is_grid_file,
     metric_from,
     shape_options_from,
 )
@@ -101,6 +103,12 @@ def preflight(args) -> None:
     """Refuse bad options before reading any file or starting any work."""
     _expand_directories(args)
     args.karcher_output = _read_karcher_output(args)
+    check_spheres(args)
+    if getattr(args, "on_target_mesh", False) and is_grid_file(args.target):
+        raise BadInput(
+            f"--on-target-mesh: the target {args.target} is a grid file; the path's frames "
+            "are painted on a target mesh's vertices"
+        )
     metric_from(args)
     if args.grid is not None:
         checked_flag("--grid", lambda name, grid: check_grid_shape((3, *grid), name), args.grid)

@@ -7,6 +7,7 @@ import time
 from .common import (
     Progress,
     environment_record,
+    input_settings,
     json_float,
     json_floats,
     prepare,
@@ -33,6 +34,22 @@ def solve_reporter(progress: Progress):
             progress(f"{where}: {r['stage']} done, energy {r['energy']:.6g}")
 
     return report
+
+
+def write_on_mesh(directory, path, vertex_map, progress: Progress) -> list[str]:
+    """Each frame of ``path (N, 3, m, n)`` at the mesh's vertices, with its faces, as
+    ``target_mesh_NNN.ply`` (io.VertexMap.to_mesh)."""
+    from .._runtime.atomic import atomic_path
+
+    progress(f"writing the path's {len(path)} frames on the target mesh to {directory}")
+    digits = max(3, len(str(len(path) - 1)))
+    written = []
+    for k, f in enumerate(path):
+        target = directory / f"target_mesh_{k:0{digits}d}.ply"
+        with atomic_path(target) as tmp:
+            vertex_map.to_mesh(f).export(tmp, file_type="ply")
+        written.append(str(target))
+    return written
 
 
 def run_shape_geodesic(args, progress: Progress) -> dict:
@@ -86,8 +103,12 @@ def run_shape_geodesic(args, progress: Progress) -> dict:
         # The working grid the path is on: the finest level's, or the inputs'.
         "grid": list(res.path.shape[-2:]),
         "dtype": args.dtype,
+        **input_settings(args),
     }
     files = write_path(args.out, np.asarray(res.path), settings, progress)
+    if args.on_target_mesh and files:
+        path = np.asarray(res.path)
+        files += write_on_mesh(args.out / "path", path, args.vertex_maps[1], progress)
     files.append(
         str(
             save_npz_atomic(

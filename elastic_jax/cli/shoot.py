@@ -9,6 +9,7 @@ from .common import (
     BadInput,
     Progress,
     environment_record,
+    input_settings,
     json_float,
     json_floats,
     prepare,
@@ -72,6 +73,7 @@ def run_shoot(args, progress: Progress) -> dict:
         "scale": args.scale,
         **options,
         "dtype": args.dtype,
+        **input_settings(args),
     }
     path = np.asarray(res.path)
     if n_valid < path.shape[0]:
