@@ -782,7 +782,7 @@ def normalize_scale(f, area: float = _UNIT_AREA) -> tuple[np.ndarray, np.ndarray
     or modulo reparametrizations and rigid motions, for every metric) scales by s:
     d(s f1, s f2) = s d(f1, f2) (measured to the last bit of float64 at s = 1e-3 ... 1e3:
     the solver's iterates are the scaled ones), and the closed form of two concentric
-    spheres, sqrt(8 pi b) |r2 - r1| (math §9), is linear in the radii. Distances between
+    spheres, sqrt(8 pi b) abs(r2 - r1) (math §9), is linear in the radii. Distances between
     normalized surfaces are therefore in units of the normalized size (sqrt(area / 4 pi):
     the radius of the sphere of that area) and compare shapes with size removed; a
     translation changes no distance (the metric sees df only).
