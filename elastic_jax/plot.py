@@ -758,7 +758,13 @@ def _history_columns(history, labels) -> list[tuple[str | None, np.ndarray]]:
     return [(name, arr[:, j]) for j, name in enumerate(names)]
 
 
-def plot_energy(history, *, labels: Sequence[str] | None = None, logy: bool = True) -> Figure:
+def plot_energy(
+    history,
+    *,
+    labels: Sequence[str] | None = None,
+    logy: bool = True,
+    title: str | None = None,
+) -> Figure:
     """Plot optimisation records against the step number, one line per column.
 
     For instance the history of a :class:`~elastic_jax.KarcherResult`, whose two columns are
@@ -770,13 +776,17 @@ def plot_energy(history, *, labels: Sequence[str] | None = None, logy: bool = Tr
         labels: k names for the columns of an array (legend entries); not with a dict.
         logy: use a logarithmic y axis when every value is positive (a linear axis
             otherwise, whatever this says).
+        title: the axes' title; default none.
 
     Returns:
         The figure, with one axes; step numbers 0, 1, ... on the x axis.
 
     Raises:
-        ValueError: for a wrong shape, an empty record, NaN/inf, or a labels mismatch.
+        ValueError: for a wrong shape, an empty record, NaN/inf, a labels mismatch or a
+            title that is not a string.
     """
+    if title is not None and not isinstance(title, str):
+        raise InputError(f"title must be a string or None; got {title!r}")
     columns = _history_columns(history, labels)
     for name, values in columns:
         which = "history" if name is None else repr(name)
@@ -802,6 +812,8 @@ def plot_energy(history, *, labels: Sequence[str] | None = None, logy: bool = Tr
     ax.set_ylabel("value")
     if any(name is not None for name, _ in columns):
         ax.legend()
+    if title is not None:
+        ax.set_title(title)
     ax.grid(True, which="major", alpha=0.3)
     return fig
 

@@ -311,6 +311,14 @@ def test_plot_energy_array_columns():
     assert one.get_legend() is None
 
 
+def test_plot_energy_title():
+    fig = plot.plot_energy(np.array([3.0, 2.0, 1.5]), title="path energy per round")
+    assert fig.axes[0].get_title() == "path energy per round"
+    assert plot.plot_energy(np.array([3.0, 2.0])).axes[0].get_title() == ""
+    with pytest.raises(InputError, match=r"title must be a string or None; got 1"):
+        plot.plot_energy(np.array([3.0, 2.0]), title=1)
+
+
 def test_plot_energy_dict_and_nonpositive_values():
     history = {"energy": [3.0, 2.0, 1.5], "gradient": [1.0, 0.5, 0.0, 0.0]}
     (ax,) = plot.plot_energy(history).axes
