@@ -30,7 +30,7 @@ import numpy as np
 from matplotlib import colors as mcolors
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
-from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the "3d" projection)
+from mpl_toolkits.mplot3d import Axes3D
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from ._checks import check_bool, check_choice, check_int, check_positive
@@ -228,9 +228,6 @@ def _draw_surface(ax, surface, base, light, lo, hi, *, elev, azim, shade, fit=Fa
     # Thin edges in the face colour cover the antialiasing seams between cells.
     cells = Poly3DCollection(quads, facecolors=face, edgecolors=face, linewidths=0.25)
     if fit:
-        # A 3D axes is a square inside its panel: a shape fitted to a wide panel overhangs
-        # the square sideways (_fit_windows), which clipping to the square would cut off.
-        cells.set_clip_on(False)
         ax.set_proj_type("ortho")
     ax.add_collection3d(cells)
     ax.set_xlim(lo[0], hi[0])
@@ -239,6 +236,25 @@ def _draw_surface(ax, surface, base, light, lo, hi, *, elev, azim, shade, fit=Fa
     ax.set_box_aspect(tuple(hi - lo))
     ax.view_init(elev=elev, azim=azim)
     ax.set_axis_off()
+
+
+class _PanelAxes3D(Axes3D):
+    """A 3D axes that fills its whole panel: matplotlib's shrinks itself to the largest
+    centred square, which leaves a wide panel's sides empty. The image stays undistorted
+    because :func:`_fit_windows` gives the image-plane window the panel's aspect."""
+
+    def apply_aspect(self, position=None):
+        if position is None:
+            position = self.get_position(original=True)
+        self._set_position(position, "active")
+
+
+def _add_panel(fig: Figure, rows: int, columns: int, index: int, fit: bool):
+    """Subplot ``index`` (from 1) of a rows x columns grid: a 3D axes, filling its panel
+    in the fit view."""
+    if fit:
+        return fig.add_subplot(rows, columns, index, axes_class=_PanelAxes3D)
+    return fig.add_subplot(rows, columns, index, projection="3d")
 
 
 def _camera(view, elev, azim) -> tuple[float, float]:
@@ -287,13 +303,10 @@ def _fit_aspect(ax, surfaces: np.ndarray) -> float:
 
 
 def _fit_windows(fig: Figure, axes, surfaces: np.ndarray) -> None:
-    """Zoom every fitted axes onto the drawn shapes: one image-plane window size for all (so
-    sizes compare across panels), centred on the shapes' image, as large as the panel allows
-    with a margin of _FIT_MARGIN on each side.
-
-    A 3D axes draws into the largest square centred in its panel, with the same scale in x
-    and y; the window is the square's side in image units, and a shape wider than the
-    square overhangs it into the rest of the panel (its cells are not clipped)."""
+    """Zoom every fitted axes (a :class:`_PanelAxes3D`, filling its panel) onto the drawn
+    shapes: one image-plane scale for all (so sizes compare across panels), the window
+    centred on the shapes' image, as large as the panel allows with a margin of
+    _FIT_MARGIN on each side, and of the panel's aspect (the same scale in x and y)."""
     image = _projected(axes[0], surfaces)
     lo, hi = image.min(axis=1), image.max(axis=1)
     centre = (lo + hi) / 2
@@ -303,9 +316,9 @@ def _fit_windows(fig: Figure, axes, surfaces: np.ndarray) -> None:
         box = ax.get_position(original=True)
         panel = np.array([box.width * width_in, box.height * height_in])
         scale = np.min(panel * (1 - 2 * _FIT_MARGIN) / span)  # inches per image unit
-        side = panel.min() / scale
-        ax.viewLim.intervalx = (centre[0] - side / 2, centre[0] + side / 2)
-        ax.viewLim.intervaly = (centre[1] - side / 2, centre[1] + side / 2)
+        half = panel / scale / 2
+        ax.viewLim.intervalx = (centre[0] - half[0], centre[0] + half[0])
+        ax.viewLim.intervaly = (centre[1] - half[1], centre[1] + half[1])
 
 
 def _check_titles(titles, count: int) -> list[str] | None:
@@ -402,7 +415,7 @@ def plot_path(
 
     fig = Figure(figsize=(2.5 * len(chosen), 2.8) if figsize is None else figsize)
     for slot, k in enumerate(chosen):
-        ax = fig.add_subplot(1, len(chosen), slot + 1, projection="3d")
+        ax = _add_panel(fig, 1, len(chosen), slot + 1, fit)
         _draw_surface(
             ax, drawn[slot], base, light, lo, hi, elev=elev, azim=azim, shade=shade, fit=fit
         )
@@ -675,7 +688,7 @@ def plot_modes(
     fig = Figure(figsize=(1, 1) if figsize is None else figsize)
     for r in range(rows):
         for c, frame in enumerate(frames):
-            ax = fig.add_subplot(rows, columns, r * columns + c + 1, projection="3d")
+            ax = _add_panel(fig, rows, columns, r * columns + c + 1, fit)
             if r == 0:
                 ax.set_title(_sigma_label(sigmas * (frame - centre) / centre), fontsize="medium")
             if not np.isfinite(paths[r, frame]).all():
