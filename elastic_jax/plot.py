@@ -598,9 +598,9 @@ def plot_modes(
     Row r shows the geodesic through the mean mu along the mode e_k,
     exp_mu(s sqrt(lambda_k) e_k) for s from -sigmas to +sigmas (:func:`~elastic_jax.mode_path`),
     at ``columns`` evenly chosen frames: the ends and the mean in the middle column. Each
-    row is labelled once, at its left (a figure text, rotated), ``"mode k+1 (x%)"`` (the
-    mode's explained-variance fraction in percent, 3 significant digits; left out when
-    unknown); the axes of the first row are titled with their column's s in standard
+    row is labelled once, at its left (a figure text, rotated), ``"mode k+1\\n(x%)"`` (the
+    mode's explained-variance fraction in percent, 3 significant digits, on a second line;
+    left out when unknown); the axes of the first row are titled with their column's s in standard
     deviations (``"-2σ"``, ``"mean"``, ``"+2σ"``), the other rows' axes are untitled.
     Colours, shading, the shared box and the cameras (``view``) are those of
     :func:`plot_path`, the box (and the fit view's rotation) now holding every drawn frame
@@ -645,7 +645,7 @@ def plot_modes(
         >>> [ax.get_title() for ax in fig.axes]
         ['-2σ', 'mean', '+2σ']
         >>> [text.get_text() for text in fig.texts]
-        ['mode 1 (80%)']
+        ['mode 1\\n(80%)']
     """
     columns = check_int("columns", columns, 3)
     suptitle = _check_suptitle(suptitle)
@@ -730,7 +730,8 @@ def plot_modes(
     for r, k in enumerate(chosen):
         label = f"mode {k + 1}"
         if fractions is not None:
-            label += f" ({100 * fractions[r]:.3g}%)"
+            # On a second line: a fitted row of long shapes is about an inch high.
+            label += f"\n({100 * fractions[r]:.3g}%)"
         box = fig.axes[r * columns].get_position(original=True)
         fig.text(
             0.5 * box.x0,

@@ -439,7 +439,7 @@ def test_plot_modes_draws_rows_of_modes_through_the_mean():
     assert [ax.name for ax in fig.axes] == ["3d"] * 10
     # The columns' sigmas title the first row only; each row is named once, at its left.
     assert _titles(fig) == ["-1.5σ", "-0.75σ", "mean", "+0.75σ", "+1.5σ"] + [""] * 5
-    assert _texts(fig) == ["mode 1 (73.1%)", "mode 2 (24.5%)"]
+    assert _texts(fig) == ["mode 1\n(73.1%)", "mode 2\n(24.5%)"]
     # Frames 0, 2, 4, 6, 8 of each path, cell by cell; the middle column is the mean.
     for r in range(2):
         for c, frame in enumerate((0, 2, 4, 6, 8)):
@@ -459,7 +459,7 @@ def test_plot_modes_row_labels_and_suptitle():
     fig = plot.plot_modes(paths, explained=[0.7312, 0.2449], columns=3, suptitle="PCA")
     assert fig._suptitle.get_text() == "PCA"
     labels = [t for t in fig.texts if t is not fig._suptitle]
-    assert [t.get_text() for t in labels] == ["mode 1 (73.1%)", "mode 2 (24.5%)"]
+    assert [t.get_text() for t in labels] == ["mode 1\n(73.1%)", "mode 2\n(24.5%)"]
     # One label per row, rotated, left of the row's first axes and level with its middle;
     # no title repeats it.
     for r, label in enumerate(labels):
@@ -506,7 +506,7 @@ def test_plot_modes_selects_modes_and_columns():
     fig = plot.plot_modes(paths, modes=1, columns=9, explained=[0.99951, 0.0004])
     assert len(fig.axes) == 9
     assert _titles(fig)[5] == "+0.5σ"
-    assert _texts(fig) == ["mode 1 (100%)"]
+    assert _texts(fig) == ["mode 1\n(100%)"]
 
 
 @pytest.mark.slow  # shooting compiles for about 20 s on 2 cores
@@ -527,7 +527,7 @@ def test_plot_modes_shoots_the_modes_of_a_tangent_pca():
     )
     fig = plot.plot_modes(pca, metric, columns=5, sigmas=1.0, n_times=3, degree=3)
     assert _titles(fig) == ["-1σ", "-0.5σ", "mean", "+0.5σ", "+1σ"] + [""] * 5
-    assert _texts(fig) == ["mode 1 (80%)", "mode 2 (20%)"]
+    assert _texts(fig) == ["mode 1\n(80%)", "mode 2\n(20%)"]
     for r in range(2):
         path = np.asarray(ej.mode_path(pca, r, metric, sigmas=1.0, n_times=3, degree=3))
         assert path.shape == (5, 3, MM, NM)

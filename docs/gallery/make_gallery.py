@@ -6,8 +6,8 @@
 Reads the shared real surfaces (``../shared/data``, cat1, cat2, horse0 on the
 50 x 99 grid; never copied into the project); writes ``docs/gallery/figures/*.png``,
 ``docs/gallery/figures.json`` and the arrays the figures draw, ``figures.npz`` beside it
-(float32: the drawn frames of each path, the mean, the registered inputs and the mode
-paths; about 1.5 MB). ``--replot`` solves nothing: it redraws every figure from
+(float16, enough to draw: the drawn frames of each path and mode path, the mean and the
+registered inputs; about 1 MB). ``--replot`` solves nothing: it redraws every figure from
 ``figures.json`` and ``figures.npz`` (a part whose arrays are missing redraws only what
 needs none: the energy and Karcher histories, stored in ``figures.json``, and the Karcher
 inputs, which are the input shapes). Every figure is titled: the surfaces are drawn with
@@ -70,14 +70,20 @@ def save(fig, name: str) -> str:
     return f"figures/{name}"
 
 
+# The stored arrays' type: a figure needs no more. Its rounding, 1e-3 of a coordinate of
+# size 2 (the cats' length), is a sixth of a pixel of a 300-pixel panel; float32 would
+# double the file, past 2 MB once the paths are solved on the 50 x 99 grid.
+STORED = np.float16
+
+
 def drawn_frames(path, count: int) -> tuple[np.ndarray, list[str]]:
     """The ``count`` frames of a path that the figure shows (the first, the last and evenly
-    between, as ``plot_path(frames=count)`` chooses them), in float32 to keep the stored
-    arrays small, and their titles ``t = k/(N-1)``."""
+    between, as ``plot_path(frames=count)`` chooses them), as STORED, and their titles
+    ``t = k/(N-1)``."""
     path = np.asarray(path)
     last = len(path) - 1
     chosen = [int(k) for k in np.rint(np.linspace(0, last, min(count, len(path))))]
-    return path[chosen].astype(np.float32), [f"t = {k}/{last}" for k in chosen]
+    return path[chosen].astype(STORED), [f"t = {k}/{last}" for k in chosen]
 
 
 # Each part solves (solve_*: its numbers for figures.json and the arrays its figures draw,
@@ -120,7 +126,7 @@ def draw_geodesics(out: dict, arrays: dict) -> None:
         key = f"{a}-{b}"
         if f"{key}/frames" in arrays:
             fig = plot.plot_path(
-                arrays[f"{key}/frames"],
+                arrays[f"{key}/frames"].astype(float),
                 titles=out[key]["frame_titles"],
                 suptitle=f"{a} to {b}: geodesic modulo rigid motion, "
                 f"distance {out[key]['distance']:.4f}",
@@ -177,7 +183,7 @@ def draw_multires(out: dict, arrays: dict) -> None:
             continue
         m, n = level["grid"]
         fig = plot.plot_path(
-            arrays[f"level{k + 1}/frames"],
+            arrays[f"level{k + 1}/frames"].astype(float),
             titles=level["frame_titles"],
             suptitle=f"cat1 to horse0, level {k + 1}: {m} x {n} grid, degree "
             f"{level['degree']}, {level['n_times']} times; distance {level['distance']:.4f}",
@@ -210,6 +216,8 @@ def solve_karcher(quick: bool) -> tuple[dict, dict]:
         ]
     )
     modes_s = time.perf_counter() - start
+    # The five columns the figure shows, the mean in the middle: a mode path in its own right.
+    modes = np.stack([drawn_frames(path, 5)[0] for path in modes])
     out = {
         "grid": [m, n],
         "options": options.as_dict(),
@@ -225,9 +233,9 @@ def solve_karcher(quick: bool) -> tuple[dict, dict]:
         "modes_seconds": modes_s,
     }
     arrays = {
-        "mean": np.asarray(res.mean, dtype=np.float32),
-        "registered": np.asarray(res.registered, dtype=np.float32),
-        "modes": modes.astype(np.float32),
+        "mean": np.asarray(res.mean).astype(STORED),
+        "registered": np.asarray(res.registered).astype(STORED),
+        "modes": modes,
     }
     print("karcher", out["distances"], out["explained"], flush=True)
     return out, arrays
@@ -242,14 +250,14 @@ def draw_karcher(out: dict, arrays: dict) -> None:
     out["inputs_figure"] = save(fig, "karcher_inputs.png")
     if "registered" in arrays:
         fig = plot.plot_path(
-            arrays["registered"],
+            arrays["registered"].astype(float),
             titles=list(NAMES),
             suptitle="The inputs registered to the Karcher mean",
             view="fit",
         )
         out["registered_figure"] = save(fig, "karcher_registered.png")
     if "mean" in arrays:
-        fig = plot.plot_path(arrays["mean"], titles=["Karcher mean"], view="fit")
+        fig = plot.plot_path(arrays["mean"].astype(float), titles=["Karcher mean"], view="fit")
         out["mean_figure"] = save(fig, "karcher_mean.png")
     history = np.asarray(out["history"])
     fig = plot.plot_energy(
