@@ -30,10 +30,10 @@ import numpy as np
 from matplotlib import colors as mcolors
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
-from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the "3d" projection)
+from mpl_toolkits.mplot3d import Axes3D
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-from ._checks import check_int, check_positive
+from ._checks import check_bool, check_choice, check_int, check_positive
 from ._errors import InputError
 from ._geometry.metric import SplitMetric
 from ._geometry.validation import as_surface
@@ -51,12 +51,28 @@ __all__ = [
 
 # Frames drawn when the caller does not say: enough to read a deformation, few enough to fit.
 _DEFAULT_FRAMES = 7
+# Fewest frames the default takes at exactly equal steps (a 10-frame path: 0, 3, 6, 9) before
+# it falls back to 7 frames at rounded steps (an 8-frame path: 0, 1, 2, 4, 5, 6, 7).
+_MIN_EVEN_FRAMES = 4
 # Checkerboard blocks over the whole sphere (in phi, in theta): landmarks that stay put
 # whatever the grid resolution, so corresponding regions can be matched across frames.
 _CHECKER = (6, 12)
 # Shading maps cos(normal, light) in [-1, 1] linearly onto this brightness range, as
 # matplotlib's own shading does, so faces turned away from the light keep some colour.
 _SHADE_RANGE = (0.3, 1.0)
+# The cameras: matplotlib's default (elevation, azimuth) in degrees, and the "fit" view, which
+# looks at the principal frame of the drawn shapes (longest axis across the image, second
+# axis up, thinnest axis in depth) nearly from the side and a little from above.
+_VIEWS = {"default": (20.0, -60.0), "fit": (12.0, -75.0)}
+# The fit view's margin round the drawn shapes, a fraction of the panel on each side, and
+# the flattest panel it makes (height / width) however long the shapes are.
+_FIT_MARGIN = 0.02
+_FIT_MIN_ASPECT = 0.3
+# Bands (inches) above the panels for one line of axes titles and for the figure title,
+# and to the left of the rows of plot_modes for the mode names.
+_TITLE_BAND = 0.25
+_SUPTITLE_BAND = 0.4
+_ROW_LABEL_BAND = 0.35
 
 
 def parametrization_colors(m: int, n: int) -> np.ndarray:
@@ -109,9 +125,22 @@ def _cell_colors(colors, m: int, n: int) -> np.ndarray:
     return np.broadcast_to(np.asarray(rgba), (m - 1, n - 1, 4)).copy()
 
 
+def _default_frames(count: int) -> list[int]:
+    """Every frame of a short path; else frames at exactly equal steps when some count
+    between _MIN_EVEN_FRAMES and _DEFAULT_FRAMES allows it (the most such), else
+    _DEFAULT_FRAMES rounded from equal steps."""
+    if count <= _DEFAULT_FRAMES:
+        return list(range(count))
+    for k in range(_DEFAULT_FRAMES, _MIN_EVEN_FRAMES - 1, -1):
+        if (count - 1) % (k - 1) == 0:
+            step = (count - 1) // (k - 1)
+            return list(range(0, count, step))
+    return [int(k) for k in np.rint(np.linspace(0, count - 1, _DEFAULT_FRAMES))]
+
+
 def _choose_frames(frames, count: int) -> list[int]:
     if frames is None:
-        frames = count if count <= _DEFAULT_FRAMES else _DEFAULT_FRAMES
+        return _default_frames(count)
     if isinstance(frames, int | np.integer) and not isinstance(frames, bool):
         if not 1 <= frames <= count:
             raise InputError(f"frames={frames} must be between 1 and the path's {count} frames")
@@ -190,14 +219,17 @@ def _light(elev: float, azim: float) -> np.ndarray:
     return mcolors.LightSource(azdeg=90 - (azim - 45), altdeg=min(elev + 30, 90)).direction
 
 
-def _draw_surface(ax, surface, base, light, lo, hi, *, elev, azim, shade) -> None:
+def _draw_surface(ax, surface, base, light, lo, hi, *, elev, azim, shade, fit=False) -> None:
     """Draw one surface ``(3, m, n)`` on a 3D axes as its grid cells, in the box [lo, hi]."""
     quads = _cells(surface)
     face = base.copy()
     if shade:
         face[:, :3] *= _shading(quads, light)[:, None]
     # Thin edges in the face colour cover the antialiasing seams between cells.
-    ax.add_collection3d(Poly3DCollection(quads, facecolors=face, edgecolors=face, linewidths=0.25))
+    cells = Poly3DCollection(quads, facecolors=face, edgecolors=face, linewidths=0.25)
+    if fit:
+        ax.set_proj_type("ortho")
+    ax.add_collection3d(cells)
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])
     ax.set_zlim(lo[2], hi[2])
@@ -206,34 +238,159 @@ def _draw_surface(ax, surface, base, light, lo, hi, *, elev, azim, shade) -> Non
     ax.set_axis_off()
 
 
+class _PanelAxes3D(Axes3D):
+    """A 3D axes that fills its whole panel: matplotlib's shrinks itself to the largest
+    centred square, which leaves a wide panel's sides empty. The image stays undistorted
+    because :func:`_fit_windows` gives the image-plane window the panel's aspect."""
+
+    def apply_aspect(self, position=None):
+        if position is None:
+            position = self.get_position(original=True)
+        self._set_position(position, "active")
+
+
+def _add_panel(fig: Figure, rows: int, columns: int, index: int, fit: bool):
+    """Subplot ``index`` (from 1) of a rows x columns grid: a 3D axes, filling its panel
+    in the fit view."""
+    if fit:
+        return fig.add_subplot(rows, columns, index, axes_class=_PanelAxes3D)
+    return fig.add_subplot(rows, columns, index, projection="3d")
+
+
+def _camera(view, elev, azim) -> tuple[float, float]:
+    """The camera's (elevation, azimuth): the view's unless given."""
+    check_choice("view", view, tuple(_VIEWS))
+    default_elev, default_azim = _VIEWS[view]
+    return (
+        default_elev if elev is None else float(elev),
+        default_azim if azim is None else float(azim),
+    )
+
+
+def _principal_frame(surfaces: np.ndarray) -> np.ndarray:
+    """Surfaces ``(K, 3, m, n)`` moved rigidly (one rotation about their common centroid, the
+    same for all) into their principal frame: the longest principal axis of their points
+    along x, the second along z (up), the thinnest along y (depth). Each axis keeps the sign
+    of its largest component, so a shape that already lies along the coordinate axes keeps
+    its sides (up stays up); y completes a right-handed frame."""
+    points = np.moveaxis(surfaces, 1, -1).reshape(-1, 3)
+    centre = points.mean(axis=0)
+    _, vectors = np.linalg.eigh(np.cov(points - centre, rowvar=False))
+    longest, second = vectors[:, 2], vectors[:, 1]
+    longest = longest * np.sign(longest[np.argmax(np.abs(longest))])
+    second = second * np.sign(second[np.argmax(np.abs(second))])
+    # Rows x, y, z of the new frame; det = longest . ((second x longest) x second) = 1.
+    rotation = np.stack([longest, np.cross(second, longest), second])
+    moved = np.einsum("ij,kjmn->kimn", rotation, surfaces - centre[None, :, None, None])
+    return moved + centre[None, :, None, None]
+
+
+def _projected(ax, surfaces: np.ndarray) -> np.ndarray:
+    """Image-plane coordinates ``(2, P)`` of every point of ``surfaces`` ``(K, 3, m, n)`` in
+    ``ax``'s projection (the 2D data coordinates of a 3D axes)."""
+    points = np.moveaxis(surfaces, 1, -1).reshape(-1, 3)
+    homogeneous = np.concatenate([points, np.ones((len(points), 1))], axis=1)
+    image = ax.get_proj() @ homogeneous.T
+    return image[:2] / image[3]
+
+
+def _fit_aspect(ax, surfaces: np.ndarray) -> float:
+    """Height over width of the drawn shapes' image, bounded below by _FIT_MIN_ASPECT and
+    above by 1 (the longest axis lies across)."""
+    image = _projected(ax, surfaces)
+    width, height = np.ptp(image, axis=1)
+    return float(np.clip(height / max(width, np.finfo(float).tiny), _FIT_MIN_ASPECT, 1.0))
+
+
+def _fit_windows(fig: Figure, axes, surfaces: np.ndarray) -> None:
+    """Zoom every fitted axes (a :class:`_PanelAxes3D`, filling its panel) onto the drawn
+    shapes: one image-plane scale for all (so sizes compare across panels), the window
+    centred on the shapes' image, as large as the panel allows with a margin of
+    _FIT_MARGIN on each side, and of the panel's aspect (the same scale in x and y)."""
+    image = _projected(axes[0], surfaces)
+    lo, hi = image.min(axis=1), image.max(axis=1)
+    centre = (lo + hi) / 2
+    span = np.maximum(hi - lo, np.finfo(float).tiny)
+    width_in, height_in = fig.get_size_inches()
+    for ax in axes:
+        box = ax.get_position(original=True)
+        panel = np.array([box.width * width_in, box.height * height_in])
+        scale = np.min(panel * (1 - 2 * _FIT_MARGIN) / span)  # inches per image unit
+        half = panel / scale / 2
+        ax.viewLim.intervalx = (centre[0] - half[0], centre[0] + half[0])
+        ax.viewLim.intervaly = (centre[1] - half[1], centre[1] + half[1])
+
+
+def _check_titles(titles, count: int) -> list[str] | None:
+    if titles is None:
+        return None
+    if isinstance(titles, str | bytes) or not isinstance(titles, Sequence | np.ndarray):
+        raise InputError(
+            f"titles must be a sequence of strings, one per drawn frame; got {titles!r}"
+        )
+    titles = [str(t) for t in titles]
+    if len(titles) != count:
+        raise InputError(f"got {len(titles)} titles for {count} drawn frame(s)")
+    return titles
+
+
+def _check_suptitle(suptitle) -> str | None:
+    if suptitle is not None and not isinstance(suptitle, str):
+        raise InputError(f"suptitle must be a string or None; got {suptitle!r}")
+    return suptitle
+
+
 def plot_path(
     path,
     *,
     frames: int | Sequence[int] | None = None,
+    titles: Sequence[str] | None = None,
+    suptitle: str | None = None,
     colors="parametrization",
-    elev: float = 20,
-    azim: float = -60,
+    view: str = "default",
+    elev: float | None = None,
+    azim: float | None = None,
     figsize: tuple[float, float] | None = None,
     shade: bool = True,
 ) -> Figure:
     """Draw frames of a path of surfaces side by side, coloured by the parametrization.
 
     One 3D axes per chosen frame, titled ``"t = k/(N-1)"`` with k the frame's index
-    (``"t = 0"`` for a single surface). Every frame is a mesh of the grid cells, lit by a
-    light placed relative to the view, in colours that depend on the grid cell only
-    (:func:`parametrization_colors`), so a colour marks the same point of the parameter
-    sphere on every frame and the correspondence along the path is visible. All axes share
-    the same limits, the data range of the drawn frames, and a box aspect equal to that
-    range, so sizes compare across frames and nothing is stretched.
+    (``"t = 0"`` for a single surface) unless ``titles`` are given. Every frame is a mesh
+    of the grid cells, lit by a light placed relative to the view, in colours that depend
+    on the grid cell only (:func:`parametrization_colors`), so a colour marks the same
+    point of the parameter sphere on every frame and the correspondence along the path is
+    visible. All axes share the same limits, the data range of the drawn frames, and a box
+    aspect equal to that range, so sizes compare across frames and nothing is stretched.
+
+    Two cameras: ``view="default"`` is matplotlib's (elevation 20, azimuth -60 degrees,
+    perspective), the surfaces as given, in panels 2.5 inches wide and 2.55 high, which
+    leaves much white round a long shape standing along z. ``view="fit"`` fills the
+    panels: the drawn frames are moved, all by one rotation about their common centroid, into their
+    principal frame (longest principal axis across the image, second up, thinnest in
+    depth; each axis keeps its sign), seen orthographically from elevation 12 and azimuth
+    -75 degrees; each panel's height is the image's height over width (between 0.3 and 1)
+    times its width, and the axes are zoomed onto the shapes with a 2 % margin. The fit
+    is computed for the returned figure's size: save it without resizing.
 
     Args:
-        path: ``(N, 3, m, n)`` surfaces at times k/(N-1), or one surface ``(3, m, n)``.
-        frames: how many frames to draw, chosen evenly with the first and last included,
-            or a sequence of frame indices; default all when N <= 7, else 7.
+        path: ``(N, 3, m, n)`` surfaces at times k/(N-1), or one surface ``(3, m, n)``; or a
+            stack of different shapes (then name them with ``titles``).
+        frames: how many frames to draw, chosen evenly with the first and last included
+            (rounded to the nearest frames), or a sequence of frame indices. Default: every
+            frame when N <= 7; else the most frames k, from 7 down to 4, whose steps are
+            exactly equal ((N-1) divisible by k-1: a 10-frame path gives 0, 3, 6, 9 and a
+            13-frame path 0, 2, ..., 12); else 7 frames at rounded steps.
+        titles: one title per drawn frame (in the order of ``frames``), for instance the
+            shapes' names; default ``"t = k/(N-1)"``.
+        suptitle: a title over the whole figure.
         colors: ``"parametrization"``; or one matplotlib colour for the whole surface; or an
             array ``(m-1, n-1, 3 or 4)`` with one RGB(A) colour per grid cell.
-        elev, azim: the camera's elevation and azimuth in degrees (matplotlib's).
-        figsize: ``(width, height)`` in inches; default 2.5 inches wide per frame.
+        view: ``"default"`` or ``"fit"``, the camera (above).
+        elev, azim: the camera's elevation and azimuth in degrees (matplotlib's); default
+            the view's.
+        figsize: ``(width, height)`` in inches; default 2.5 inches wide per frame, and 2.8
+            inches high (``view="default"``) or the fitted height plus the title bands.
         shade: darken each cell by the angle between its normal and the light. The
             unshaded colours are multiplied by a factor in [0.3, 1] per cell; hue is kept.
 
@@ -241,25 +398,75 @@ def plot_path(
         The figure; ``fig.axes`` are the frames' axes in order.
 
     Raises:
-        ValueError: for a malformed path (shape, NaN/inf, poles, seam), bad ``frames`` or
-            bad ``colors``.
+        ValueError: for a malformed path (shape, NaN/inf, poles, seam), bad ``frames``,
+            ``titles`` (not one per drawn frame), ``view`` or ``colors``.
     """
     x = _as_path(path)
     count, _, m, n = x.shape
     chosen = _choose_frames(frames, count)
+    titles = _check_titles(titles, len(chosen))
+    suptitle = _check_suptitle(suptitle)
+    elev, azim = _camera(view, elev, azim)
+    fit = view == "fit"
     base = _cell_colors(colors, m, n).reshape(-1, 4)
-    lo, hi = _data_box(x[chosen])
+    drawn = _principal_frame(x[chosen]) if fit else x[chosen]
+    lo, hi = _data_box(drawn)
     light = _light(elev, azim)
 
-    if figsize is None:
-        figsize = (2.5 * len(chosen), 2.8)
-    fig = Figure(figsize=figsize)
+    fig = Figure(figsize=(2.5 * len(chosen), 2.8) if figsize is None else figsize)
     for slot, k in enumerate(chosen):
-        ax = fig.add_subplot(1, len(chosen), slot + 1, projection="3d")
-        _draw_surface(ax, x[k], base, light, lo, hi, elev=elev, azim=azim, shade=shade)
-        ax.set_title(f"t = {k}/{count - 1}" if count > 1 else "t = 0")
-    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.92, wspace=0.0)
+        ax = _add_panel(fig, 1, len(chosen), slot + 1, fit)
+        _draw_surface(
+            ax, drawn[slot], base, light, lo, hi, elev=elev, azim=azim, shade=shade, fit=fit
+        )
+        if titles is not None:
+            ax.set_title(titles[slot])
+        else:
+            ax.set_title(f"t = {k}/{count - 1}" if count > 1 else "t = 0")
+    _arrange(
+        fig,
+        fig.axes,
+        drawn,
+        rows=1,
+        fit=fit,
+        figsize=figsize,
+        panel=(2.5, 2.8 - _TITLE_BAND),
+        top_band=_TITLE_BAND,
+        left_band=0.0,
+        suptitle=suptitle,
+    )
     return fig
+
+
+def _arrange(fig, axes, drawn, *, rows, fit, figsize, panel, top_band, left_band, suptitle):
+    """Lay out a grid of 3D panels, ``rows`` by ``len(axes) // rows``.
+
+    Unless ``figsize`` was given, the figure is sized from the panel ``(width, height)`` in
+    inches, whose height in the fit view is the width times the image's aspect
+    (:func:`_fit_aspect`), plus the bands: ``top_band`` inches for the titles (and
+    _SUPTITLE_BAND more for ``suptitle``) and ``left_band`` for row labels. In the fit
+    view every axes is then zoomed onto the drawn shapes (:func:`_fit_windows`)."""
+    columns = len(axes) // rows
+    if suptitle is not None:
+        top_band += _SUPTITLE_BAND
+    if figsize is None:
+        width, height = panel
+        if fit:
+            height = width * _fit_aspect(axes[0], drawn)
+        fig.set_size_inches(left_band + columns * width, top_band + rows * height)
+    width, height = fig.get_size_inches()
+    fig.subplots_adjust(
+        left=min(left_band / width, 0.5),
+        right=1.0,
+        bottom=0.0,
+        top=max(1.0 - top_band / height, 0.5),
+        wspace=0.0,
+        hspace=0.0,
+    )
+    if suptitle is not None:
+        fig.suptitle(suptitle, y=1.0 - 0.06 / height, va="top")
+    if fit:
+        _fit_windows(fig, axes, drawn)
 
 
 def _solved_frames(paths: np.ndarray) -> np.ndarray:
@@ -378,9 +585,11 @@ def plot_modes(
     n_times: int | None = None,
     degree: int | None = None,
     scheme: str | None = None,
+    suptitle: str | None = None,
     colors="parametrization",
-    elev: float = 20,
-    azim: float = -60,
+    view: str = "default",
+    elev: float | None = None,
+    azim: float | None = None,
     figsize: tuple[float, float] | None = None,
     shade: bool = True,
 ) -> Figure:
@@ -389,17 +598,20 @@ def plot_modes(
     Row r shows the geodesic through the mean mu along the mode e_k,
     exp_mu(s sqrt(lambda_k) e_k) for s from -sigmas to +sigmas (:func:`~elastic_jax.mode_path`),
     at ``columns`` evenly chosen frames: the ends and the mean in the middle column. Each
-    axes is titled ``"mode k+1 (x%)"`` (the mode's explained-variance fraction in percent,
-    3 significant digits; left out when unknown) over the column's s in standard
-    deviations (``"-2σ"``, ``"mean"``, ``"+2σ"``). Colours, shading and the shared box
-    are those of :func:`plot_path`, the box now holding every drawn frame of every row.
+    row is labelled once, at its left (a figure text, rotated), ``"mode k+1\\n(x%)"`` (the
+    mode's explained-variance fraction in percent, 3 significant digits, on a second line;
+    left out when unknown); the axes of the first row are titled with their column's s in standard
+    deviations (``"-2σ"``, ``"mean"``, ``"+2σ"``), the other rows' axes are untitled.
+    Colours, shading, the shared box and the cameras (``view``) are those of
+    :func:`plot_path`, the box (and the fit view's rotation) now holding every drawn frame
+    of every row.
 
     Args:
         pca_or_paths: a :class:`~elastic_jax.TangentPCA` (its modes are shot with
             ``metric``), or a sequence of R mode paths, each ``(2N-1, 3, m, n)`` as
             :func:`~elastic_jax.mode_path` returns, spanning -sigmas .. +sigmas. Frames
             that are all NaN (nodes after a failed shooting step) are drawn as empty
-            axes titled as usual and marked "not reached".
+            axes marked "not reached".
         metric: the split metric of the PCA; required with a TangentPCA, refused with paths.
         modes: how many leading modes to draw, or a sequence of mode indices (0 is the
             first mode; with paths, indices into the sequence).
@@ -409,11 +621,15 @@ def plot_modes(
         explained: with paths only: R fractions of variance in [0, 1], one per path.
         n_times, degree, scheme: with a TangentPCA only: ``mode_path``'s settings
             (its defaults when None).
-        colors, elev, azim, shade: as in :func:`plot_path`.
-        figsize: ``(width, height)`` in inches; default 2.2 inches per column and 2.6 per row.
+        suptitle: a title over the whole figure.
+        colors, view, elev, azim, shade: as in :func:`plot_path`.
+        figsize: ``(width, height)`` in inches; default 2.2 inches per column and 2.4 per
+            row (``view="default"``; in the fit view the fitted height), plus 0.35 inches
+            for the row labels and the title bands.
 
     Returns:
-        The figure; ``fig.axes`` row by row, ``len(modes) * columns`` axes.
+        The figure; ``fig.axes`` row by row, ``len(modes) * columns`` axes; ``fig.texts``
+        the suptitle (if any), then the row labels, one per row in order.
 
     Raises:
         ValueError: for a mode index out of range, an even ``columns`` or one below 3 or
@@ -427,9 +643,14 @@ def plot_modes(
         >>> path = np.stack([(1 + 0.1 * s) * f for s in range(-2, 3)])  # (5, 3, 9, 17)
         >>> fig = plot.plot_modes([path], modes=1, columns=3, explained=[0.8])
         >>> [ax.get_title() for ax in fig.axes]
-        ['mode 1 (80%)\\n-2σ', 'mode 1 (80%)\\nmean', 'mode 1 (80%)\\n+2σ']
+        ['-2σ', 'mean', '+2σ']
+        >>> [text.get_text() for text in fig.texts]
+        ['mode 1\\n(80%)']
     """
     columns = check_int("columns", columns, 3)
+    suptitle = _check_suptitle(suptitle)
+    elev, azim = _camera(view, elev, azim)
+    fit = view == "fit"
     if columns % 2 == 0:
         raise InputError(f"columns={columns} must be odd, so that the mean is the middle column")
     sigmas = check_positive("sigmas", sigmas)
@@ -443,22 +664,33 @@ def plot_modes(
     frames = _choose_frames(columns, count)
     centre = (count - 1) // 2
     base = _cell_colors(colors, m, n).reshape(-1, 4)
-    drawn = paths[:, frames].reshape(-1, 3, m, n)
-    drawn = drawn[np.isfinite(drawn).all(axis=(1, 2, 3))]
-    lo, hi = _data_box(drawn if len(drawn) else paths[np.isfinite(paths).all(axis=(2, 3, 4))])
+    reached = np.isfinite(paths[:, frames]).all(axis=(2, 3, 4))
+    if not reached.any():
+        reached = None  # the box from every finite frame of the paths, none being drawn
+    if fit:
+        # One rotation for every drawn frame (the unreached stay NaN, the rotation of the
+        # reached ones from their points only).
+        source = paths[:, frames] if reached is not None else paths
+        finite = np.isfinite(source).all(axis=(2, 3, 4))
+        moved = np.full_like(source, np.nan)
+        moved[finite] = _principal_frame(source[finite])
+        if reached is not None:
+            paths = paths.copy()
+            paths[:, frames] = moved
+        else:
+            paths = moved
+    drawn = paths[:, frames][reached] if reached is not None else None
+    if drawn is None:
+        drawn = paths[np.isfinite(paths).all(axis=(2, 3, 4))]
+    lo, hi = _data_box(drawn)
     light = _light(elev, azim)
 
-    if figsize is None:
-        figsize = (2.2 * columns, 2.6 * rows)
-    fig = Figure(figsize=figsize)
-    for r, k in enumerate(chosen):
-        head = f"mode {k + 1}"
-        if fractions is not None:
-            head += f" ({100 * fractions[r]:.3g}%)"
+    fig = Figure(figsize=(1, 1) if figsize is None else figsize)
+    for r in range(rows):
         for c, frame in enumerate(frames):
-            ax = fig.add_subplot(rows, columns, r * columns + c + 1, projection="3d")
-            sigma = sigmas * (frame - centre) / centre
-            ax.set_title(f"{head}\n{_sigma_label(sigma)}", fontsize="medium")
+            ax = _add_panel(fig, rows, columns, r * columns + c + 1, fit)
+            if r == 0:
+                ax.set_title(_sigma_label(sigmas * (frame - centre) / centre), fontsize="medium")
             if not np.isfinite(paths[r, frame]).all():
                 # A node the shooting did not reach (its step failed): said, not drawn.
                 ax.set_axis_off()
@@ -472,9 +704,44 @@ def plot_modes(
                 )
                 continue
             _draw_surface(
-                ax, paths[r, frame], base, light, lo, hi, elev=elev, azim=azim, shade=shade
+                ax,
+                paths[r, frame],
+                base,
+                light,
+                lo,
+                hi,
+                elev=elev,
+                azim=azim,
+                shade=shade,
+                fit=fit,
             )
-    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.9, wspace=0.0, hspace=0.15)
+    _arrange(
+        fig,
+        fig.axes,
+        drawn,
+        rows=rows,
+        fit=fit,
+        figsize=figsize,
+        panel=(2.2, 2.4),
+        top_band=_TITLE_BAND,
+        left_band=_ROW_LABEL_BAND,
+        suptitle=suptitle,
+    )
+    for r, k in enumerate(chosen):
+        label = f"mode {k + 1}"
+        if fractions is not None:
+            # On a second line: a fitted row of long shapes is about an inch high.
+            label += f"\n({100 * fractions[r]:.3g}%)"
+        box = fig.axes[r * columns].get_position(original=True)
+        fig.text(
+            0.5 * box.x0,
+            0.5 * (box.y0 + box.y1),
+            label,
+            rotation=90,
+            ha="center",
+            va="center",
+            fontsize="medium",
+        )
     return fig
 
 
@@ -505,7 +772,13 @@ def _history_columns(history, labels) -> list[tuple[str | None, np.ndarray]]:
     return [(name, arr[:, j]) for j, name in enumerate(names)]
 
 
-def plot_energy(history, *, labels: Sequence[str] | None = None, logy: bool = True) -> Figure:
+def plot_energy(
+    history,
+    *,
+    labels: Sequence[str] | None = None,
+    logy: bool = True,
+    title: str | None = None,
+) -> Figure:
     """Plot optimisation records against the step number, one line per column.
 
     For instance the history of a :class:`~elastic_jax.KarcherResult`, whose two columns are
@@ -517,13 +790,17 @@ def plot_energy(history, *, labels: Sequence[str] | None = None, logy: bool = Tr
         labels: k names for the columns of an array (legend entries); not with a dict.
         logy: use a logarithmic y axis when every value is positive (a linear axis
             otherwise, whatever this says).
+        title: the axes' title; default none.
 
     Returns:
         The figure, with one axes; step numbers 0, 1, ... on the x axis.
 
     Raises:
-        ValueError: for a wrong shape, an empty record, NaN/inf, or a labels mismatch.
+        ValueError: for a wrong shape, an empty record, NaN/inf, a labels mismatch or a
+            title that is not a string.
     """
+    if title is not None and not isinstance(title, str):
+        raise InputError(f"title must be a string or None; got {title!r}")
     columns = _history_columns(history, labels)
     for name, values in columns:
         which = "history" if name is None else repr(name)
@@ -549,12 +826,20 @@ def plot_energy(history, *, labels: Sequence[str] | None = None, logy: bool = Tr
     ax.set_ylabel("value")
     if any(name is not None for name, _ in columns):
         ax.legend()
+    if title is not None:
+        ax.set_title(title)
     ax.grid(True, which="major", alpha=0.3)
     return fig
 
 
 def plot_distance_matrix(
-    D, *, labels: Sequence[str] | None = None, cmap: str = "viridis"
+    D,
+    *,
+    labels: Sequence[str] | None = None,
+    title: str | None = None,
+    label: str = "distance",
+    annotate: bool = False,
+    cmap: str = "viridis",
 ) -> Figure:
     """Show a matrix of pairwise distances as an image with a colourbar.
 
@@ -564,14 +849,27 @@ def plot_distance_matrix(
     Args:
         D: ``(K, K)`` symmetric (to 1e-8 relative to its largest entry), finite.
         labels: K names for the rows and columns (tick labels); default indices.
+        title: the matrix axes' title; default none.
+        label: the colourbar's label.
+        annotate: write every entry in its cell, to 3 significant digits (``f"{d:.3g}"``),
+            in black on light cells and white on dark ones; for small K.
         cmap: a matplotlib colormap name.
 
     Returns:
-        The figure: the matrix axes, then the colourbar's.
+        The figure: the matrix axes, then the colourbar's. With ``annotate``, the matrix
+        axes' ``texts`` are the K * K entries, row by row.
 
     Raises:
-        ValueError: if ``D`` is not square, has NaN/inf, is not symmetric, or the number of
-            labels is not K.
+        ValueError: if ``D`` is not square, has NaN/inf, is not symmetric, the number of
+            labels is not K, or ``title``, ``label`` or ``annotate`` has the wrong type.
+
+    Example:
+        >>> import numpy as np
+        >>> from elastic_jax import plot
+        >>> D = np.array([[0.0, 0.7346], [0.7346, 0.0]])
+        >>> fig = plot.plot_distance_matrix(D, labels=["cat1", "cat2"], annotate=True)
+        >>> [text.get_text() for text in fig.axes[0].texts]
+        ['0', '0.735', '0.735', '0']
     """
     D = np.asarray(D, dtype=float)
     if D.ndim != 2 or D.shape[0] != D.shape[1]:
@@ -595,15 +893,37 @@ def plot_distance_matrix(
         labels = [str(s) for s in labels]
         if len(labels) != k:
             raise InputError(f"got {len(labels)} labels for a {k} x {k} matrix")
+    if title is not None and not isinstance(title, str):
+        raise InputError(f"title must be a string or None; got {title!r}")
+    if not isinstance(label, str):
+        raise InputError(f"label must be a string; got {label!r}")
+    annotate = check_bool("annotate", annotate)
 
     side = min(3.0 + 0.3 * k, 12.0)
     fig = Figure(figsize=(side + 1.0, side), layout="constrained")
     ax = fig.add_subplot()
     image = ax.imshow(D, cmap=cmap, interpolation="nearest")
-    fig.colorbar(image, ax=ax, label="distance")
+    fig.colorbar(image, ax=ax, label=label)
     if labels is not None:
         ax.set_xticks(np.arange(k), labels, rotation=90)
         ax.set_yticks(np.arange(k), labels)
+    if title is not None:
+        ax.set_title(title)
+    if annotate:
+        # Black on light cells, white on dark ones: the cell colour's luminance (Rec. 709).
+        rgb = image.to_rgba(D)[..., :3]
+        light = rgb @ np.array([0.2126, 0.7152, 0.0722]) > 0.5
+        for i in range(k):
+            for j in range(k):
+                ax.text(
+                    j,
+                    i,
+                    f"{D[i, j]:.3g}",
+                    ha="center",
+                    va="center",
+                    fontsize="small",
+                    color="black" if light[i, j] else "white",
+                )
     return fig
 
 

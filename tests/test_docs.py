@@ -197,6 +197,39 @@ def test_the_gallery_tables_carry_the_stored_benchmark_numbers(site):
     assert sum(src.startswith("_images/") for src in gallery.images) >= 10
 
 
+def test_every_gallery_figure_has_a_title_or_labels():
+    """Issue 52: every plot_* call of the gallery script names what it shows (a title, one
+    title per panel or a figure title), none is left with the defaults ("t = 0/2")."""
+    import ast
+
+    script = DOCS / "gallery" / "make_gallery.py"
+    calls = [
+        node
+        for node in ast.walk(ast.parse(script.read_text()))
+        if isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Attribute)
+        and isinstance(node.func.value, ast.Name)
+        and node.func.value.id == "plot"
+        and node.func.attr.startswith("plot_")
+    ]
+    untitled = [
+        f"line {call.lineno}: plot.{call.func.attr}"
+        for call in calls
+        if not {"title", "titles", "suptitle"} & {k.arg for k in call.keywords}
+    ]
+    # Geodesics (paths, energies), multiresolution paths, and the Karcher figures (inputs,
+    # registered inputs, mean, history, modes).
+    assert len(calls) == 8
+    assert untitled == []
+    # The surfaces are drawn with the camera that fills the panels.
+    drawn = [c for c in calls if c.func.attr in ("plot_path", "plot_modes")]
+    assert len(drawn) == 6
+    assert all(
+        any(k.arg == "view" and getattr(k.value, "value", None) == "fit" for k in c.keywords)
+        for c in drawn
+    )
+
+
 def test_docstrings_cite_the_site_not_a_missing_file():
     # Every "math §N" in the package is a link into docs/math.md, whose labels exist.
     package = ROOT / "elastic_jax"

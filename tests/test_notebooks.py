@@ -142,7 +142,7 @@ def test_statistics_notebook():
 @pytest.mark.slow
 def test_fit_metric_notebook():
     out, figures = _run("06_fit_metric")
-    assert figures == 2  # six of the shapes, then the two distance matrices
+    assert figures == 3  # six of the shapes, then the two distance matrices (one each)
     assert out["converged"]
     assert out["objective_after"] < out["objective_before"]
     # Held out: the fitted metric classifies the bending family, the default does not.

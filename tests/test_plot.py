@@ -4,10 +4,11 @@ import matplotlib.image
 import numpy as np
 import pytest
 from matplotlib import colors as mcolors
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 
-from elastic_jax import plot, shapes
+from elastic_jax import InputError, plot, shapes
 
 M, N = 13, 25
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -32,6 +33,11 @@ def _titles(fig):
     return [ax.get_title() for ax in fig.axes]
 
 
+def _texts(fig):
+    """The figure's own texts other than the suptitle: plot_modes' row labels."""
+    return [t.get_text() for t in fig.texts if t is not fig._suptitle]
+
+
 def test_plot_path_draws_one_3d_axes_per_frame():
     fig = plot.plot_path(_path(5))
     assert isinstance(fig, Figure)
@@ -46,9 +52,120 @@ def test_plot_path_frame_selection():
     assert _titles(plot.plot_path(path, frames=3)) == ["t = 0/4", "t = 2/4", "t = 4/4"]
     assert _titles(plot.plot_path(path, frames=[4, 1])) == ["t = 4/4", "t = 1/4"]
     assert _titles(plot.plot_path(path, frames=1)) == ["t = 0/4"]
-    # More than 7 frames: 7 chosen evenly, ends included.
-    long = plot.plot_path(_path(9))
-    assert _titles(long) == [f"t = {k}/8" for k in (0, 1, 3, 4, 5, 7, 8)]
+    # More than 7 frames: the most frames (7 down to 4) at exactly equal steps, ends
+    # included; 7 at rounded steps when no such count divides N - 1.
+    assert _titles(plot.plot_path(_path(9))) == [f"t = {k}/8" for k in (0, 2, 4, 6, 8)]
+    assert _titles(plot.plot_path(_path(8))) == [f"t = {k}/7" for k in (0, 1, 2, 4, 5, 6, 7)]
+
+
+def test_default_frames_are_evenly_spaced_when_the_path_allows():
+    """The default takes the most frames (7 down to 4) whose steps are exactly equal."""
+    for count, expected in [
+        (10, [0, 3, 6, 9]),
+        (13, list(range(0, 13, 2))),
+        (11, [0, 2, 4, 6, 8, 10]),
+        (26, [0, 5, 10, 15, 20, 25]),
+        (12, [0, 2, 4, 6, 7, 9, 11]),  # 11 steps: no count from 4 to 7 divides them
+    ]:
+        chosen = plot._choose_frames(None, count)
+        assert chosen == expected
+        if count != 12:
+            assert len(set(np.diff(chosen))) == 1
+    fig = plot.plot_path(np.stack([_path(5)[0]] * 10))
+    assert _titles(fig) == ["t = 0/9", "t = 3/9", "t = 6/9", "t = 9/9"]
+
+
+def test_plot_path_titles_and_suptitle():
+    stack = _path(5)[[0, 2, 4]]  # three different shapes, not a path
+    names = ["sphere", "half way", "bumpy"]
+    fig = plot.plot_path(stack, titles=names, suptitle="three shapes")
+    assert _titles(fig) == names
+    assert fig._suptitle.get_text() == "three shapes"
+    # The suptitle gets its own band: the figure is 0.4 inches higher, the axes below it.
+    assert fig.get_size_inches()[1] == pytest.approx(2.8 + 0.4)
+    assert max(ax.get_position().y1 for ax in fig.axes) <= 1 - 0.65 / 3.2 + 1e-12
+    # Titles follow the chosen frames, in their order.
+    fig = plot.plot_path(_path(5), frames=[4, 1], titles=["last", "second"])
+    assert _titles(fig) == ["last", "second"]
+    assert plot.plot_path(_path(5))._suptitle is None
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"titles": ["a", "b"]}, r"got 2 titles for 5 drawn frame\(s\)"),
+        ({"titles": ["a"], "frames": 3}, r"got 1 titles for 3 drawn frame\(s\)"),
+        ({"titles": "abcde"}, r"titles must be a sequence of strings"),
+        ({"suptitle": 3}, r"suptitle must be a string or None; got 3"),
+        ({"view": "side"}, r"view must be one of \('default', 'fit'\); got 'side'"),
+    ],
+)
+def test_plot_path_rejects_bad_titles_and_views(kwargs, message):
+    with pytest.raises(InputError, match=message):
+        plot.plot_path(_path(5), **kwargs)
+
+
+def _white_fraction(fig, dpi=50):
+    """Share of near-white pixels (R, G and B >= 0.95) in each axes' panel of the image."""
+    canvas = FigureCanvasAgg(fig)
+    fig.set_dpi(dpi)
+    canvas.draw()
+    rgb = np.asarray(canvas.buffer_rgba())[..., :3] / 255.0
+    height, width = rgb.shape[:2]
+    fractions = []
+    for ax in fig.axes:
+        box = ax.get_position(original=True)
+        rows = slice(round((1 - box.y1) * height), round((1 - box.y0) * height))
+        cols = slice(round(box.x0 * width), round(box.x1 * width))
+        fractions.append(float(np.mean(np.all(rgb[rows, cols] >= 0.95, axis=-1))))
+    return np.array(fractions)
+
+
+def _long_ellipsoid():
+    """An ellipsoid 4 long along z (matplotlib's default vertical), 1.2 and 0.6 across."""
+    return np.array(shapes.sample(shapes.ellipsoid, M, N, axes=(0.6, 0.3, 2.0)))
+
+
+def test_fit_view_fills_the_panel():
+    f = _long_ellipsoid()
+    default = _white_fraction(plot.plot_path(f))
+    fig = plot.plot_path(f, view="fit")
+    fitted = _white_fraction(fig)
+    # Measured 0.81 (default: the ellipsoid stands in a tall panel) and 0.25 (fit).
+    assert default[0] > 0.75
+    assert fitted[0] < 0.3
+    assert fitted[0] < default[0] - 0.5
+    # The panel takes the image's aspect: 2.5 inches wide, flatter than the default's 2.55.
+    width, height = fig.get_size_inches()
+    assert width == 2.5 and height - 0.25 < 1.5
+    # A rigid motion of the surface: every edge keeps its length; the longest axis (z) is
+    # across (x), the second (x) up (z), the thinnest (y) in depth.
+    (drawn,) = (np.asarray(ax.collections[0]._faces) for ax in fig.axes)
+    given = plot._cells(f)
+    for a, b in [(0, 1), (1, 2), (0, 2)]:
+        np.testing.assert_allclose(
+            np.linalg.norm(drawn[:, a] - drawn[:, b], axis=-1),
+            np.linalg.norm(given[:, a] - given[:, b], axis=-1),
+            rtol=0,
+            atol=1e-12,
+        )
+    extent = np.ptp(drawn.reshape(-1, 3), axis=0)
+    np.testing.assert_allclose(extent, np.ptp(given.reshape(-1, 3), axis=0)[[2, 1, 0]], atol=1e-9)
+    # Given angles override the view's; the fit is kept.
+    ax = plot.plot_path(f, view="fit", elev=5, azim=-90).axes[0]
+    assert (ax.elev, ax.azim) == (5, -90)
+
+
+def test_fit_view_of_modes_fills_the_panels():
+    _, paths = _mode_paths(9)
+    long = [p * np.array([0.6, 0.3, 2.0])[:, None, None] for p in paths]
+    default = _white_fraction(plot.plot_modes(long, columns=3))
+    fitted = _white_fraction(plot.plot_modes(long, columns=3, view="fit", suptitle="modes"))
+    # Measured 0.78-0.88 and 0.38-0.66 (one box for frames of different sizes).
+    assert default.min() > 0.75
+    assert fitted.max() < 0.7
+    assert np.all(fitted < default - 0.15)
+    assert fitted.mean() < default.mean() - 0.25
 
 
 def test_plot_path_accepts_a_single_surface():
@@ -194,6 +311,14 @@ def test_plot_energy_array_columns():
     assert one.get_legend() is None
 
 
+def test_plot_energy_title():
+    fig = plot.plot_energy(np.array([3.0, 2.0, 1.5]), title="path energy per round")
+    assert fig.axes[0].get_title() == "path energy per round"
+    assert plot.plot_energy(np.array([3.0, 2.0])).axes[0].get_title() == ""
+    with pytest.raises(InputError, match=r"title must be a string or None; got 1"):
+        plot.plot_energy(np.array([3.0, 2.0]), title=1)
+
+
 def test_plot_energy_dict_and_nonpositive_values():
     history = {"energy": [3.0, 2.0, 1.5], "gradient": [1.0, 0.5, 0.0, 0.0]}
     (ax,) = plot.plot_energy(history).axes
@@ -258,6 +383,31 @@ def test_plot_distance_matrix_rejects_bad_matrices(change, message):
         plot.plot_distance_matrix(change(_distances()))
 
 
+def test_plot_distance_matrix_title_label_and_annotations():
+    D = _distances()
+    fig = plot.plot_distance_matrix(
+        D, labels=["a", "b", "c", "d"], title="shape distances", label="d (rigid)", annotate=True
+    )
+    ax, colorbar = fig.axes
+    assert ax.get_title() == "shape distances"
+    assert colorbar.get_ylabel() == "d (rigid)"
+    texts = ax.texts
+    assert [t.get_text() for t in texts] == [f"{d:.3g}" for d in D.ravel()]
+    # Each at its cell's centre, in a colour that reads on the cell.
+    assert [t.get_position() for t in texts[:2]] == [(0, 0), (1, 0)]
+    assert {mcolors.to_hex(t.get_color()) for t in texts} <= {"#000000", "#ffffff"}
+    assert mcolors.to_hex(texts[0].get_color()) == "#ffffff"  # D[0, 0] = 0: dark viridis
+    assert len(plot.plot_distance_matrix(D).axes[0].texts) == 0
+    assert plot.plot_distance_matrix(D).axes[0].get_title() == ""
+    for kwargs, message in [
+        ({"title": 1}, r"title must be a string or None; got 1"),
+        ({"label": None}, r"label must be a string; got None"),
+        ({"annotate": "yes"}, r"annotate must be True or False; got 'yes'"),
+    ]:
+        with pytest.raises(InputError, match=message):
+            plot.plot_distance_matrix(D, **kwargs)
+
+
 def test_plot_distance_matrix_rejects_wrong_labels():
     with pytest.raises(ValueError, match=r"got 2 labels for a 4 x 4 matrix"):
         plot.plot_distance_matrix(_distances(), labels=["a", "b"])
@@ -287,10 +437,9 @@ def test_plot_modes_draws_rows_of_modes_through_the_mean():
     fig = plot.plot_modes(paths, explained=[0.7312, 0.2449], columns=5, sigmas=1.5)
     assert len(fig.axes) == 2 * 5
     assert [ax.name for ax in fig.axes] == ["3d"] * 10
-    sigmas = ["-1.5σ", "-0.75σ", "mean", "+0.75σ", "+1.5σ"]
-    assert _titles(fig) == [f"mode 1 (73.1%)\n{s}" for s in sigmas] + [
-        f"mode 2 (24.5%)\n{s}" for s in sigmas
-    ]
+    # The columns' sigmas title the first row only; each row is named once, at its left.
+    assert _titles(fig) == ["-1.5σ", "-0.75σ", "mean", "+0.75σ", "+1.5σ"] + [""] * 5
+    assert _texts(fig) == ["mode 1\n(73.1%)", "mode 2\n(24.5%)"]
     # Frames 0, 2, 4, 6, 8 of each path, cell by cell; the middle column is the mean.
     for r in range(2):
         for c, frame in enumerate((0, 2, 4, 6, 8)):
@@ -305,6 +454,24 @@ def test_plot_modes_draws_rows_of_modes_through_the_mean():
         np.testing.assert_allclose(limits, np.column_stack([lo, hi]), rtol=0, atol=1e-12)
 
 
+def test_plot_modes_row_labels_and_suptitle():
+    _, paths = _mode_paths(9)
+    fig = plot.plot_modes(paths, explained=[0.7312, 0.2449], columns=3, suptitle="PCA")
+    assert fig._suptitle.get_text() == "PCA"
+    labels = [t for t in fig.texts if t is not fig._suptitle]
+    assert [t.get_text() for t in labels] == ["mode 1\n(73.1%)", "mode 2\n(24.5%)"]
+    # One label per row, rotated, left of the row's first axes and level with its middle;
+    # no title repeats it.
+    for r, label in enumerate(labels):
+        box = fig.axes[3 * r].get_position(original=True)
+        x, y = label.get_position()
+        assert label.get_rotation() == 90
+        assert x < box.x0
+        assert y == pytest.approx((box.y0 + box.y1) / 2)
+    assert not any("mode" in title for title in _titles(fig))
+    assert _titles(fig) == ["-2σ", "mean", "+2σ", "", "", ""]
+
+
 def test_plot_modes_marks_the_nodes_a_failed_shot_did_not_reach():
     """A shot that failed leaves its later nodes NaN (shoot): those columns are empty
     axes that say so, the others are drawn, and the box holds the drawn frames only."""
@@ -315,7 +482,12 @@ def test_plot_modes_marks_the_nodes_a_failed_shot_did_not_reach():
     texts = [[t.get_text() for t in ax.texts] for ax in fig.axes]
     assert texts[0] == ["not reached\n(shooting failed)"]
     assert all(t == [] for t in texts[1:])
-    assert _titles(fig)[0] == "mode 1\n-2σ"
+    # The fit view rotates the drawn frames only; the unreached node stays a marked panel.
+    fit = plot.plot_modes([failed, paths[1]], columns=5, view="fit")
+    assert [t.get_text() for t in fit.axes[0].texts] == ["not reached\n(shooting failed)"]
+    assert [len(ax.collections) for ax in fit.axes] == [0] + [1] * 9
+    assert _titles(fig)[0] == "-2σ"
+    assert _texts(fig) == ["mode 1", "mode 2"]
     np.testing.assert_array_equal(_drawn_quads(fig.axes[1]), plot._cells(failed[2]))
     shown = np.concatenate([failed[[2, 4, 6, 8]], paths[1][::2]])
     lo, hi = shown.min(axis=(0, 2, 3)), shown.max(axis=(0, 2, 3))
@@ -326,13 +498,15 @@ def test_plot_modes_marks_the_nodes_a_failed_shot_did_not_reach():
 def test_plot_modes_selects_modes_and_columns():
     _, paths = _mode_paths(9)
     fig = plot.plot_modes(paths, modes=[1], columns=3)
-    # Without fractions the title has the mode number and the column's sigma only.
-    assert _titles(fig) == ["mode 2\n-2σ", "mode 2\nmean", "mode 2\n+2σ"]
+    # Without fractions the row label is the mode number only.
+    assert _titles(fig) == ["-2σ", "mean", "+2σ"]
+    assert _texts(fig) == ["mode 2"]
     np.testing.assert_array_equal(_drawn_quads(fig.axes[2]), plot._cells(paths[1][8]))
     # Nine columns over 9 frames: every frame, in steps of sigmas / 4.
     fig = plot.plot_modes(paths, modes=1, columns=9, explained=[0.99951, 0.0004])
     assert len(fig.axes) == 9
-    assert _titles(fig)[5] == "mode 1 (100%)\n+0.5σ"
+    assert _titles(fig)[5] == "+0.5σ"
+    assert _texts(fig) == ["mode 1\n(100%)"]
 
 
 @pytest.mark.slow  # shooting compiles for about 20 s on 2 cores
@@ -352,8 +526,8 @@ def test_plot_modes_shoots_the_modes_of_a_tangent_pca():
         mean_velocity=np.zeros_like(mean),
     )
     fig = plot.plot_modes(pca, metric, columns=5, sigmas=1.0, n_times=3, degree=3)
-    assert _titles(fig)[:3] == ["mode 1 (80%)\n-1σ", "mode 1 (80%)\n-0.5σ", "mode 1 (80%)\nmean"]
-    assert _titles(fig)[7] == "mode 2 (20%)\nmean"
+    assert _titles(fig) == ["-1σ", "-0.5σ", "mean", "+0.5σ", "+1σ"] + [""] * 5
+    assert _texts(fig) == ["mode 1\n(80%)", "mode 2\n(20%)"]
     for r in range(2):
         path = np.asarray(ej.mode_path(pca, r, metric, sigmas=1.0, n_times=3, degree=3))
         assert path.shape == (5, 3, MM, NM)
