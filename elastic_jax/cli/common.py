@@ -284,7 +284,9 @@ def write_path(out: pathlib.Path, path, settings: dict, progress: Progress) -> l
         return []
     progress(f"writing the path's {path.shape[0]} meshes and its figure to {out}")
     written = [str(p) for p in io.save_path(path, out / "path", settings=settings)]
-    return written + write_figure(out / "path.png", lambda: plot.plot_path(path), progress)
+    return written + write_figure(
+        out / "path.png", lambda: plot.plot_path(path, view="fit"), progress
+    )
 
 
 def prepare(args, progress: Progress, files, options_of: Callable, surfaces=None, main_inputs=True):

@@ -78,7 +78,9 @@ def run_distances(args, progress: Progress) -> dict:
     files.append(str(write_text_atomic(args.out / "distances.csv", "\n".join(rows) + "\n")))
     files += write_figure(
         args.out / "distances.png",
-        lambda: plot.plot_distance_matrix(matrix, labels=names),
+        lambda: plot.plot_distance_matrix(
+            matrix, labels=names, title=f"distances modulo {args.modulo}", annotate=len(names) <= 12
+        ),
         progress,
     )
     return {

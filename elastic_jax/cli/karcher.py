@@ -114,7 +114,11 @@ def solve_karcher(args, progress: Progress):
     ]
     if np.isfinite(mean).all():
         files.append(str(io.save_surface(mean, args.out / "mean.ply")))
-    files += write_figure(args.out / "mean.png", lambda: plot.plot_path(mean), progress)
+    files += write_figure(
+        args.out / "mean.png",
+        lambda: plot.plot_path(mean, titles=["Karcher mean"], view="fit"),
+        progress,
+    )
     history = np.asarray(res.history)
     columns = {"sum of squared distances": history[:, 0], "mean velocity norm": history[:, 1]}
     files += write_figure(args.out / "history.png", lambda: plot.plot_energy(columns), progress)

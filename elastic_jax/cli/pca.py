@@ -131,7 +131,9 @@ def run_pca(args, progress: Progress) -> dict:
     files.append(str(write_text_atomic(args.out / "scores.json", text + "\n")))
     files += write_figure(
         args.out / "modes.png",
-        lambda: plot.plot_modes(paths, modes=len(paths), explained=explained, sigmas=args.sigmas),
+        lambda: plot.plot_modes(
+            paths, modes=len(paths), explained=explained, sigmas=args.sigmas, view="fit"
+        ),
         progress,
     )
     summary["settings"].update(modes=n_modes, sigmas=args.sigmas, mode_times=args.mode_times)
