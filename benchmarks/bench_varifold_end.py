@@ -37,7 +37,7 @@ import numpy as np  # noqa: E402
 import optimistix as optx  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
-from elastic_jax._geodesics.geodesic import basis_np, path_from_coefficients  # noqa: E402
+from elastic_jax._geometry.bases import basis_np, path_from_coefficients  # noqa: E402
 from elastic_jax._geometry.energy import _path_energy  # noqa: E402
 from elastic_jax._geometry.grid import distinct_points  # noqa: E402
 from elastic_jax._geometry.harmonics import harmonics_np  # noqa: E402

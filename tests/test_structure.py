@@ -248,3 +248,36 @@ def test_the_documented_layout_names_every_subpackage():
     subpackages = {p.parent.name for p in PACKAGE.glob("*/__init__.py")}
     assert named == subpackages
     assert set(RANKS) - {"leaves", "public"} == subpackages - {"cli"}
+
+
+# The grid services that geodesics, registration and statistics all call live on the
+# geometry floor (issue 53): a surface checked, a path built from its basis, a square root
+# safe at zero. Each name is defined in its home and imported from nowhere else, so data
+# handed to them never climbs through the geodesics floor and back.
+SERVICES = {
+    "basis_np": "_geometry.bases",
+    "frames_between": "_geometry.bases",
+    "perturbed_frames": "_geometry.bases",
+    "path_from_coefficients": "_geometry.bases",
+    "check_pair": "_geometry.validation",
+    "safe_sqrt": "_geometry.numerics",
+    "constant": "_geometry.numerics",
+    "sqrt_inverse_pair": "_geometry.numerics",
+    "default_tol": "_geodesics.solvers",
+}
+
+
+def test_grid_services_live_on_the_geometry_floor_and_are_imported_from_there():
+    defined = {}
+    for p in PACKAGE.rglob("*.py"):
+        for node in ast.parse(p.read_text()).body:
+            if isinstance(node, ast.FunctionDef) and node.name in SERVICES:
+                defined.setdefault(node.name, []).append(_module_name(p))
+    assert defined == {name: [home] for name, home in SERVICES.items()}
+    wrong = sorted(
+        f"{_module_name(p)} imports {name} from {module}"
+        for p in PACKAGE.rglob("*.py")
+        for module, name in _relative_imports(p)
+        if name in SERVICES and module != SERVICES[name]
+    )
+    assert wrong == []

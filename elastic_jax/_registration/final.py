@@ -10,15 +10,10 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-from .._geodesics.geodesic import (
-    frames_between,
-    path_from_coefficients,
-    perturbed_frames,
-    safe_sqrt,
-    solve_path,
-    upsample_coefficients,
-)
+from .._geodesics.geodesic import solve_path, upsample_coefficients
+from .._geometry.bases import frames_between, path_from_coefficients, perturbed_frames
 from .._geometry.energy import frame_energy
+from .._geometry.numerics import safe_sqrt
 from .._results import RESULTS
 from .problem import (
     State,

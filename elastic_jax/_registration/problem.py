@@ -14,13 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._geodesics.geodesic import (
-    basis_np,
-    frames_between,
-    perturbed_frames,
-    solve_path,
-    solver_scaling,
-)
+from .._geodesics.geodesic import solve_path, solver_scaling
+from .._geometry.bases import basis_np, frames_between, perturbed_frames
 from .._geometry.differential import area_element, interior_frame
 from .._geometry.energy import frame_energy
 from .._geometry.grid import (

@@ -29,18 +29,16 @@ from jaxtyping import ArrayLike, Float
 
 from .._checks import is_concrete
 from .._errors import ConvergenceWarning, InputError
-from .._geodesics.geodesic import (
-    GeodesicResult,
-    check_pair,
-    constant,
-    default_tol,
-)
+from .._geodesics.geodesic import GeodesicResult
+from .._geodesics.solvers import default_tol
 from .._geometry.harmonics import check_degree
 from .._geometry.metric import SplitMetric
+from .._geometry.numerics import constant
 from .._geometry.reparam import (
     jacobian_determinant_unchecked,
 )
 from .._geometry.units import in_units
+from .._geometry.validation import check_pair
 from .._options import ShapeOptions, check_choice
 from .._results import RESULTS
 from .._runtime.cache import phase_chain, solver_jit

@@ -31,11 +31,12 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._checks import check_bool, check_choice, check_int, check_positive
 from .._errors import ConvergenceWarning, InputError
-from .._geodesics.geodesic import basis_np, frames_between, perturbed_frames, safe_sqrt
 from .._geodesics.solvers import minimize
+from .._geometry.bases import basis_np, frames_between, perturbed_frames
 from .._geometry.differential import interior_frame
 from .._geometry.energy import frame_energy
 from .._geometry.metric import SplitMetric
+from .._geometry.numerics import safe_sqrt
 from .._options import ShapeOptions
 from .._registration.problem import make_bases, make_problem, path_energy_at
 from .._results import RESULTS, record_repr, result_message

@@ -15,10 +15,11 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_choice
 from .._errors import InputError
-from .._geodesics.geodesic import GeodesicResult, check_pair, geodesic
+from .._geodesics.geodesic import GeodesicResult, geodesic
 from .._geodesics.shooting import check_scheme
 from .._geometry.differential import interior_frame
 from .._geometry.metric import SplitMetric
+from .._geometry.validation import check_pair
 from .._options import ShapeOptions
 from .._registration.problem import make_bases, make_problem, path_frames_at, rotate_surface
 from .._registration.records import turned_back
