@@ -80,8 +80,8 @@ def _relaxed(f1, f2, *, L, degree, n_times, schedule, steps):
     m, n = f1.shape[-2:]
     target = _triangles(f2)
     harmonics = harmonics_np(m, n, L)
-    y_end = jnp.asarray(harmonics[0].reshape(-1, m * n) / (1.0 + harmonics[4][:, None]))
-    path_degrees = np.asarray(harmonics_np(m, n, degree)[4][1:], float)
+    y_end = jnp.asarray(harmonics.values.reshape(-1, m * n) / (1.0 + harmonics.degrees[:, None]))
+    path_degrees = np.asarray(harmonics_np(m, n, degree).degrees[1:], float)
     values = jnp.asarray(basis_np(m, n, degree)[0] / (1.0 + path_degrees[:, None]))
     k = values.shape[0]
 

@@ -26,7 +26,7 @@ def basis_np(m: int, n: int, degree: int) -> tuple[np.ndarray, np.ndarray]:
     P = (m - 2)(n - 1) interior points. One matmul with the second gives the
     perturbation of every frame's differential (measured faster than an einsum).
     """
-    y = harmonics_np(m, n, degree)[0][1:]
+    y = harmonics_np(m, n, degree).values[1:]
     a1, a2 = interior_frame(y)
     k = y.shape[0]
     return y.reshape(k, m * n), np.concatenate([a1.reshape(k, -1), a2.reshape(k, -1)], axis=1)

@@ -46,7 +46,7 @@ _STEP_SCALES = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.0)
 @cached
 def _field_scale_np(m: int, n: int, degree: int) -> np.ndarray:
     """1 / sqrt(l(l+1)) per vector field: differentials grow like l; this evens the Hessian."""
-    ls = harmonics_np(m, n, degree)[4][1:]
+    ls = harmonics_np(m, n, degree).degrees[1:]
     return np.repeat(1.0 / np.sqrt(ls * (ls + 1.0)), 2)
 
 
