@@ -43,7 +43,7 @@ from elastic_jax._geometry.grid import distinct_points  # noqa: E402
 from elastic_jax._geometry.harmonics import harmonics_np  # noqa: E402
 from elastic_jax._geometry.so3 import so3_exp_unchecked  # noqa: E402
 from elastic_jax._geometry.srnf import center_unchecked  # noqa: E402
-from elastic_jax.io import _grid_faces  # noqa: E402
+from elastic_jax._meshes.resample import grid_faces as _grid_faces  # noqa: E402
 
 from _common import DATA, emit, environment  # noqa: E402
 
