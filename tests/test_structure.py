@@ -281,3 +281,23 @@ def test_grid_services_live_on_the_geometry_floor_and_are_imported_from_there():
         if name in SERVICES and module != SERVICES[name]
     )
     assert wrong == []
+
+
+def test_jaxopt_is_used_through_its_public_api_only():
+    """solver="lbfgs" is jaxopt's LBFGS as published (issue 53): no subclass overriding its
+    private members, no private attribute read, no warning of its silenced in the package."""
+    offences = []
+    for p in PACKAGE.rglob("*.py"):
+        tree = ast.parse(p.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ClassDef):
+                bases = [ast.unparse(b) for b in node.bases]
+                if any("jaxopt" in b or "LBFGS" in b and "optx" not in b for b in bases):
+                    offences.append(f"{_module_name(p)}: class {node.name}({', '.join(bases)})")
+            if isinstance(node, ast.Attribute) and node.attr.startswith("_"):
+                if "jaxopt" in ast.unparse(node.value):
+                    offences.append(f"{_module_name(p)}: {ast.unparse(node)}")
+            if isinstance(node, ast.Constant) and isinstance(node.value, str):
+                if "JAXopt is no longer maintained" in node.value:
+                    offences.append(f"{_module_name(p)}: silences jaxopt's warning")
+    assert offences == []
