@@ -301,3 +301,16 @@ def test_jaxopt_is_used_through_its_public_api_only():
                 if "JAXopt is no longer maintained" in node.value:
                     offences.append(f"{_module_name(p)}: silences jaxopt's warning")
     assert offences == []
+
+
+def test_the_options_record_has_one_name():
+    """A ShapeOptions (or a record resolved from one) is called ``options`` in every
+    signature (issue 53: it was ``cfg`` in 37 and ``options`` in 26)."""
+    named_cfg = sorted(
+        f"{_module_name(p)}.{node.name}"
+        for p in PACKAGE.rglob("*.py")
+        for node in ast.walk(ast.parse(p.read_text()))
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+        and "cfg" in {a.arg for a in ast.walk(node.args) if isinstance(a, ast.arg)}
+    )
+    assert named_cfg == []
