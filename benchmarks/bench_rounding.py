@@ -139,10 +139,10 @@ def variants(f1, f2, other, cfg) -> dict:
     out = {}
     for label, options in COMPILATIONS.items():
         solve = jax.jit(
-            _shape._shape_solve, static_argnames=("cfg", "rigid"), compiler_options=options
+            _shape._shape_solve, static_argnames=("options", "rigid"), compiler_options=options
         )
         try:
-            result = jax.block_until_ready(solve(*args, cfg=cfg, rigid=False))
+            result = jax.block_until_ready(solve(*args, options=cfg, rigid=False))
         except Exception as error:  # an option this jaxlib does not know
             out[label] = {"error": str(error).splitlines()[0]}
             continue

@@ -263,7 +263,7 @@ carried = ()
 for name, _, _ in _shape._PHASES:
     jitted = _shape._PHASE_JITS[name].jitted()
     t0 = time.perf_counter()
-    traced = jitted.trace(*args, *carried, cfg=cfg, rigid=False)
+    traced = jitted.trace(*args, *carried, options=cfg, rigid=False)
     t1 = time.perf_counter()
     lowered = traced.lower()
     t2 = time.perf_counter()

@@ -37,13 +37,13 @@ import numpy as np  # noqa: E402
 import optimistix as optx  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
-from elastic_jax._geodesics.geodesic import basis_np, path_from_coefficients  # noqa: E402
+from elastic_jax._geometry.bases import basis_np, path_from_coefficients  # noqa: E402
 from elastic_jax._geometry.energy import _path_energy  # noqa: E402
 from elastic_jax._geometry.grid import distinct_points  # noqa: E402
 from elastic_jax._geometry.harmonics import harmonics_np  # noqa: E402
 from elastic_jax._geometry.so3 import so3_exp_unchecked  # noqa: E402
 from elastic_jax._geometry.srnf import center_unchecked  # noqa: E402
-from elastic_jax.io import _grid_faces  # noqa: E402
+from elastic_jax._meshes.resample import grid_faces as _grid_faces  # noqa: E402
 
 from _common import DATA, emit, environment  # noqa: E402
 
@@ -80,8 +80,8 @@ def _relaxed(f1, f2, *, L, degree, n_times, schedule, steps):
     m, n = f1.shape[-2:]
     target = _triangles(f2)
     harmonics = harmonics_np(m, n, L)
-    y_end = jnp.asarray(harmonics[0].reshape(-1, m * n) / (1.0 + harmonics[4][:, None]))
-    path_degrees = np.asarray(harmonics_np(m, n, degree)[4][1:], float)
+    y_end = jnp.asarray(harmonics.values.reshape(-1, m * n) / (1.0 + harmonics.degrees[:, None]))
+    path_degrees = np.asarray(harmonics_np(m, n, degree).degrees[1:], float)
     values = jnp.asarray(basis_np(m, n, degree)[0] / (1.0 + path_degrees[:, None]))
     k = values.shape[0]
 

@@ -316,8 +316,8 @@ def test_the_solve_in_phases_is_the_solve_in_one_program():
     bases = _shape.make_bases(m, n, cfg, f1.dtype)
     args = (ej.SplitMetric(1.0, 1.0, 0.1, 0.0), f1, f2, bases)
     phased = _shape._solve_in_phases(args, cfg, False)
-    whole = _cache.solver_jit(_shape._shape_solve, static_argnames=("cfg", "rigid"))(
-        *args, cfg=cfg, rigid=False
+    whole = _cache.solver_jit(_shape._shape_solve, static_argnames=("options", "rigid"))(
+        *args, options=cfg, rigid=False
     )
     assert int(phased.rounds) >= 1
     for field in phased._fields:
@@ -492,7 +492,7 @@ def test_the_phases_compiled_concurrently_are_the_jitted_phases():
     chained = _shape._solve_in_phases(args, cfg, False)
     carried = ()
     for name, _, _ in _shape._PHASES:
-        carried = (_shape._PHASE_JITS[name](*args, *carried, cfg=cfg, rigid=False),)
+        carried = (_shape._PHASE_JITS[name](*args, *carried, options=cfg, rigid=False),)
     leaves = jax.tree_util.tree_leaves(chained), jax.tree_util.tree_leaves(carried[0])
     for a, b in zip(*leaves, strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

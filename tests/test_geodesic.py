@@ -5,12 +5,8 @@ import pytest
 
 import elastic_jax as ej
 from elastic_jax import shapes
-from elastic_jax._geodesics.geodesic import (
-    _straight_frames,
-    basis_np,
-    perturbed_frames,
-    solver_scaling,
-)
+from elastic_jax._geodesics.geodesic import _straight_frames, solver_scaling
+from elastic_jax._geometry.bases import basis_np, perturbed_frames
 from elastic_jax._geometry.energy import frame_energy
 
 from .conftest import relerr

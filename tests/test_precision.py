@@ -13,7 +13,7 @@ import numpy as np
 
 import elastic_jax as ej
 from elastic_jax import shapes
-from elastic_jax._geodesics.geodesic import safe_sqrt
+from elastic_jax._geometry.numerics import safe_sqrt
 
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 

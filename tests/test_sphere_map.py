@@ -19,6 +19,7 @@ import trimesh
 
 import elastic_jax as ej
 from elastic_jax import io, shapes
+from elastic_jax._meshes.resample import grid_faces
 
 from .conftest import assert_area_bound, load_shape
 
@@ -39,7 +40,7 @@ def grid_triangles(f: np.ndarray) -> trimesh.Trimesh:
     """The grid's triangles as the grid orients them (grid_to_mesh would turn a reversed one)."""
     m, n = f.shape[1:]
     v = np.concatenate([f[:, 0, :1].T, f[:, 1:-1, :-1].reshape(3, -1).T, f[:, -1, :1].T])
-    return trimesh.Trimesh(v, io._grid_faces(m, n), process=False)
+    return trimesh.Trimesh(v, grid_faces(m, n), process=False)
 
 
 def coverage(mesh, f) -> tuple[float, float]:

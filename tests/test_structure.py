@@ -248,3 +248,69 @@ def test_the_documented_layout_names_every_subpackage():
     subpackages = {p.parent.name for p in PACKAGE.glob("*/__init__.py")}
     assert named == subpackages
     assert set(RANKS) - {"leaves", "public"} == subpackages - {"cli"}
+
+
+# The grid services that geodesics, registration and statistics all call live on the
+# geometry floor (issue 53): a surface checked, a path built from its basis, a square root
+# safe at zero. Each name is defined in its home and imported from nowhere else, so data
+# handed to them never climbs through the geodesics floor and back.
+SERVICES = {
+    "basis_np": "_geometry.bases",
+    "frames_between": "_geometry.bases",
+    "perturbed_frames": "_geometry.bases",
+    "path_from_coefficients": "_geometry.bases",
+    "check_pair": "_geometry.validation",
+    "safe_sqrt": "_geometry.numerics",
+    "constant": "_geometry.numerics",
+    "sqrt_inverse_pair": "_geometry.numerics",
+    "default_tol": "_geodesics.solvers",
+}
+
+
+def test_grid_services_live_on_the_geometry_floor_and_are_imported_from_there():
+    defined = {}
+    for p in PACKAGE.rglob("*.py"):
+        for node in ast.parse(p.read_text()).body:
+            if isinstance(node, ast.FunctionDef) and node.name in SERVICES:
+                defined.setdefault(node.name, []).append(_module_name(p))
+    assert defined == {name: [home] for name, home in SERVICES.items()}
+    wrong = sorted(
+        f"{_module_name(p)} imports {name} from {module}"
+        for p in PACKAGE.rglob("*.py")
+        for module, name in _relative_imports(p)
+        if name in SERVICES and module != SERVICES[name]
+    )
+    assert wrong == []
+
+
+def test_jaxopt_is_used_through_its_public_api_only():
+    """solver="lbfgs" is jaxopt's LBFGS as published (issue 53): no subclass overriding its
+    private members, no private attribute read, no warning of its silenced in the package."""
+    offences = []
+    for p in PACKAGE.rglob("*.py"):
+        tree = ast.parse(p.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ClassDef):
+                bases = [ast.unparse(b) for b in node.bases]
+                if any("jaxopt" in b or "LBFGS" in b and "optx" not in b for b in bases):
+                    offences.append(f"{_module_name(p)}: class {node.name}({', '.join(bases)})")
+            if isinstance(node, ast.Attribute) and node.attr.startswith("_"):
+                if "jaxopt" in ast.unparse(node.value):
+                    offences.append(f"{_module_name(p)}: {ast.unparse(node)}")
+            if isinstance(node, ast.Constant) and isinstance(node.value, str):
+                if "JAXopt is no longer maintained" in node.value:
+                    offences.append(f"{_module_name(p)}: silences jaxopt's warning")
+    assert offences == []
+
+
+def test_the_options_record_has_one_name():
+    """A ShapeOptions (or a record resolved from one) is called ``options`` in every
+    signature (issue 53: it was ``cfg`` in 37 and ``options`` in 26)."""
+    named_cfg = sorted(
+        f"{_module_name(p)}.{node.name}"
+        for p in PACKAGE.rglob("*.py")
+        for node in ast.walk(ast.parse(p.read_text()))
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+        and "cfg" in {a.arg for a in ast.walk(node.args) if isinstance(a, ast.arg)}
+    )
+    assert named_cfg == []

@@ -30,14 +30,21 @@ from .._checks import (
     real_array,
 )
 from .._errors import ConvergenceWarning, InputError
+from .._geometry.bases import (
+    basis_np,
+    frames_between,
+    path_from_coefficients,
+    perturbed_frames,
+)
 from .._geometry.differential import area_element, interior_frame
 from .._geometry.energy import frame_energy
 from .._geometry.grid import integrate_interior
-from .._geometry.harmonics import check_degree, harmonics_np
+from .._geometry.harmonics import check_degree
 from .._geometry.interp import resample
 from .._geometry.metric import SplitMetric, split_bilinear
+from .._geometry.numerics import constant, safe_sqrt, sqrt_inverse_pair
 from .._geometry.units import in_units
-from .._geometry.validation import as_surface
+from .._geometry.validation import check_pair
 from .._options import (
     FROM_OPTIONS,
     SCHEMES,
@@ -47,8 +54,8 @@ from .._options import (
     settings_from,
 )
 from .._results import RESULTS, record_repr, result_message
-from .._runtime.cache import cached, solver_jit
-from .solvers import Minimum, lanczos_smallest, minimize
+from .._runtime.cache import solver_jit
+from .solvers import Minimum, default_tol, lanczos_smallest, minimize
 
 
 class GeodesicResult(NamedTuple):
@@ -99,61 +106,11 @@ class GeodesicResult(NamedTuple):
         return message
 
 
-@cached
-def basis_np(m: int, n: int, degree: int) -> tuple[np.ndarray, np.ndarray]:
-    """Harmonics of degree 1..deg as ``(K, m n)`` and their differentials as ``(K, 2 P)``.
-
-    P = (m - 2)(n - 1) interior points. One matmul with the second gives the
-    perturbation of every frame's differential (measured faster than an einsum).
-    """
-    y = harmonics_np(m, n, degree)[0][1:]
-    a1, a2 = interior_frame(y)
-    k = y.shape[0]
-    return y.reshape(k, m * n), np.concatenate([a1.reshape(k, -1), a2.reshape(k, -1)], axis=1)
-
-
 def _straight_frames(f1, f2, n_times, frames=None):
     """The straight line's interior frames; ``frames`` (start, end), each (a1, a2), when
     the ends' differentials are given rather than taken by central differences."""
     start, end = (interior_frame(f1), interior_frame(f2)) if frames is None else frames
     return frames_between(start, end, n_times)
-
-
-def frames_between(start, end, n_times):
-    """Interior frames of the straight line between two surfaces given by their frames."""
-    t = jnp.linspace(0.0, 1.0, n_times, dtype=start[0].dtype).reshape(n_times, 1, 1, 1)
-    # a + t (b - a): velocities are exactly zero when f1 = f2.
-    return [a[None] + t * (b - a)[None] for a, b in zip(start, end, strict=True)]
-
-
-def perturbed_frames(straight, coefficients, dframe):
-    """Frames of the straight line plus sum_j C[k, j] S_j on the interior time points."""
-    s1, s2 = straight
-    n_inner, shape = s1.shape[0] - 2, s1.shape[1:]
-    k = dframe.shape[0]
-    points = dframe.shape[1] // 2
-    pert = (coefficients.reshape(-1, k) @ dframe).reshape(n_inner, 3, 2 * points)
-    p1 = pert[..., :points].reshape((n_inner, *shape))
-    p2 = pert[..., points:].reshape((n_inner, *shape))
-    return s1.at[1:-1].add(p1), s2.at[1:-1].add(p2)
-
-
-def path_from_coefficients(f1, f2, coefficients, values, n_times):
-    """The path (N, 3, m, n): straight line plus the basis perturbation (paper eq. (4.2))."""
-    m, n = f1.shape[-2:]
-    k = values.shape[0]
-    t = jnp.linspace(0.0, 1.0, n_times, dtype=f1.dtype)[1:-1].reshape(n_times - 2, 1, 1, 1)
-    interior = f1[None] + t * (f2 - f1)[None]
-    interior = interior + (coefficients.reshape(-1, k) @ values).reshape(n_times - 2, 3, m, n)
-    return jnp.concatenate([f1[None], interior, f2[None]])
-
-
-def sqrt_inverse_pair(matrix: Array, floor: float) -> tuple[Array, Array]:
-    """M^(-1/2) and M^(1/2) of a symmetric PSD matrix, eigenvalues floored at floor * max."""
-    lam, vec = jnp.linalg.eigh(matrix)
-    lam = jnp.maximum(lam, floor * lam[-1])
-    root = jnp.sqrt(lam)[None, :]
-    return (vec / root) @ vec.T, (vec * root) @ vec.T
 
 
 def _whitening(metric, mid1, mid2, dframe, n_times):
@@ -388,76 +345,6 @@ def _evaluate(metric, f1, f2, coefficients, values, dframe, *, n_times, scheme):
     return path, energy, frame_energy(metric, *straight, scheme)
 
 
-def constant(tree):
-    """``tree`` with its JAX arrays under ``stop_gradient`` (Python numbers left as they are)."""
-    return jax.tree_util.tree_map(
-        lambda x: jax.lax.stop_gradient(x) if isinstance(x, jax.Array) else x, tree
-    )
-
-
-def safe_sqrt(x: Array) -> Array:
-    """sqrt(x) with a zero, not an infinite, derivative at x = 0 (the double-where pattern:
-    the branch not taken never sees 0, so its derivative is finite too). NaN stays NaN: a
-    non-finite energy must not read as a zero distance."""
-    positive = x > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), jnp.where(x == x, 0.0, x))
-
-
-def upsample_coefficients(
-    coefficients: Float[ArrayLike, "K0 L0"], degree: int, new_degree: int, new_n_times: int
-) -> Float[Array, "K1 L1"]:
-    """Lift a coarse solution to a finer (degree, n_times) as an initial guess.
-
-    Coefficients of spherical harmonics do not depend on the grid, so a change of grid
-    needs nothing; a higher degree pads with zeros; more time points interpolate the
-    perturbation linearly in time (it vanishes at both ends).
-
-    Args:
-        coefficients: ``(N0 - 2, 3 K0)`` from a solve at ``degree``.
-        degree, new_degree: old and new degree (new >= old).
-        new_n_times: N1 >= 3.
-
-    Returns:
-        ``(N1 - 2, 3 K1)``, K = (degree + 1)^2 - 1.
-    """
-    c = jnp.asarray(coefficients)
-    k0, k1 = (degree + 1) ** 2 - 1, (new_degree + 1) ** 2 - 1
-    if new_degree < degree:
-        raise InputError(f"new_degree={new_degree} is below degree={degree}")
-    if c.shape[-1] != 3 * k0:
-        raise InputError(f"coefficients of degree {degree} have {3 * k0} columns; got {c.shape}")
-    c = c.reshape(c.shape[0], 3, k0)
-    c = jnp.pad(c, ((0, 0), (0, 0), (0, k1 - k0)))
-    zeros = jnp.zeros((1, 3, k1), c.dtype)
-    full = jnp.concatenate([zeros, c, zeros]).reshape(c.shape[0] + 2, -1)
-    t_old = jnp.linspace(0.0, 1.0, full.shape[0], dtype=c.dtype)
-    t_new = jnp.linspace(0.0, 1.0, new_n_times, dtype=c.dtype)[1:-1]
-    lifted = jax.vmap(lambda column: jnp.interp(t_new, t_old, column), in_axes=1, out_axes=1)(full)
-    return lifted.reshape(new_n_times - 2, 3 * k1)
-
-
-def check_pair(f1, f2, same_grid: bool = True) -> tuple[Array, Array]:
-    """Two single surfaces with one dtype, on one grid unless ``same_grid`` is False
-    (shape_geodesic reads each through its interpolant, math §10)."""
-    f1 = as_surface(f1, "f1")
-    f2 = as_surface(f2, "f2")
-    for name, f in (("f1", f1), ("f2", f2)):
-        if f.ndim != 3:
-            raise InputError(
-                f"{name} must be one surface (3, m, n); got {f.shape}. Batch with jax.vmap."
-            )
-    if not same_grid:
-        if f1.dtype != f2.dtype:
-            raise InputError(f"f1 and f2 must share one dtype; got {f1.dtype} and {f2.dtype}")
-        return f1, f2
-    if f1.shape != f2.shape or f1.dtype != f2.dtype:
-        raise InputError(
-            "f1 and f2 must share grid and dtype (the same grid, the same dtype); got "
-            f"{f1.shape} {f1.dtype} and {f2.shape} {f2.dtype}"
-        )
-    return f1, f2
-
-
 def _check_solve_options(n_times, solver, max_steps, tol, scheme, dtype) -> tuple[int, int, float]:
     """Validate the inner solves' options; returns n_times, max_steps and tol (whose
     default depends on the dtype)."""
@@ -467,15 +354,6 @@ def _check_solve_options(n_times, solver, max_steps, tol, scheme, dtype) -> tupl
     max_steps = check_int("max_steps", max_steps, 1)
     tol = default_tol(dtype) if tol is None else check_positive("tol", tol)
     return n_times, max_steps, tol
-
-
-def default_tol(dtype) -> float:
-    """The inner solves' default tolerance on the scaled gradient's 2-norm: 1e-6 in
-    float64; 3e-3 in float32, whose rounding floor there is 7e-4 to 8e-4 (sphere-like pair
-    at degree 7, N = 13 on 25 x 49 and 50 x 99; the floor grows like the square root of
-    the number of coefficients). With Hessian ~2 I the energy is then within tol^2 / 4
-    of the minimum, relative: 2e-6 in float32."""
-    return 1e-6 if jnp.dtype(dtype) == jnp.float64 else 3e-3
 
 
 def _check_schedule(schedule, degree: int, m: int, n: int) -> list[tuple[int, ...]]:
@@ -705,3 +583,36 @@ def _restore_units(result: GeodesicResult, units, f1, f2) -> GeodesicResult:
         straight_energy=result.straight_energy * s**2,
         coefficients=result.coefficients * s,
     )
+
+
+def upsample_coefficients(
+    coefficients: Float[ArrayLike, "K0 L0"], degree: int, new_degree: int, new_n_times: int
+) -> Float[Array, "K1 L1"]:
+    """Lift a coarse solution to a finer (degree, n_times) as an initial guess.
+
+    Coefficients of spherical harmonics do not depend on the grid, so a change of grid
+    needs nothing; a higher degree pads with zeros; more time points interpolate the
+    perturbation linearly in time (it vanishes at both ends).
+
+    Args:
+        coefficients: ``(N0 - 2, 3 K0)`` from a solve at ``degree``.
+        degree, new_degree: old and new degree (new >= old).
+        new_n_times: N1 >= 3.
+
+    Returns:
+        ``(N1 - 2, 3 K1)``, K = (degree + 1)^2 - 1.
+    """
+    c = jnp.asarray(coefficients)
+    k0, k1 = (degree + 1) ** 2 - 1, (new_degree + 1) ** 2 - 1
+    if new_degree < degree:
+        raise InputError(f"new_degree={new_degree} is below degree={degree}")
+    if c.shape[-1] != 3 * k0:
+        raise InputError(f"coefficients of degree {degree} have {3 * k0} columns; got {c.shape}")
+    c = c.reshape(c.shape[0], 3, k0)
+    c = jnp.pad(c, ((0, 0), (0, 0), (0, k1 - k0)))
+    zeros = jnp.zeros((1, 3, k1), c.dtype)
+    full = jnp.concatenate([zeros, c, zeros]).reshape(c.shape[0] + 2, -1)
+    t_old = jnp.linspace(0.0, 1.0, full.shape[0], dtype=c.dtype)
+    t_new = jnp.linspace(0.0, 1.0, new_n_times, dtype=c.dtype)[1:-1]
+    lifted = jax.vmap(lambda column: jnp.interp(t_new, t_old, column), in_axes=1, out_axes=1)(full)
+    return lifted.reshape(new_n_times - 2, 3 * k1)

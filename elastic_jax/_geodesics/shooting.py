@@ -30,10 +30,12 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_choice, check_finite, check_int, check_positive, is_concrete, real_array
 from .._errors import ConvergenceWarning, InputError
+from .._geometry.bases import basis_np
 from .._geometry.differential import interior_frame
 from .._geometry.energy import frame_energy, frame_speeds2
 from .._geometry.harmonics import check_degree
 from .._geometry.metric import SplitMetric
+from .._geometry.numerics import safe_sqrt
 from .._geometry.units import in_units
 from .._geometry.validation import as_surface
 from .._options import (
@@ -45,7 +47,6 @@ from .._options import (
 )
 from .._results import RESULTS, first_failure, record_repr, unsolved_message
 from .._runtime.cache import solver_jit
-from .geodesic import basis_np, safe_sqrt
 
 
 class ShootingResult(NamedTuple):

@@ -33,15 +33,16 @@ from .._checks import (
     real_array,
 )
 from .._errors import ConvergenceWarning, InputError
+from .._geometry.bases import basis_np
 from .._geometry.differential import cross, dot, interior_frame
 from .._geometry.grid import integrate_interior, interior_weights_np, sphere_points_np
 from .._geometry.harmonics import check_degree
+from .._geometry.numerics import sqrt_inverse_pair
 from .._geometry.srnf import center_unchecked, sqrt_normal, srnf_unchecked, surface_area_unchecked
-from .._geometry.validation import as_surface
+from .._geometry.validation import as_surface, check_pair
 from .._options import FROM_OPTIONS, SOLVERS, FromOptions, ShapeOptions, settings_from
 from .._results import RESULTS, first_failure, record_repr, result_message
 from .._runtime.cache import cached, solver_jit
-from .geodesic import basis_np, check_pair, sqrt_inverse_pair
 from .solvers import minimize
 
 __all__ = ["SrnfGeodesic", "SrnfInversion", "srnf_geodesic", "srnf_invert"]

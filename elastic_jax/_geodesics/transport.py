@@ -43,6 +43,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_choice, check_int, check_positive, is_concrete
 from .._errors import ConvergenceWarning, InputError
+from .._geometry.bases import basis_np
 from .._geometry.differential import interior_frame
 from .._geometry.energy import as_path
 from .._geometry.grid import integrate_interior
@@ -52,7 +53,6 @@ from .._geometry.units import units_of
 from .._options import FROM_OPTIONS, FromOptions, ShapeOptions, settings_from
 from .._results import RESULTS, first_failure, record_repr, unsolved_message
 from .._runtime.cache import solver_jit
-from .geodesic import basis_np
 from .shooting import (
     as_velocity,
     check_scheme,

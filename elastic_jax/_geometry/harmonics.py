@@ -49,9 +49,21 @@ def check_degree(degree: int, m: int, n: int, name: str = "degree") -> int:
     return degree
 
 
+class HarmonicsTable(NamedTuple):
+    """The real spherical harmonics of degree 0..L on the m x n grid, in numpy float64:
+    K = (L + 1)^2 rows ordered by degree l, then order k = -l .. l."""
+
+    values: np.ndarray  # (K, m, n) Y_lk
+    d_phi: np.ndarray  # (K, m, n) dY/dphi
+    d_theta: np.ndarray  # (K, m, n) dY/dtheta
+    theta_over_sin: np.ndarray  # (K, m, n) (dY/dtheta) / sin(phi), pole limits included
+    degrees: np.ndarray  # (K,) l
+    orders: np.ndarray  # (K,) k
+
+
 @cached
-def harmonics_np(m: int, n: int, degree: int):
-    """Y, dY/dphi, dY/dtheta, Y/sin(phi) (pole limits included), degree, order; float64."""
+def harmonics_np(m: int, n: int, degree: int) -> HarmonicsTable:
+    """The harmonics of degree 0..degree and their derivatives on the grid (math §5)."""
     phi, theta = angles_np(m, n)
     p, dp = scipy.special.sph_legendre_p_all(degree, degree, phi, diff_n=1)
     sin_phi = np.sin(phi)
@@ -91,8 +103,7 @@ def harmonics_np(m: int, n: int, degree: int):
                     k,
                 )
             )
-    y, y_phi, y_theta, grad_theta, ls, ks = map(np.asarray, zip(*rows, strict=True))
-    return y, y_phi, y_theta, grad_theta, ls, ks
+    return HarmonicsTable(*map(np.asarray, zip(*rows, strict=True)))
 
 
 def real_sph_harm(m: int, n: int, degree: int, dtype=None) -> SphericalHarmonics:
@@ -130,7 +141,7 @@ def surface_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, "L 3 
         ``(L, 3, m, n)``.
     """
     check_degree(degree, m, n)
-    y = harmonics_np(m, n, degree)[0][1:]
+    y = harmonics_np(m, n, degree).values[1:]
     k = y.shape[0]
     basis = np.zeros((3, k, 3, m, n))
     for i in range(3):
@@ -141,7 +152,8 @@ def surface_basis(m: int, n: int, degree: int, dtype=None) -> Float[Array, "L 3 
 @cached
 def vector_fields_np(m: int, n: int, degree: int) -> np.ndarray:
     """grad Y / sqrt(l(l+1)) and e1 x grad Y / sqrt(l(l+1)), ``(Lbar, 3, m, n)`` float64."""
-    _, y_phi, _, grad_theta, ls, _ = harmonics_np(m, n, degree)
+    table = harmonics_np(m, n, degree)
+    y_phi, grad_theta, ls = table.d_phi, table.theta_over_sin, table.degrees
     e_theta, e_phi = sphere_tangents_np(m, n)
     norm = np.sqrt(ls[1:] * (ls[1:] + 1.0))[:, None, None, None]
     a, b = y_phi[1:, None], grad_theta[1:, None]

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import jax
 import numpy as np
+from jaxtyping import Array
 
 from .._checks import check_grid_shape, extents, grid_array, item_suffix
 from .._errors import InputError
 from .differential import area_element, interior_frame
 
-__all__ = ["as_surface", "check_grid_shape", "validate_surface", "well_formed"]
+__all__ = ["as_surface", "check_grid_shape", "check_pair", "validate_surface", "well_formed"]
 
 
 def as_surface(f, name: str, *, check_immersion: bool = True) -> jax.Array:
@@ -100,3 +101,25 @@ def validate_surface(f, name: str = "f") -> jax.Array:
         elastic_jax.InputError: f contains 1 non-finite value(s) (NaN or inf); ...
     """
     return as_surface(f, name)
+
+
+def check_pair(f1, f2, same_grid: bool = True) -> tuple[Array, Array]:
+    """Two single surfaces with one dtype, on one grid unless ``same_grid`` is False
+    (shape_geodesic reads each through its interpolant, math §10)."""
+    f1 = as_surface(f1, "f1")
+    f2 = as_surface(f2, "f2")
+    for name, f in (("f1", f1), ("f2", f2)):
+        if f.ndim != 3:
+            raise InputError(
+                f"{name} must be one surface (3, m, n); got {f.shape}. Batch with jax.vmap."
+            )
+    if not same_grid:
+        if f1.dtype != f2.dtype:
+            raise InputError(f"f1 and f2 must share one dtype; got {f1.dtype} and {f2.dtype}")
+        return f1, f2
+    if f1.shape != f2.shape or f1.dtype != f2.dtype:
+        raise InputError(
+            "f1 and f2 must share grid and dtype (the same grid, the same dtype); got "
+            f"{f1.shape} {f1.dtype} and {f2.shape} {f2.dtype}"
+        )
+    return f1, f2

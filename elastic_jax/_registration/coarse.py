@@ -29,7 +29,7 @@ from .problem import (
 )
 
 
-def _straight_round(prob, cfg, rigid, weight, cap, state: State) -> State:
+def _straight_round(prob, options, rigid, weight, cap, state: State) -> State:
     """One registration round on the matching criterion from f1 o gamma to R f2.
 
     Coarse in time before the rounds with the whole path: the straight line cannot bend
@@ -40,60 +40,60 @@ def _straight_round(prob, cfg, rigid, weight, cap, state: State) -> State:
     step limit ``cap`` are traced (see _coarse_registration).
     """
     dtype = state.energy.dtype
-    criterion = matching_criterion(prob, cfg, weight)
+    criterion = matching_criterion(prob, options, weight)
     reference = jnp.maximum(state.energy, jnp.finfo(dtype).tiny)
-    source = gamma_source(cfg, state.gamma)
+    source = gamma_source(options, state.gamma)
 
     def objective(y):
         x, r_step = registration_variables(prob, y, rigid)
-        gamma = stepped_gamma(prob, cfg, source, x)
+        gamma = stepped_gamma(prob, options, source, x)
         return criterion(gamma, r_step @ state.rotation) / reference
 
     y0 = zero_registration(prob, rigid, dtype)
     found = minimize(
         objective,
         y0,
-        solver=cfg.solver,
-        max_steps=max(cfg.max_steps, MATCH_STEPS),
-        tol=cfg.tol,
+        solver=options.solver,
+        max_steps=max(options.max_steps, MATCH_STEPS),
+        tol=options.tol,
         step_cap=cap,
     )
     x, r_step = registration_variables(prob, found.x, rigid)
-    gamma, shrunk = safe_update(prob, cfg, state.gamma, x)
+    gamma, shrunk = safe_update(prob, options, state.gamma, x)
     rotation = r_step @ state.rotation
     energy = criterion(gamma, rotation)
     steps = state.steps + found.num_steps
     return State(gamma, rotation, state.coefficients, energy, steps, shrunk)
 
 
-def _straight_rounds(prob, cfg, rigid, state: State, weight, cap) -> State:
+def _straight_rounds(prob, options, rigid, state: State, weight, cap) -> State:
     """Rounds on the matching criterion (weight 1: L2, 0: the straight line's energy),
     each round's BFGS cut at ``cap`` steps."""
-    criterion = matching_criterion(prob, cfg, weight)
+    criterion = matching_criterion(prob, options, weight)
     current = criterion(state.gamma, state.rotation)
     floor = criterion(prob.e1, jnp.eye(3, dtype=prob.f1.dtype))
 
     def small(before, after):
-        return jnp.abs(before - after) <= cfg.outer_tol * (after + cfg.outer_tol * floor)
+        return jnp.abs(before - after) <= options.outer_tol * (after + options.outer_tol * floor)
 
     state, _, _, _ = iterate(
-        lambda s: _straight_round(prob, cfg, rigid, weight, cap, s),
+        lambda s: _straight_round(prob, options, rigid, weight, cap, s),
         state._replace(energy=current),
-        cfg.outer_steps,
+        options.outer_steps,
         small,
     )
     return state
 
 
-def _ranked_rounds(prob, cfg, rigid, state: State, weight, cap):
+def _ranked_rounds(prob, options, rigid, state: State, weight, cap):
     """_straight_rounds from ``state``, and the straight line's energy where they end: a
     matched start is ranked by it."""
-    state = _straight_rounds(prob, cfg, rigid, state, weight, cap)
+    state = _straight_rounds(prob, options, rigid, state, weight, cap)
     frames = (
-        registered_frame(prob, cfg, state.gamma),
-        rotated_end_frame(prob, cfg, state.rotation),
+        registered_frame(prob, options, state.gamma),
+        rotated_end_frame(prob, options, state.rotation),
     )
-    return state, straight_line_energy(prob, cfg, *frames)
+    return state, straight_line_energy(prob, options, *frames)
 
 
 def batch_candidates() -> bool:
@@ -105,7 +105,7 @@ def batch_candidates() -> bool:
     return jax.default_backend() != "cpu"
 
 
-def _coarse_registration(prob, cfg, rigid, starts, batched=None) -> State:
+def _coarse_registration(prob, options, rigid, starts, batched=None) -> State:
     """From the starts (_initialize's result) to the registration the rounds with the
     whole path begin from.
 
@@ -132,14 +132,16 @@ def _coarse_registration(prob, cfg, rigid, starts, batched=None) -> State:
         eye = jnp.eye(3, dtype=dtype)
         rotations = jnp.stack([eye, kabsch(prob.f2, prob.f1) if rigid else eye])
         gammas = jnp.broadcast_to(prob.e1, (2, *prob.e1.shape))
-        start_frame = registered_frame(prob, cfg, prob.e1)
+        start_frame = registered_frame(prob, options, prob.e1)
         energies = jax.vmap(
-            lambda r: straight_line_energy(prob, cfg, start_frame, rotated_end_frame(prob, cfg, r))
+            lambda r: straight_line_energy(
+                prob, options, start_frame, rotated_end_frame(prob, options, r)
+            )
         )(rotations)
     zero = State(
         prob.e1,
         jnp.eye(3, dtype=dtype),
-        zero_coefficients(prob, cfg),
+        zero_coefficients(prob, options),
         jnp.zeros((), dtype),
         jnp.zeros((), jnp.int32),
         jnp.zeros((), bool),
@@ -151,7 +153,7 @@ def _coarse_registration(prob, cfg, rigid, starts, batched=None) -> State:
     if batched is None:
         batched = batch_candidates()
     if batched and n_starts > 0:
-        return _batched_candidates(prob, cfg, rigid, starts, steps)
+        return _batched_candidates(prob, options, rigid, starts, steps)
 
     # Every start's L2 rounds and then the best start's energy rounds are jobs of one
     # scan, and so one compiled copy of the rounds (weight and step limit traced).
@@ -162,8 +164,8 @@ def _coarse_registration(prob, cfg, rigid, starts, batched=None) -> State:
         i = jnp.where(matching, j, best.astype(jnp.int32))
         state = jax.tree_util.tree_map(lambda x: x[i], ends)
         weight = jnp.where(matching, 1.0, 0.0).astype(dtype)
-        cap = jnp.where(matching, MATCH_STEPS, cfg.max_steps)
-        state, straight = _ranked_rounds(prob, cfg, rigid, state, weight, cap)
+        cap = jnp.where(matching, MATCH_STEPS, options.max_steps)
+        state, straight = _ranked_rounds(prob, options, rigid, state, weight, cap)
         slot = jnp.minimum(j, n_starts - 1)
         ends = jax.tree_util.tree_map(
             lambda e, x: jnp.where(matching, e.at[slot].set(x), e),
@@ -179,21 +181,21 @@ def _coarse_registration(prob, cfg, rigid, starts, batched=None) -> State:
     return state._replace(steps=state.steps + steps + others)
 
 
-def _batched_candidates(prob, cfg, rigid, starts: State, steps) -> State:
+def _batched_candidates(prob, options, rigid, starts: State, steps) -> State:
     """_coarse_registration with the searched starts' L2 rounds vmapped (batch_candidates):
     the same rounds, ranking and energy rounds as the scan's jobs."""
     dtype = prob.f1.dtype
 
     def match(state):
         weight, cap = jnp.ones((), dtype), jnp.asarray(MATCH_STEPS)
-        state, straight = _ranked_rounds(prob, cfg, rigid, state, weight, cap)
+        state, straight = _ranked_rounds(prob, options, rigid, state, weight, cap)
         return state._replace(energy=straight)
 
     ends = jax.vmap(match)(starts)
     best = jnp.argmin(jnp.where(jnp.isfinite(ends.energy), ends.energy, jnp.inf))
     state = jax.tree_util.tree_map(lambda x: x[best], ends)
     state = _straight_rounds(
-        prob, cfg, rigid, state, jnp.zeros((), dtype), jnp.asarray(cfg.max_steps)
+        prob, options, rigid, state, jnp.zeros((), dtype), jnp.asarray(options.max_steps)
     )
     others = jnp.sum(ends.steps).astype(jnp.int32) - ends.steps[best]
     return state._replace(steps=state.steps + steps + others)
@@ -209,12 +211,12 @@ def given_only_starts(m: int, n: int, dtype):
     )
 
 
-def coarse_phase(metric, f1, f2, bases, starts, cfg, rigid) -> tuple[State, Array]:
+def coarse_phase(metric, f1, f2, bases, starts, options, rigid) -> tuple[State, Array]:
     """Phase 2: the coarse registration from the starts, and the energy history with its
     energy at [1] (no rounds with the path yet)."""
-    prob = make_problem(metric, f1, f2, bases, rigid, cfg.interpolation)
-    state = _coarse_registration(prob, cfg, rigid, starts)
-    energy = path_energy_at(prob, cfg, state.gamma, state.rotation, state.coefficients)
+    prob = make_problem(metric, f1, f2, bases, rigid, options.interpolation)
+    state = _coarse_registration(prob, options, rigid, starts)
+    energy = path_energy_at(prob, options, state.gamma, state.rotation, state.coefficients)
     state = state._replace(energy=energy, shrunk=jnp.zeros((), bool))
-    history = jnp.full((cfg.outer_steps + 2,), jnp.nan, energy.dtype).at[1].set(energy)
+    history = jnp.full((options.outer_steps + 2,), jnp.nan, energy.dtype).at[1].set(energy)
     return state, history

@@ -10,15 +10,10 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-from .._geodesics.geodesic import (
-    frames_between,
-    path_from_coefficients,
-    perturbed_frames,
-    safe_sqrt,
-    solve_path,
-    upsample_coefficients,
-)
+from .._geodesics.geodesic import solve_path, upsample_coefficients
+from .._geometry.bases import frames_between, path_from_coefficients, perturbed_frames
 from .._geometry.energy import frame_energy
+from .._geometry.numerics import safe_sqrt
 from .._results import RESULTS
 from .problem import (
     State,
@@ -41,22 +36,24 @@ from .records import Refinement, ShapeGeodesicResult
 from .rounds import Rounds
 
 
-def _refinement(prob, cfg, gamma, rotation, coefficients, energy) -> Refinement:
+def _refinement(prob, options, gamma, rotation, coefficients, energy) -> Refinement:
     """The result re-evaluated with halved time steps and on the (2m - 1) x (2n - 1) grid."""
-    metric, bases, degree = prob.metric, prob.bases, cfg.degree
-    start, end = registered_frame(prob, cfg, gamma), rotated_end_frame(prob, cfg, rotation)
-    n_fine = 2 * cfg.n_times - 1
+    metric, bases, degree = prob.metric, prob.bases, options.degree
+    start, end = registered_frame(prob, options, gamma), rotated_end_frame(prob, options, rotation)
+    n_fine = 2 * options.n_times - 1
     halved = upsample_coefficients(coefficients, degree, degree, n_fine)
     straight = frames_between(start, end, n_fine)
     frames = perturbed_frames(straight, halved, bases.dframe)
-    time_energy = frame_energy(metric, *frames, cfg.scheme)
+    time_energy = frame_energy(metric, *frames, options.scheme)
 
-    fine_gamma = compose(gamma, bases.fine_points, cfg.interpolation)
-    fine_start = frame_of(prob.source1, fine_gamma, cfg)
-    fine_end = [rotate_surface(rotation, a) for a in frame_of(prob.source2, bases.fine_points, cfg)]
-    straight = frames_between(fine_start, fine_end, cfg.n_times)
+    fine_gamma = compose(gamma, bases.fine_points, options.interpolation)
+    fine_start = frame_of(prob.source1, fine_gamma, options)
+    fine_end = [
+        rotate_surface(rotation, a) for a in frame_of(prob.source2, bases.fine_points, options)
+    ]
+    straight = frames_between(fine_start, fine_end, options.n_times)
     frames = perturbed_frames(straight, coefficients, bases.fine_dframe)
-    grid_energy = frame_energy(metric, *frames, cfg.scheme)
+    grid_energy = frame_energy(metric, *frames, options.scheme)
 
     d = jnp.sqrt(energy)
     d_time, d_grid = jnp.sqrt(time_energy), jnp.sqrt(grid_energy)
@@ -64,20 +61,20 @@ def _refinement(prob, cfg, gamma, rotation, coefficients, energy) -> Refinement:
     return Refinement(d_time, d_grid, change / jnp.maximum(d, jnp.finfo(d.dtype).tiny))
 
 
-def _final_solves(prob, cfg, state: State):
+def _final_solves(prob, options, state: State):
     """The unregistered and the registered geodesics, saddle-checked.
 
     One traced solve for both (lax.map runs them one after the other): half the
     compilation of two call sites.
     """
     f1, f2, bases = prob.f1, prob.f2, prob.bases
-    starts = jnp.stack([f1, registered_f1(prob, cfg, state.gamma)])
+    starts = jnp.stack([f1, registered_f1(prob, options, state.gamma)])
     ends = jnp.stack([f2, rotate_surface(state.rotation, f2)])
-    inits = jnp.stack([zero_coefficients(prob, cfg), state.coefficients])
-    identity = identity_frames(prob, cfg)
+    inits = jnp.stack([zero_coefficients(prob, options), state.coefficients])
+    identity = identity_frames(prob, options)
     registered = (
-        registered_frame(prob, cfg, state.gamma),
-        rotated_end_frame(prob, cfg, state.rotation),
+        registered_frame(prob, options, state.gamma),
+        rotated_end_frame(prob, options, state.rotation),
     )
     frames = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), identity, registered)
 
@@ -90,21 +87,21 @@ def _final_solves(prob, cfg, state: State):
             init,
             bases.values,
             bases.dframe,
-            **geodesic_options(cfg),
-            saddle_checks=cfg.saddle_checks,
+            **geodesic_options(options),
+            saddle_checks=options.saddle_checks,
             frames=(start_frame, end_frame),
         )
 
     return jax.lax.map(solve, (starts, ends, inits, frames))
 
 
-def geodesics_phase(metric, f1, f2, bases, rounds: Rounds, cfg, rigid):
+def geodesics_phase(metric, f1, f2, bases, rounds: Rounds, options, rigid):
     """Phase 4: the parametrized and the final geodesic (``rounds`` passed on)."""
-    prob = make_problem(metric, f1, f2, bases, rigid, cfg.interpolation)
-    return rounds, _final_solves(prob, cfg, rounds.state)
+    prob = make_problem(metric, f1, f2, bases, rigid, options.interpolation)
+    return rounds, _final_solves(prob, options, rounds.state)
 
 
-def end_phase(metric, f1, f2, bases, solved, cfg, rigid) -> ShapeGeodesicResult:
+def end_phase(metric, f1, f2, bases, solved, options, rigid) -> ShapeGeodesicResult:
     """Phase 5: the result from the rounds and the geodesics (status, refinement).
 
     The shape distance is an infimum over reparametrizations (and rotations), so the
@@ -114,7 +111,7 @@ def end_phase(metric, f1, f2, bases, solved, cfg, rigid) -> ShapeGeodesicResult:
     (and sqrt(eps) absolute, in the solve's unit-size units): a gap within it is the same
     minimum reached two ways, and keeps the rounds' status.
     """
-    prob = make_problem(metric, f1, f2, bases, rigid, cfg.interpolation)
+    prob = make_problem(metric, f1, f2, bases, rigid, options.interpolation)
     dtype = prob.f1.dtype
     rounds, both = solved
     parametrized, registered = (jax.tree_util.tree_map(lambda x, i=i: x[i], both) for i in (0, 1))
@@ -133,7 +130,7 @@ def end_phase(metric, f1, f2, bases, solved, cfg, rigid) -> ShapeGeodesicResult:
         registered.energy <= parametrized.energy * (1.0 + noise) + noise
     )
     not_registered = given_lower & ~(
-        registered.energy - parametrized.energy <= cfg.outer_tol * parametrized.energy + noise
+        registered.energy - parametrized.energy <= options.outer_tol * parametrized.energy + noise
     )
     final = jax.tree_util.tree_map(
         lambda a, b: jnp.where(given_lower, a, b), parametrized, registered
@@ -141,8 +138,8 @@ def end_phase(metric, f1, f2, bases, solved, cfg, rigid) -> ShapeGeodesicResult:
     gamma = jnp.where(given_lower, prob.e1, state.gamma)
     rotation = jnp.where(given_lower, jnp.eye(3, dtype=dtype), state.rotation)
 
-    scaling = scaling_at(prob, cfg, gamma, rotation)
-    joint = joint_objective(prob, cfg, rigid, gamma, rotation, scaling)
+    scaling = scaling_at(prob, options, gamma, rotation)
+    joint = joint_objective(prob, options, rigid, gamma, rotation, scaling)
     zero_step = zero_registration(prob, rigid, dtype)
     grad_norm = optx.two_norm(jax.grad(joint)((scaling.whitened(final.coefficients), zero_step)))
     rounds_result = RESULTS.where(
@@ -154,8 +151,8 @@ def end_phase(metric, f1, f2, bases, solved, cfg, rigid) -> ShapeGeodesicResult:
     result = RESULTS.where(not_registered, RESULTS.not_registered, result)
     finite = jnp.isfinite(final.energy)
     result = RESULTS.where(finite, result, RESULTS.nonfinite)
-    if cfg.refinement:
-        refinement = _refinement(prob, cfg, gamma, rotation, final.coefficients, final.energy)
+    if options.refinement:
+        refinement = _refinement(prob, options, gamma, rotation, final.coefficients, final.energy)
     else:
         nan = jnp.asarray(jnp.nan, dtype)
         refinement = Refinement(nan, nan, nan)
@@ -179,17 +176,17 @@ def end_phase(metric, f1, f2, bases, solved, cfg, rigid) -> ShapeGeodesicResult:
     )
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "rigid"))
-def _shape_evaluate(metric, f1, f2, bases, gamma, rotation, coefficients, *, cfg, rigid):
+@functools.partial(jax.jit, static_argnames=("options", "rigid"))
+def _shape_evaluate(metric, f1, f2, bases, gamma, rotation, coefficients, *, options, rigid):
     """The path from f1 o gamma to R f2 with the perturbation C, and its energy."""
-    prob = make_problem(metric, f1, f2, bases, rigid, cfg.interpolation)
-    start, end = registered_f1(prob, cfg, gamma), rotate_surface(rotation, prob.f2)
-    path = path_from_coefficients(start, end, coefficients, bases.values, cfg.n_times)
-    return path, path_energy_at(prob, cfg, gamma, rotation, coefficients)
+    prob = make_problem(metric, f1, f2, bases, rigid, options.interpolation)
+    start, end = registered_f1(prob, options, gamma), rotate_surface(rotation, prob.f2)
+    path = path_from_coefficients(start, end, coefficients, bases.values, options.n_times)
+    return path, path_energy_at(prob, options, gamma, rotation, coefficients)
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "rigid"))
-def shape_finish(metric, g1, g2, bases, solved, units, *, cfg, rigid) -> ShapeGeodesicResult:
+@functools.partial(jax.jit, static_argnames=("options", "rigid"))
+def shape_finish(metric, g1, g2, bases, solved, units, *, options, rigid) -> ShapeGeodesicResult:
     """The result in the user's units from the solve's: the path and its energy evaluated
     again at the solution (differentiably, see shape_geodesic), then the units restored.
     One compiled program: op by op, a first call would compile each operation alone."""
@@ -197,7 +194,7 @@ def shape_finish(metric, g1, g2, bases, solved, units, *, cfg, rigid) -> ShapeGe
         jax.lax.stop_gradient(x) for x in (solved.gamma, solved.rotation, solved.coefficients)
     )
     path, energy = _shape_evaluate(
-        metric, g1, g2, bases, gamma, rotation, coefficients, cfg=cfg, rigid=rigid
+        metric, g1, g2, bases, gamma, rotation, coefficients, options=options, rigid=rigid
     )
     unit_result = solved._replace(
         path=path, f1_registered=path[0], energy=energy, distance=safe_sqrt(energy)

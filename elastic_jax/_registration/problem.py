@@ -14,13 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._geodesics.geodesic import (
-    basis_np,
-    frames_between,
-    perturbed_frames,
-    solve_path,
-    solver_scaling,
-)
+from .._geodesics.geodesic import solve_path, solver_scaling
+from .._geometry.bases import basis_np, frames_between, perturbed_frames
 from .._geometry.differential import area_element, interior_frame
 from .._geometry.energy import frame_energy
 from .._geometry.grid import (
@@ -51,7 +46,7 @@ _STEP_SCALES = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.0)
 @cached
 def _field_scale_np(m: int, n: int, degree: int) -> np.ndarray:
     """1 / sqrt(l(l+1)) per vector field: differentials grow like l; this evens the Hessian."""
-    ls = harmonics_np(m, n, degree)[4][1:]
+    ls = harmonics_np(m, n, degree).degrees[1:]
     return np.repeat(1.0 / np.sqrt(ls * (ls + 1.0)), 2)
 
 
@@ -179,7 +174,7 @@ def are_resolved(gammas, floor):
     return (jnp.min(jac, axis=(-2, -1)) > 0) & (area >= floor)
 
 
-def safe_update(prob, cfg, gamma, y):
+def safe_update(prob, options, gamma, y):
     """The largest shrink of the step whose composition with gamma stays resolved, and
     whether the step had to shrink.
 
@@ -193,7 +188,7 @@ def safe_update(prob, cfg, gamma, y):
 
     def candidate(i):
         step = _step_field(scales[i] * y, bases, prob.e1)
-        return compose(gamma, step, cfg.interpolation)
+        return compose(gamma, step, options.interpolation)
 
     def usable(i, g):
         # The last shrink (scale 0) is gamma itself, which is valid.
@@ -245,23 +240,23 @@ def source_method(interpolation: str) -> str:
     return "coefficients" if interpolation == "spline" else interpolation
 
 
-def registered_f1(prob, cfg, gamma):
-    return reparametrize_unchecked(prob.source1, gamma, method=source_method(cfg.interpolation))
+def registered_f1(prob, options, gamma):
+    return reparametrize_unchecked(prob.source1, gamma, method=source_method(options.interpolation))
 
 
-def gamma_source(cfg, gamma):
+def gamma_source(options, gamma):
     """gamma as a round's objective reads it, for :func:`stepped_gamma`: with spline
     reads its spline's coefficients, computed once per round instead of in each
     evaluation (the same numbers; 25 x 49, degree 7 / 8: the step's value and gradient
     0.97 -> 0.80 ms)."""
-    return spline_coefficients(gamma) if cfg.interpolation == "spline" else gamma
+    return spline_coefficients(gamma) if options.interpolation == "spline" else gamma
 
 
-def stepped_gamma(prob, cfg, source, x):
+def stepped_gamma(prob, options, source, x):
     """gamma o Proj(Id + sum x_k v_k): the reparametrization after one more Diff step,
-    gamma given by ``source = gamma_source(cfg, gamma)``."""
+    gamma given by ``source = gamma_source(options, gamma)``."""
     step = _step_field(x, prob.bases, prob.e1)
-    return compose(source, step, source_method(cfg.interpolation))
+    return compose(source, step, source_method(options.interpolation))
 
 
 @cached
@@ -312,68 +307,68 @@ def _spline_frame(gamma):
     return tuple(v - at * jnp.sum(v * at, axis=0)[None] for v in spline_frame(gamma))
 
 
-def frame_of(f, gamma, cfg):
-    """The differential of f o gamma on gamma's interior points (cfg.differential), for a
+def frame_of(f, gamma, options):
+    """The differential of f o gamma on gamma's interior points (options.differential), for a
     Problem's source f (read by source_method)."""
-    read = source_method(cfg.interpolation)
-    if cfg.differential == "grid":
+    read = source_method(options.interpolation)
+    if options.differential == "grid":
         return interior_frame(reparametrize_unchecked(f, gamma, method=read))
-    return _chain_frame(f, gamma, cfg.interpolation, read)
+    return _chain_frame(f, gamma, options.interpolation, read)
 
 
-def registered_frame(prob, cfg, gamma):
+def registered_frame(prob, options, gamma):
     """The differential of f1 o gamma (interior points)."""
-    return frame_of(prob.source1, gamma, cfg)
+    return frame_of(prob.source1, gamma, options)
 
 
-def rotated_end_frame(prob, cfg, rotation):
+def rotated_end_frame(prob, options, rotation):
     """The differential of R f2 (interior points), taken as f1 o gamma's at the identity:
     identical inputs then have identical frames."""
-    if cfg.differential == "grid":
+    if options.differential == "grid":
         frame = interior_frame(prob.f2)
     else:
-        frame = frame_of(prob.source2, prob.e1, cfg)
+        frame = frame_of(prob.source2, prob.e1, options)
     return tuple(rotate_surface(rotation, a) for a in frame)
 
 
-def identity_frames(prob, cfg):
+def identity_frames(prob, options):
     """(f1's frame, f2's frame): the straight line without registration."""
-    if cfg.differential == "grid":  # the surfaces themselves, not read back at their points
+    if options.differential == "grid":  # the surfaces themselves, not read back at their points
         return interior_frame(prob.f1), interior_frame(prob.f2)
     eye = jnp.eye(3, dtype=prob.f1.dtype)
-    return registered_frame(prob, cfg, prob.e1), rotated_end_frame(prob, cfg, eye)
+    return registered_frame(prob, options, prob.e1), rotated_end_frame(prob, options, eye)
 
 
-def geodesic_options(cfg):
+def geodesic_options(options):
     return {
-        "n_times": cfg.n_times,
-        "solver": cfg.solver,
-        "max_steps": cfg.max_steps,
-        "tol": cfg.tol,
-        "scheme": cfg.scheme,
+        "n_times": options.n_times,
+        "solver": options.solver,
+        "max_steps": options.max_steps,
+        "tol": options.tol,
+        "scheme": options.scheme,
     }
 
 
-def geodesic_at(prob, cfg, gamma, rotation, init):
+def geodesic_at(prob, options, gamma, rotation, init):
     """The parametrized geodesic from f1 o gamma to R f2, warm-started at ``init``."""
     return solve_path(
         prob.metric,
-        registered_f1(prob, cfg, gamma),
+        registered_f1(prob, options, gamma),
         rotate_surface(rotation, prob.f2),
         init,
         prob.bases.values,
         prob.bases.dframe,
-        **geodesic_options(cfg),
-        frames=(registered_frame(prob, cfg, gamma), rotated_end_frame(prob, cfg, rotation)),
+        **geodesic_options(options),
+        frames=(registered_frame(prob, options, gamma), rotated_end_frame(prob, options, rotation)),
     )
 
 
-def straight_line_energy(prob, cfg, start_frame, end_frame):
+def straight_line_energy(prob, options, start_frame, end_frame):
     """The straight line's energy between two ends given by their frames."""
     # Ranking and refining straight lines needs no time resolution: 3 time points
     # (4.5x cheaper than N = 10) order the candidates the same way.
     frames = frames_between(start_frame, end_frame, 3)
-    return frame_energy(prob.metric, *frames, cfg.scheme)
+    return frame_energy(prob.metric, *frames, options.scheme)
 
 
 def l2_mismatch(start, end):
@@ -391,32 +386,32 @@ def registration_variables(prob, y, rigid):
     return x, r_step
 
 
-def joint_objective(prob, cfg, rigid, gamma, rotation, scaling):
+def joint_objective(prob, options, rigid, gamma, rotation, scaling):
     """Energy / scale as a function of (whitened path coefficients z, registration step y)."""
-    end_frame = rotated_end_frame(prob, cfg, rotation)
-    source = gamma_source(cfg, gamma)
+    end_frame = rotated_end_frame(prob, options, rotation)
+    source = gamma_source(options, gamma)
 
     def objective(variables):
         z, y = variables
         x, r_step = registration_variables(prob, y, rigid)
-        start = registered_frame(prob, cfg, stepped_gamma(prob, cfg, source, x))
+        start = registered_frame(prob, options, stepped_gamma(prob, options, source, x))
         end = [rotate_surface(r_step, a) for a in end_frame]
-        straight = frames_between(start, end, cfg.n_times)
+        straight = frames_between(start, end, options.n_times)
         frames = perturbed_frames(straight, scaling.coefficients(z), prob.bases.dframe)
-        return frame_energy(prob.metric, *frames, cfg.scheme) / scaling.energy_scale
+        return frame_energy(prob.metric, *frames, options.scheme) / scaling.energy_scale
 
     return objective
 
 
-def scaling_at(prob, cfg, gamma, rotation):
+def scaling_at(prob, options, gamma, rotation):
     return solver_scaling(
         prob.metric,
-        registered_f1(prob, cfg, gamma),
+        registered_f1(prob, options, gamma),
         rotate_surface(rotation, prob.f2),
         prob.bases.dframe,
-        cfg.n_times,
-        cfg.scheme,
-        (registered_frame(prob, cfg, gamma), rotated_end_frame(prob, cfg, rotation)),
+        options.n_times,
+        options.scheme,
+        (registered_frame(prob, options, gamma), rotated_end_frame(prob, options, rotation)),
     )
 
 
@@ -424,21 +419,21 @@ def zero_registration(prob, rigid, dtype):
     return jnp.zeros(prob.bases.field_scale.shape[0] + (3 if rigid else 0), dtype)
 
 
-def path_frames_at(prob, cfg, gamma, rotation, coefficients):
+def path_frames_at(prob, options, gamma, rotation, coefficients):
     """The frames (a1, a2), each ``(N, 3, m - 2, n - 1)``, of the straight line from
     f1 o gamma to R f2 plus the perturbation: the path as the solve sees it."""
-    start, end = registered_frame(prob, cfg, gamma), rotated_end_frame(prob, cfg, rotation)
-    straight = frames_between(start, end, cfg.n_times)
+    start, end = registered_frame(prob, options, gamma), rotated_end_frame(prob, options, rotation)
+    straight = frames_between(start, end, options.n_times)
     return perturbed_frames(straight, coefficients, prob.bases.dframe)
 
 
-def path_energy_at(prob, cfg, gamma, rotation, coefficients):
+def path_energy_at(prob, options, gamma, rotation, coefficients):
     """Energy of the straight line from f1 o gamma to R f2 plus the perturbation."""
-    frames = path_frames_at(prob, cfg, gamma, rotation, coefficients)
-    return frame_energy(prob.metric, *frames, cfg.scheme)
+    frames = path_frames_at(prob, options, gamma, rotation, coefficients)
+    return frame_energy(prob.metric, *frames, options.scheme)
 
 
-def matching_criterion(prob, cfg, weight):
+def matching_criterion(prob, options, weight):
     """weight * L2 position mismatch + (1 - weight) * straight-line energy (3 time points).
 
     The L2 mismatch int |f1 o gamma - R f2|^2 dsigma has no derivatives of the surfaces
@@ -449,9 +444,9 @@ def matching_criterion(prob, cfg, weight):
     """
 
     def criterion(gamma, rotation):
-        l2 = l2_mismatch(registered_f1(prob, cfg, gamma), rotate_surface(rotation, prob.f2))
-        frames = registered_frame(prob, cfg, gamma), rotated_end_frame(prob, cfg, rotation)
-        return weight * l2 + (1.0 - weight) * straight_line_energy(prob, cfg, *frames)
+        l2 = l2_mismatch(registered_f1(prob, options, gamma), rotate_surface(rotation, prob.f2))
+        frames = registered_frame(prob, options, gamma), rotated_end_frame(prob, options, rotation)
+        return weight * l2 + (1.0 - weight) * straight_line_energy(prob, options, *frames)
 
     return criterion
 
@@ -487,8 +482,8 @@ def iterate(round_fn, state: State, max_rounds: int, small_change, history=None)
     return jax.lax.while_loop(keep_going, body, start)
 
 
-def zero_coefficients(prob, cfg):
-    return jnp.zeros((cfg.n_times - 2, prob.bases.dframe.shape[0] * 3), prob.f1.dtype)
+def zero_coefficients(prob, options):
+    return jnp.zeros((options.n_times - 2, prob.bases.dframe.shape[0] * 3), prob.f1.dtype)
 
 
 def on_grid(f, points, interpolation):
@@ -519,11 +514,11 @@ def make_problem(metric, f1, f2, bases, rigid, interpolation="bicubic") -> Probl
     return Problem(metric, w1, w2, e1, bases, f1, f2)
 
 
-def make_bases(m: int, n: int, cfg: ShapeOptions, dtype) -> _Bases:
-    values, dframe = basis_np(m, n, cfg.degree)
-    tables = vector_field_tables_np(m, n, cfg.vf_degree)
+def make_bases(m: int, n: int, options: ShapeOptions, dtype) -> _Bases:
+    values, dframe = basis_np(m, n, options.degree)
+    tables = vector_field_tables_np(m, n, options.vf_degree)
     fine = (2 * m - 1, 2 * n - 1)
-    fine_dframe = basis_np(*fine, cfg.degree)[1] if cfg.refinement else np.zeros((1, 1))
+    fine_dframe = basis_np(*fine, options.degree)[1] if options.refinement else np.zeros((1, 1))
     arrays = _Bases(
         values=values,
         dframe=dframe,
@@ -532,7 +527,7 @@ def make_bases(m: int, n: int, cfg: ShapeOptions, dtype) -> _Bases:
         field_trig=tables.trig,
         field_frames=tables.frames,
         field_poles=tables.poles,
-        field_scale=_field_scale_np(m, n, cfg.vf_degree),
+        field_scale=_field_scale_np(m, n, options.vf_degree),
         ico=icosahedral_np(),
         fine_points=sphere_points_np(*fine),
         fine_dframe=fine_dframe,

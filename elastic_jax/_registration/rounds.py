@@ -26,7 +26,7 @@ from .problem import (
 )
 
 
-def _round(prob, cfg, rigid, state: State) -> State:
+def _round(prob, options, rigid, state: State) -> State:
     """One registration round.
 
     joint (Algorithm 2): BFGS over the path coefficients and the next Diff step (and a
@@ -38,26 +38,26 @@ def _round(prob, cfg, rigid, state: State) -> State:
     1 % of its limit in 4 rounds.
     """
     dtype = state.energy.dtype
-    scaling = scaling_at(prob, cfg, state.gamma, state.rotation)
-    objective = joint_objective(prob, cfg, rigid, state.gamma, state.rotation, scaling)
+    scaling = scaling_at(prob, options, state.gamma, state.rotation)
+    objective = joint_objective(prob, options, rigid, state.gamma, state.rotation, scaling)
     y0 = zero_registration(prob, rigid, dtype)
     z0 = scaling.whitened(state.coefficients)
-    options = {"solver": cfg.solver, "max_steps": cfg.max_steps, "tol": cfg.tol}
-    if cfg.method == "joint":
-        found = minimize(objective, (z0, y0), **options)
+    solver_kwargs = {"solver": options.solver, "max_steps": options.max_steps, "tol": options.tol}
+    if options.method == "joint":
+        found = minimize(objective, (z0, y0), **solver_kwargs)
         z, y = found.x
     else:
-        found = minimize(lambda y: objective((z0, y)), y0, **options)
+        found = minimize(lambda y: objective((z0, y)), y0, **solver_kwargs)
         z, y = z0, found.x
     x, r_step = registration_variables(prob, y, rigid)
-    gamma, shrunk = safe_update(prob, cfg, state.gamma, x)
+    gamma, shrunk = safe_update(prob, options, state.gamma, x)
     rotation = r_step @ state.rotation
     coefficients = scaling.coefficients(z)
     steps = state.steps + found.num_steps
-    if cfg.method == "joint":
-        energy = path_energy_at(prob, cfg, gamma, rotation, coefficients)
+    if options.method == "joint":
+        energy = path_energy_at(prob, options, gamma, rotation, coefficients)
     else:
-        res = geodesic_at(prob, cfg, gamma, rotation, coefficients)
+        res = geodesic_at(prob, options, gamma, rotation, coefficients)
         coefficients, energy, steps = res.coefficients, res.energy, steps + res.num_steps
     return State(gamma, rotation, coefficients, energy, steps, shrunk)
 
@@ -71,25 +71,31 @@ class Rounds(NamedTuple):
     done: Array  # () bool: the last round met outer_tol or was refused
 
 
-def rounds_phase(metric, f1, f2, bases, coarse, cfg, rigid) -> Rounds:
+def rounds_phase(metric, f1, f2, bases, coarse, options, rigid) -> Rounds:
     """Phase 3: the registration rounds with the whole path."""
-    prob = make_problem(metric, f1, f2, bases, rigid, cfg.interpolation)
-    straight0 = straight_line_energy(prob, cfg, *identity_frames(prob, cfg))
+    prob = make_problem(metric, f1, f2, bases, rigid, options.interpolation)
+    straight0 = straight_line_energy(prob, options, *identity_frames(prob, options))
 
     def small_change(before, after):
         # Relative to the current energy, with a floor at outer_tol times the straight
         # line's: near a perfect match the energy is interpolation noise.
-        return jnp.abs(before - after) <= cfg.outer_tol * (after + cfg.outer_tol * straight0)
+        return jnp.abs(before - after) <= options.outer_tol * (
+            after + options.outer_tol * straight0
+        )
 
     state, history = coarse
     return Rounds(
         *iterate(
-            lambda s: _round(prob, cfg, rigid, s), state, cfg.outer_steps, small_change, history
+            lambda s: _round(prob, options, rigid, s),
+            state,
+            options.outer_steps,
+            small_change,
+            history,
         )
     )
 
 
-def continuation_phase(metric, f1, f2, bases, carried, cfg, rigid) -> tuple[State, Array]:
+def continuation_phase(metric, f1, f2, bases, carried, options, rigid) -> tuple[State, Array]:
     """Phase 3's start from a registration carried from a coarser working grid (gamma
     and R read at this grid's points, the path's coefficients as they were): the state
     and the energy history coarse_phase would give, without its rounds.
@@ -103,12 +109,12 @@ def continuation_phase(metric, f1, f2, bases, carried, cfg, rigid) -> tuple[Stat
     0.547; continued, 0.5475). The path's coefficients are those of spherical harmonics,
     the same functions on every grid.
     """
-    prob = make_problem(metric, f1, f2, bases, rigid, cfg.interpolation)
+    prob = make_problem(metric, f1, f2, bases, rigid, options.interpolation)
     gamma, rotation, coefficients = carried
-    energy = path_energy_at(prob, cfg, gamma, rotation, coefficients)
+    energy = path_energy_at(prob, options, gamma, rotation, coefficients)
     dtype = energy.dtype
     state = State(
         gamma, rotation, coefficients, energy, jnp.zeros((), jnp.int32), jnp.zeros((), bool)
     )
-    history = jnp.full((cfg.outer_steps + 2,), jnp.nan, dtype).at[1].set(energy)
+    history = jnp.full((options.outer_steps + 2,), jnp.nan, dtype).at[1].set(energy)
     return state, history

@@ -29,18 +29,16 @@ from jaxtyping import ArrayLike, Float
 
 from .._checks import is_concrete
 from .._errors import ConvergenceWarning, InputError
-from .._geodesics.geodesic import (
-    GeodesicResult,
-    check_pair,
-    constant,
-    default_tol,
-)
+from .._geodesics.geodesic import GeodesicResult
+from .._geodesics.solvers import default_tol
 from .._geometry.harmonics import check_degree
 from .._geometry.metric import SplitMetric
+from .._geometry.numerics import constant
 from .._geometry.reparam import (
     jacobian_determinant_unchecked,
 )
 from .._geometry.units import in_units
+from .._geometry.validation import check_pair
 from .._options import ShapeOptions, check_choice
 from .._results import RESULTS
 from .._runtime.cache import phase_chain, solver_jit
@@ -83,7 +81,7 @@ _CONTINUATION = ("shape_continue", continuation_phase, (_STATE_SKELETON, 0))
 # The last phase runs for milliseconds and decides nothing the result reports as found
 # (its gradient norm and refinement are diagnostics): compiled for compile speed.
 _PHASE_JITS = {
-    name: solver_jit(f, static_argnames=("cfg", "rigid"), quick=name == "shape_end")
+    name: solver_jit(f, static_argnames=("options", "rigid"), quick=name == "shape_end")
     for name, f, _ in (*_PHASES, _CONTINUATION)
 }
 
@@ -103,9 +101,9 @@ def _phases(starts, carried) -> tuple[list[tuple], tuple]:
 
 
 def _solve_in_phases(
-    args: tuple, cfg: ShapeOptions, rigid: bool, starts=None, carried=None, after=None
+    args: tuple, options: ShapeOptions, rigid: bool, starts=None, carried=None, after=None
 ) -> ShapeGeodesicResult:
-    """_shape_solve(*args, cfg, rigid), one compiled program per phase; ``starts`` (the
+    """_shape_solve(*args, options, rigid), one compiled program per phase; ``starts`` (the
     first phase's result, given) skips the start search; ``carried`` (gamma, R and the
     path's coefficients, in the solve's units) skips the coarse rounds as well
     (continuation_phase).
@@ -121,7 +119,7 @@ def _solve_in_phases(
     phases are part of the caller's one program.
     """
     phases, given = _phases(starts, carried)
-    return phase_chain(phases, args, given, {"cfg": cfg, "rigid": rigid}, after)
+    return phase_chain(phases, args, given, {"options": options, "rigid": rigid}, after)
 
 
 # What each phase has done when it reports (shape_geodesic's progress).
@@ -169,9 +167,9 @@ class _Reporter:
         return after
 
 
-def _shape_solve(metric, f1, f2, bases, cfg, rigid) -> ShapeGeodesicResult:
+def _shape_solve(metric, f1, f2, bases, options, rigid) -> ShapeGeodesicResult:
     """The whole solve (_solve_in_phases); traced inside a jit, one program."""
-    return _solve_in_phases((metric, f1, f2, bases), cfg, rigid)
+    return _solve_in_phases((metric, f1, f2, bases), options, rigid)
 
 
 def resolve_options(options: ShapeOptions | None, changes: dict) -> ShapeOptions:
@@ -313,45 +311,45 @@ def shape_geodesic(
     check_choice("modulo", modulo, MODULI)
     if progress is not None and not callable(progress):
         raise InputError(f"progress must be a callable taking a dict; got {progress!r}")
-    cfg = resolve_options(options, changes)
+    resolved = resolve_options(options, changes)
     f1, f2 = check_pair(f1, f2, same_grid=False)
     if symmetric:
-        return _symmetric_solve(f1, f2, metric, modulo, cfg, start, progress)
+        return _symmetric_solve(f1, f2, metric, modulo, resolved, start, progress)
     reporter = None if progress is None else _Reporter(progress)
-    if cfg.resolves:
-        return _levels_solve(f1, f2, metric, modulo, cfg, start, reporter)
-    result = _one_grid_solve(f1, f2, metric, modulo, cfg, start, reporter=reporter)
+    if resolved.resolves:
+        return _levels_solve(f1, f2, metric, modulo, resolved, start, reporter)
+    result = _one_grid_solve(f1, f2, metric, modulo, resolved, start, reporter=reporter)
     _warn_unless_converged(result)
     return result
 
 
-def _grid_setup(f1, f2, metric, cfg):
-    """(cfg, units, g1, g2, args) of a solve on cfg's working grid: the static record,
+def _grid_setup(f1, f2, metric, options):
+    """(options, units, g1, g2, args) of a solve on options's working grid: the static record,
     f1 and f2 in the solve's units, and the phases' arguments (the metric, g1, g2 and the
     bases) as constants: the solve runs on constants and shape_finish differentiates."""
-    m, n = working_grid_of(cfg, f1, f2)
-    check_grid_options(cfg, m, n)
+    m, n = working_grid_of(options, f1, f2)
+    check_grid_options(options, m, n)
     # One static record per grid and settings, however the grid was asked for (grid=,
     # the inputs' grid, a level): one compiled program for each.
-    cfg = cfg.replace(grid=(m, n), rtol=None)
-    if cfg.tol is None:
-        cfg = cfg.replace(tol=default_tol(f1.dtype))
+    options = options.replace(grid=(m, n), rtol=None)
+    if options.tol is None:
+        options = options.replace(tol=default_tol(f1.dtype))
     # Solve in units of the surfaces' size (see _geometry/units.py): float32 works at any scale.
     units, (g1, g2) = in_units(f1, f2)
-    bases = make_bases(m, n, cfg, f1.dtype)
+    bases = make_bases(m, n, options, f1.dtype)
     args = (constant(metric), jax.lax.stop_gradient(g1), jax.lax.stop_gradient(g2), bases)
-    return cfg, units, g1, g2, args
+    return options, units, g1, g2, args
 
 
 def _one_grid_solve(
-    f1, f2, metric, modulo, cfg, start, carry=None, reporter=None
+    f1, f2, metric, modulo, options, start, carry=None, reporter=None
 ) -> ShapeGeodesicResult:
     """shape_geodesic on one working grid; ``carry`` = (gamma, R, coefficients or None)
     continues a registration instead of searching starts (``start`` is then not used):
     the level below's registration and path in the user's units (_levels_solve), or an
     inverted registration from its straight line (None; _symmetric_solve)."""
-    cfg, units, g1, g2, args = _grid_setup(f1, f2, metric, cfg)
-    m, n = cfg.grid
+    options, units, g1, g2, args = _grid_setup(f1, f2, metric, options)
+    m, n = options.grid
     dtype = f1.dtype
     rigid = modulo == "rigid"
     *_, bases = args  # the phases' arguments end with the bases
@@ -361,7 +359,7 @@ def _one_grid_solve(
         gamma, rotation, coefficients = carry
         gammas, rotations, _ = given_start((gamma, rotation), m, n, dtype, rigid)
         if coefficients is None:  # the straight line
-            coefficients = jnp.zeros((cfg.n_times - 2, bases.dframe.shape[0] * 3), dtype)
+            coefficients = jnp.zeros((options.n_times - 2, bases.dframe.shape[0] * 3), dtype)
         else:  # the user's units to the solve's
             coefficients = jnp.asarray(coefficients, dtype) / units.scale
         carried = (gammas[0], rotations[0], coefficients)
@@ -371,11 +369,11 @@ def _one_grid_solve(
     # energy in f1, f2 and the metric, with gamma, R and C held).
     after = None
     if reporter is not None and is_concrete(units.scale):
-        after = reporter.phases(cfg.grid, float(units.scale))
+        after = reporter.phases(options.grid, float(units.scale))
 
     def solve(starts, carried=None):
-        solved = _solve_in_phases(args, cfg, rigid, starts, carried, after)
-        return shape_finish(metric, g1, g2, bases, solved, units, cfg=cfg, rigid=rigid)
+        solved = _solve_in_phases(args, options, rigid, starts, carried, after)
+        return shape_finish(metric, g1, g2, bases, solved, units, options=options, rigid=rigid)
 
     result = solve(starts, carried)
     # By name: an eager == would compile a program of its own in each process.
@@ -390,8 +388,8 @@ def _one_grid_solve(
     return result
 
 
-def continued_geodesic(f1, f2, metric, modulo, cfg, gamma, rotation, coefficients):
-    """shape_geodesic on ``cfg``'s one working grid (``cfg.grid``, else the inputs'),
+def continued_geodesic(f1, f2, metric, modulo, options, gamma, rotation, coefficients):
+    """shape_geodesic on ``options``'s one working grid (``options.grid``, else the inputs'),
     continuing a registration and path: the registration rounds with the whole path start
     from gamma ``(3, p, q)`` (read at the working grid's points when on another grid), R
     ``(3, 3)`` and the path's coefficients ``(N - 2, L)`` in f1's and f2's units (a
@@ -401,14 +399,14 @@ def continued_geodesic(f1, f2, metric, modulo, cfg, gamma, rotation, coefficient
     where the rounds' local minimum is (the resolved Karcher mean's steps; a level above
     the first). Traceable (jit, vmap); no ConvergenceWarning (the result's status says).
     """
-    m, n = working_grid_of(cfg, f1, f2)
-    cfg = cfg.replace(grid=(m, n), rtol=None)
+    m, n = working_grid_of(options, f1, f2)
+    options = options.replace(grid=(m, n), rtol=None)
     carry = (gamma, rotation, coefficients)
-    return _one_grid_solve(f1, f2, metric, modulo, cfg, None, carry=carry)
+    return _one_grid_solve(f1, f2, metric, modulo, options, None, carry=carry)
 
 
-def _levels_solve(f1, f2, metric, modulo, cfg, start, reporter=None) -> ShapeGeodesicResult:
-    """shape_geodesic with ``cfg.rtol``: the working grids of ``cfg.levels`` coarse to
+def _levels_solve(f1, f2, metric, modulo, options, start, reporter=None) -> ShapeGeodesicResult:
+    """shape_geodesic with ``options.rtol``: the working grids of ``options.levels`` coarse to
     fine, each level continuing the one below (its registration and path: no new start
     search, no coarse rounds; continuation_phase), until two successive distances agree
     within rtol (math §10). The first level starts from ``start`` or searches its own.
@@ -430,11 +428,11 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start, reporter=None) -> ShapeGeo
         except (TypeError, IndexError, KeyError):
             own = ()
         if len(own) != 2:
-            own = cfg.levels[0]  # malformed: given_start names the problem
+            own = options.levels[0]  # malformed: given_start names the problem
         given_start(start, *own, f1.dtype, modulo == "rigid")
-    for m, n in cfg.levels:
+    for m, n in options.levels:
         try:
-            check_grid_options(cfg, m, n)
+            check_grid_options(options, m, n)
         except InputError as error:
             raise InputError(f"levels: the {m} x {n} level: {error}") from None
     grids, distances, seconds = [], [], []
@@ -442,17 +440,17 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start, reporter=None) -> ShapeGeo
     noise = _noise_distance(f1, f2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
-        for index, grid in enumerate(cfg.levels, 1):
+        for index, grid in enumerate(options.levels, 1):
             begin = time.perf_counter()
             if reporter is not None:
-                reporter.level = {"level": index, "levels": len(cfg.levels)}
+                reporter.level = {"level": index, "levels": len(options.levels)}
             # A level above the first continues the one below (continuation_phase): its
             # registration and path, without a new start search or coarse rounds. The
             # coarser gamma's interpolant can fold between its points (the cats at
             # 13 x 25 read at 25 x 49, chain rule), and so can a fine start read on a
             # coarse level: that level searches its own start.
             carried = registration_at(start if result is None else result, grid, f1.dtype, modulo)
-            level = cfg.replace(rtol=None, grid=grid)
+            level = options.replace(rtol=None, grid=grid)
             if result is not None and carried is not None:
                 carry = (*carried, result.coefficients)
                 result = _one_grid_solve(
@@ -472,11 +470,13 @@ def _levels_solve(f1, f2, metric, modulo, cfg, start, reporter=None) -> ShapeGeo
                     converged=bool(result.converged),
                 )
             change = _change(distances, result.parametrized_distance, noise)
-            if not np.isfinite(distances[-1]) or (change <= cfg.rtol and bool(result.converged)):
+            if not np.isfinite(distances[-1]) or (
+                change <= options.rtol and bool(result.converged)
+            ):
                 break  # a non-finite level (RESULTS.nonfinite) ends the levels too
     if reporter is not None:
         reporter.level = {}
-    result = _with_levels(result, grids, distances, seconds, cfg.rtol, noise)
+    result = _with_levels(result, grids, distances, seconds, options.rtol, noise)
     _warn_unless_converged(result, stacklevel=4)
     return result
 
@@ -545,7 +545,7 @@ def registration_at(start, grid, dtype, modulo):
     return gammas[0], rotations[0]
 
 
-def _symmetric_solve(f1, f2, metric, modulo, cfg, start, progress=None) -> ShapeGeodesicResult:
+def _symmetric_solve(f1, f2, metric, modulo, resolved, start, progress=None) -> ShapeGeodesicResult:
     """shape_geodesic(symmetric=True): the lower of this order's solve and its solve from
     the other order's registration inverted (when that one ends lower)."""
     if not is_concrete(f1, f2, metric):
@@ -553,7 +553,7 @@ def _symmetric_solve(f1, f2, metric, modulo, cfg, start, progress=None) -> Shape
             "symmetric=True compares whole solves: it needs concrete inputs, not tracers "
             "(call it outside jax.jit and jax.vmap)"
         )
-    solve = functools.partial(shape_geodesic, metric=metric, modulo=modulo, options=cfg)
+    solve = functools.partial(shape_geodesic, metric=metric, modulo=modulo, options=resolved)
     begin = time.perf_counter()
 
     def order(name):  # the order's reports, timed from this call's beginning
@@ -577,7 +577,7 @@ def _symmetric_solve(f1, f2, metric, modulo, cfg, start, progress=None) -> Shape
                 grid = tuple(other.gamma.shape[-2:])
                 begin = time.perf_counter()
                 carry = (inverse, other.rotation.T, None)
-                level = cfg.replace(rtol=None, grid=grid)
+                level = resolved.replace(rtol=None, grid=grid)
                 third = order("f1 -> f2 from f2 -> f1")
                 reporter = None if third is None else _Reporter(third)
                 again = _one_grid_solve(
@@ -591,7 +591,9 @@ def _symmetric_solve(f1, f2, metric, modulo, cfg, start, progress=None) -> Shape
                     seconds = np.asarray(levels.seconds).tolist()
                     seconds[-1] += time.perf_counter() - begin
                     noise = _noise_distance(f1, f2)
-                    again = _with_levels(again, levels.grids, distances, seconds, cfg.rtol, noise)
+                    again = _with_levels(
+                        again, levels.grids, distances, seconds, resolved.rtol, noise
+                    )
                 if float(again.distance) < float(best.distance):
                     best = again
     _warn_unless_converged(best)

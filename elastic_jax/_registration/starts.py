@@ -78,14 +78,14 @@ def _start_map(points, max_boost, q, vb):
     )
 
 
-def _aligned(prob, cfg, rigid, gamma):
+def _aligned(prob, options, rigid, gamma):
     """f1 o gamma and R^3's Procrustes rotation of f2 onto it (the identity unless rigid)."""
-    start = registered_f1(prob, cfg, gamma)
+    start = registered_f1(prob, options, gamma)
     r = kabsch(prob.f2, start) if rigid else jnp.eye(3, dtype=start.dtype)
     return start, r
 
 
-def _start(prob, cfg, rigid, q, vb):
+def _start(prob, options, rigid, q, vb):
     """A searched start as (gamma, R): its boost shrunk until the grid resolves gamma.
 
     The boost is bounded to what the grid resolves for a generic direction; shrink it
@@ -95,10 +95,10 @@ def _start(prob, cfg, rigid, q, vb):
     maps = jax.vmap(lambda b: _start_map(prob.e1, prob.bases.max_boost, q, vb.at[3:].set(b)))
     ok = are_resolved(maps(boosts), prob.bases.area_floor).at[-1].set(True)
     gamma = _start_map(prob.e1, prob.bases.max_boost, q, vb.at[3:].set(boosts[jnp.argmax(ok)]))
-    return gamma, _aligned(prob, cfg, rigid, gamma)[1]
+    return gamma, _aligned(prob, options, rigid, gamma)[1]
 
 
-def _initialize_moebius(prob, cfg, rigid):
+def _initialize_moebius(prob, options, rigid):
     """The starts of the registration for init="moebius" (docs/guides/registration_notes.md).
 
     Returns (gammas ``(S, 3, m, n)``, rotations ``(S, 3, 3)``, solver steps). Each of the
@@ -124,13 +124,13 @@ def _initialize_moebius(prob, cfg, rigid):
     reference = jnp.where(reference > 0, reference, 1.0)
 
     def objective(q, vb):
-        start, r = _aligned(prob, cfg, rigid, _start_map(prob.e1, prob.bases.max_boost, q, vb))
+        start, r = _aligned(prob, options, rigid, _start_map(prob.e1, prob.bases.max_boost, q, vb))
         return l2_mismatch(start, rotate_surface(r, prob.f2)) / reference
 
     # The short search from every icosahedral rotation and then the refinement of the
     # chosen init_candidates are jobs of one scan, and so one compiled solve (its
     # objective and gradient are the bulk of the program); the step limit is traced.
-    ico, k = prob.bases.ico, cfg.init_candidates
+    ico, k = prob.bases.ico, options.init_candidates
     n_ico = ico.shape[0]
     # Where each searched start maps a few points of the sphere: the icosahedron's 12
     # vertices and 20 face centres under the rotation only would miss the boost, so the
@@ -145,13 +145,13 @@ def _initialize_moebius(prob, cfg, rigid):
         chosen = _distinct_best(values, points, k, _DISTINCT_STARTS)
         i = jnp.where(searching, j, chosen[(j - n_ico) % k])
         u0 = jnp.where(searching, jnp.zeros(6, dtype), params[i])
-        cap = jnp.where(searching, _SEARCH_STEPS, cfg.max_steps)
+        cap = jnp.where(searching, _SEARCH_STEPS, options.max_steps)
         found = minimize(
             lambda u: objective(ico[i], u),
             u0,
-            solver=cfg.solver,
-            max_steps=max(cfg.max_steps, _SEARCH_STEPS),
-            tol=cfg.tol,
+            solver=options.solver,
+            max_steps=max(options.max_steps, _SEARCH_STEPS),
+            tol=options.tol,
             step_cap=cap,
         )
         value = jnp.where(jnp.isfinite(found.value), found.value, jnp.inf)
@@ -165,11 +165,11 @@ def _initialize_moebius(prob, cfg, rigid):
     _, (index, us, job_steps) = jax.lax.scan(job, searched, jobs)
     qs, vbs = ico[index[n_ico:]], us[n_ico:]
 
-    gammas, rotations = jax.vmap(lambda q, vb: _start(prob, cfg, rigid, q, vb))(qs, vbs)
+    gammas, rotations = jax.vmap(lambda q, vb: _start(prob, options, rigid, q, vb))(qs, vbs)
     return gammas, rotations, jnp.sum(job_steps).astype(jnp.int32)
 
 
-def _initialize_energy(prob, cfg, rigid):
+def _initialize_energy(prob, options, rigid):
     """The starts for init="energy" and "icosahedral": Remark 4, widened to the Moebius group.
 
     Returns (gammas ``(S, 3, m, n)``, rotations ``(S, 3, 3)``, solver steps). The 60
@@ -186,14 +186,14 @@ def _initialize_energy(prob, cfg, rigid):
     """
     dtype = prob.f1.dtype
 
-    reference = straight_line_energy(prob, cfg, *identity_frames(prob, cfg))
+    reference = straight_line_energy(prob, options, *identity_frames(prob, options))
     reference = jnp.where(reference > 0, reference, 1.0)
 
     def objective(q, vb):
         gamma = _start_map(prob.e1, prob.bases.max_boost, q, vb)
-        _, r = _aligned(prob, cfg, rigid, gamma)
-        start, end = registered_frame(prob, cfg, gamma), rotated_end_frame(prob, cfg, r)
-        return straight_line_energy(prob, cfg, start, end) / reference
+        _, r = _aligned(prob, options, rigid, gamma)
+        start, end = registered_frame(prob, options, gamma), rotated_end_frame(prob, options, r)
+        return straight_line_energy(prob, options, start, end) / reference
 
     def refine(q, vb0, max_steps, free, cap=None):
         # free = 3: rotations only (the boost stays 0); 6: the Moebius group.
@@ -203,9 +203,9 @@ def _initialize_energy(prob, cfg, rigid):
         found = minimize(
             restricted,
             vb0[:free],
-            solver=cfg.solver,
+            solver=options.solver,
             max_steps=max_steps,
-            tol=cfg.tol,
+            tol=options.tol,
             step_cap=cap,
         )
         vb = vb0.at[:free].set(found.x) if free == 3 else found.x
@@ -216,7 +216,7 @@ def _initialize_energy(prob, cfg, rigid):
     # The short search from every icosahedral rotation and then the refinement of the
     # best init_candidates over rotations are jobs of one scan, and so one compiled solve
     # (its objective and gradient are the bulk of the program); the step limit is traced.
-    ico, k = prob.bases.ico, cfg.init_candidates
+    ico, k = prob.bases.ico, options.init_candidates
     n_ico = ico.shape[0]
 
     def job(searched, j):
@@ -225,8 +225,8 @@ def _initialize_energy(prob, cfg, rigid):
         top = jax.lax.top_k(-energies, k)[1].astype(jnp.int32)  # once the search is done
         i = jnp.where(searching, j, top[(j - n_ico) % k])
         start = jnp.where(searching, jnp.zeros(6, dtype), params[i])
-        cap = jnp.where(searching, _SEARCH_STEPS, cfg.max_steps)
-        energy, vb, steps = refine(ico[i], start, max(cfg.max_steps, _SEARCH_STEPS), 3, cap)
+        cap = jnp.where(searching, _SEARCH_STEPS, options.max_steps)
+        energy, vb, steps = refine(ico[i], start, max(options.max_steps, _SEARCH_STEPS), 3, cap)
         slot = jnp.minimum(j, n_ico - 1)
         energies = jnp.where(searching, energies.at[slot].set(energy), energies)
         params = jnp.where(searching, params.at[slot].set(vb), params)
@@ -238,30 +238,34 @@ def _initialize_energy(prob, cfg, rigid):
     top, vbs = index[n_ico:], vbs[n_ico:]
     qs = ico[top]
     steps = jnp.sum(job_steps)
-    if cfg.init == "energy":
+    if options.init == "energy":
         # Six parameters where the rotations have three: a solve of its own.
-        _, boosted, more = jax.lax.map(lambda i: refine(ico[i], params[i], cfg.max_steps, 6), top)
+        _, boosted, more = jax.lax.map(
+            lambda i: refine(ico[i], params[i], options.max_steps, 6), top
+        )
         qs, vbs = jnp.concatenate([qs, qs]), jnp.concatenate([vbs, boosted])
         steps = steps + jnp.sum(more)
 
-    gammas, rotations = jax.vmap(lambda q, vb: _start(prob, cfg, rigid, q, vb))(qs, vbs)
+    gammas, rotations = jax.vmap(lambda q, vb: _start(prob, options, rigid, q, vb))(qs, vbs)
     return gammas, rotations, steps.astype(jnp.int32)
 
 
-def _initialize(prob, cfg, rigid):
+def _initialize(prob, options, rigid):
     """The starts of the registration: (gammas ``(S, 3, m, n)``, rotations ``(S, 3, 3)``,
-    solver steps), by ``cfg.init`` (:class:`ShapeOptions`)."""
-    if cfg.init == "none":
+    solver steps), by ``options.init`` (:class:`ShapeOptions`)."""
+    if options.init == "none":
         eye = jnp.eye(3, dtype=prob.f1.dtype)
         return prob.e1[None], eye[None], jnp.zeros((), jnp.int32)
-    if cfg.init == "moebius":
-        return _initialize_moebius(prob, cfg, rigid)
-    return _initialize_energy(prob, cfg, rigid)
+    if options.init == "moebius":
+        return _initialize_moebius(prob, options, rigid)
+    return _initialize_energy(prob, options, rigid)
 
 
-def starts_phase(metric, f1, f2, bases, cfg, rigid) -> tuple[Array, Array, Array]:
+def starts_phase(metric, f1, f2, bases, options, rigid) -> tuple[Array, Array, Array]:
     """Phase 1 of a solve: the starts (_initialize)."""
-    return _initialize(make_problem(metric, f1, f2, bases, rigid, cfg.interpolation), cfg, rigid)
+    return _initialize(
+        make_problem(metric, f1, f2, bases, rigid, options.interpolation), options, rigid
+    )
 
 
 # Newton steps of inverse_gamma: quadratic from the nearest grid image; 12 reach rounding

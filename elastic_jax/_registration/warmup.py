@@ -118,7 +118,7 @@ def warmup(
         raise InputError("modulo: give at least one of 'diff', 'rigid'")
     for name in moduli:
         check_choice("modulo", name, MODULI)
-    cfg = resolve_options(options, changes)
+    resolved = resolve_options(options, changes)
     try:
         m, n = (int(k) for k in input_grid)
     except (TypeError, ValueError):
@@ -135,9 +135,9 @@ def warmup(
             "dtype='float64' needs jax.config.update('jax_enable_x64', True) first "
             "(the CLI sets it for --dtype float64)"
         )
-    grids = working_grids(cfg, (m, n))
-    if cfg.resolves:
-        cfg = cfg.replace(rtol=_EVERY_LEVEL)
+    grids = working_grids(resolved, (m, n))
+    if resolved.resolves:
+        resolved = resolved.replace(rtol=_EVERY_LEVEL)
     f1, f2 = _pair(m, n, dtype)
     metric = SplitMetric(1.0, 1.0, 0.1, 0.0)
     counter = CompileCounter()
@@ -145,7 +145,7 @@ def warmup(
     with counter, warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
         for name in moduli:
-            jax.block_until_ready(shape_geodesic(f1, f2, metric, modulo=name, options=cfg))
+            jax.block_until_ready(shape_geodesic(f1, f2, metric, modulo=name, options=resolved))
     return WarmupReport(
         grids=tuple(grids),
         input_grid=(m, n),

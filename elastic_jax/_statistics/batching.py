@@ -16,7 +16,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, ArrayLike, Float
 
 from .._errors import ConvergenceWarning, InputError
-from .._geodesics.geodesic import default_tol, geodesic
+from .._geodesics.geodesic import geodesic
+from .._geodesics.solvers import default_tol
 from .._geometry.grid import sphere_points
 from .._geometry.validation import as_surface
 from .._options import ShapeOptions, check_choice, check_int

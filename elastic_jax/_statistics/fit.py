@@ -31,11 +31,12 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._checks import check_bool, check_choice, check_int, check_positive
 from .._errors import ConvergenceWarning, InputError
-from .._geodesics.geodesic import basis_np, frames_between, perturbed_frames, safe_sqrt
 from .._geodesics.solvers import minimize
+from .._geometry.bases import basis_np, frames_between, perturbed_frames
 from .._geometry.differential import interior_frame
 from .._geometry.energy import frame_energy
 from .._geometry.metric import SplitMetric
+from .._geometry.numerics import safe_sqrt
 from .._options import ShapeOptions
 from .._registration.problem import make_bases, make_problem, path_energy_at
 from .._results import RESULTS, record_repr, result_message
@@ -209,8 +210,8 @@ def _model_step(parts, theta, radius, data, fixed, tol, *, objective, free, k):
     return theta + step, model(jnp.zeros_like(theta)) - model(found.x), edge
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "modulo"))
-def energy_parts(first, second, gammas, rotations, coefficients, bases, *, cfg, modulo):
+@functools.partial(jax.jit, static_argnames=("options", "modulo"))
+def energy_parts(first, second, gammas, rotations, coefficients, bases, *, options, modulo):
     """E_ij^k: the energies of the held paths under each coefficient alone, ``(b, 4)``.
 
     first, second ``(b, 3, m, n)``; gammas ``(b, 3, m, n)``, rotations ``(b, 3, 3)``,
@@ -224,10 +225,10 @@ def energy_parts(first, second, gammas, rotations, coefficients, bases, *, cfg, 
     def one(a, b, gamma, rotation, c):
         def energy(metric):
             if modulo == "none":
-                frames = frames_between(interior_frame(a), interior_frame(b), cfg.n_times)
-                return frame_energy(metric, *perturbed_frames(frames, c, bases), cfg.scheme)
-            prob = make_problem(metric, a, b, bases, modulo == "rigid", cfg.interpolation)
-            return path_energy_at(prob, cfg, gamma, rotation, c)
+                frames = frames_between(interior_frame(a), interior_frame(b), options.n_times)
+                return frame_energy(metric, *perturbed_frames(frames, c, bases), options.scheme)
+            prob = make_problem(metric, a, b, bases, modulo == "rigid", options.interpolation)
+            return path_energy_at(prob, options, gamma, rotation, c)
 
         return jax.vmap(energy)(units)
 
@@ -676,7 +677,7 @@ def _solve_pairs(metric, starts, solves: _Solves) -> _Held:
         # Every chunk padded to the solves' batch size: one compiled energy_parts.
         pad = np.minimum(np.arange(solves.size), b - a - 1)
         held = (shapes[rows[a:b][pad]], shapes[cols[a:b][pad]], gamma[pad], rotation[pad], c[pad])
-        energies = energy_parts(*held, solves.bases, cfg=options, modulo=modulo)
+        energies = energy_parts(*held, solves.bases, options=options, modulo=modulo)
         parts.append(np.asarray(energies)[: b - a])
         solutions.append((gamma, rotation, c))
         converged.append(np.asarray(ok))

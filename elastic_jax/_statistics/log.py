@@ -15,10 +15,11 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_choice
 from .._errors import InputError
-from .._geodesics.geodesic import GeodesicResult, check_pair, geodesic
+from .._geodesics.geodesic import GeodesicResult, geodesic
 from .._geodesics.shooting import check_scheme
 from .._geometry.differential import interior_frame
 from .._geometry.metric import SplitMetric
+from .._geometry.validation import check_pair
 from .._options import ShapeOptions
 from .._registration.problem import make_bases, make_problem, path_frames_at, rotate_surface
 from .._registration.records import turned_back
@@ -121,9 +122,9 @@ def log(
         res = shape_geodesic(f2, f1, metric, modulo=modulo, options=options)
         path = turned_back(res, f1)[::-1].at[0].set(f1)
         if options.differential == "chain":
-            # The bases without the finer grid's (refinement): a static cfg.
-            cfg = options.replace(refinement=False, rtol=None, grid=None)
-            solve_frames = _solve_frames(f2, f1, metric, res, cfg, modulo == "rigid")
+            # The bases without the finer grid's (refinement): a static resolved.
+            resolved = options.replace(refinement=False, rtol=None, grid=None)
+            solve_frames = _solve_frames(f2, f1, metric, res, resolved, modulo == "rigid")
     t = options.n_times - 1
     velocity = t * (path[1] - path[0])
     if solve_frames is None:  # every node's differential is its grid differences
@@ -141,15 +142,15 @@ def log(
     )
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "rigid"))
-def _solve_frames(f2, f1, metric, res, cfg, rigid):
+@functools.partial(jax.jit, static_argnames=("options", "rigid"))
+def _solve_frames(f2, f1, metric, res, options, rigid):
     """The differentials of the log's nodes as the registered solve took them,
     ``(N, 2, 3, m - 2, n - 1)``: its nodes' (the straight line between the chain-rule
     frames of f2 o gamma and R f1, plus the path's perturbation) in reverse order,
     turned back by R^T."""
     m, n = res.gamma.shape[-2:]
-    bases = make_bases(m, n, cfg, f1.dtype)
-    prob = make_problem(metric, f2, f1, bases, rigid, cfg.interpolation)
-    a1, a2 = path_frames_at(prob, cfg, res.gamma, res.rotation, res.coefficients)
+    bases = make_bases(m, n, options, f1.dtype)
+    prob = make_problem(metric, f2, f1, bases, rigid, options.interpolation)
+    a1, a2 = path_frames_at(prob, options, res.gamma, res.rotation, res.coefficients)
     back = jax.vmap(lambda a: rotate_surface(res.rotation.T, a))
     return jnp.stack([back(a1), back(a2)], axis=1)[::-1]
