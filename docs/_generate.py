@@ -283,15 +283,24 @@ def _figures(gallery: pathlib.Path) -> dict[str, str]:
     stored = json.loads((gallery / "figures.json").read_text())
     geo = stored["geodesics"]
     pairs = [k for k, v in geo.items() if isinstance(v, dict) and "distance" in v]
+
+    def levels(record) -> str:
+        # Each working grid's distance, coarse to fine: how the distance was resolved.
+        if not record.get("levels"):
+            return "one grid"
+        grids, distances = record["levels"]["grids"], record["levels"]["distances"]
+        return ", ".join(f"{g[0]} x {g[1]}: {d:.4g}" for g, d in zip(grids, distances, strict=True))
+
     geodesics = markdown_table(
-        ["pair", "d (shape)", "d (parametrized)", "rounds", "converged", "refinement change"],
+        ["pair", "d (shape)", "levels", "result", "d (parametrized)", "rounds", "refinement"],
         [
             [
                 k.replace("-", " -> "),
                 geo[k]["distance"],
+                levels(geo[k]),
+                geo[k].get("result", "successful" if geo[k]["converged"] else "not converged"),
                 geo[k]["parametrized_distance"],
                 geo[k]["rounds"],
-                geo[k]["converged"],
                 geo[k]["refinement_relative_change"],
             ]
             for k in pairs
