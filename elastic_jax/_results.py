@@ -100,12 +100,12 @@ class RESULTS(optx.RESULTS, metaclass=_NamedEnumeration):  # pyright: ignore
         "eigenvalue), not a minimum: raise saddle_checks to escape along it."
     )
     distances_at_rounding = (
-        "Converged: every distance is at rounding level (at most sqrt(eps) x the mean's "
+        "converged: every distance is at rounding level (at most sqrt(eps) x the mean's "
         "size): the shapes are one orbit of the registration's group."
     )
-    mean_velocity_small = "Converged: the mean velocity's norm is at most tol x RMS distance."
+    mean_velocity_small = "converged: the mean velocity's norm is at most tol x RMS distance."
     sum_sq_stalled = (
-        "Converged: the line search's step (the full one, or the halved one it took after the "
+        "converged: the line search's step (the full one, or the halved one it took after the "
         "full one raised the sum) changed the sum of squared distances by less than tol "
         "(relative)."
     )

@@ -170,7 +170,7 @@ def test_every_result_record_follows_the_protocol(case):
     # A message exactly when it did not converge; a Karcher mean names its criterion.
     assert isinstance(res.message, str)
     if karcher:
-        assert res.message.lower().startswith("converged" if res.converged else "stopped")
+        assert res.message.startswith("converged" if res.converged else "stopped")
     else:
         assert (res.message == "") == (name == "successful"), res.message
     # num_steps: a count, and the sum of the record's own solves where they are listed.
