@@ -100,18 +100,54 @@ class RESULTS(optx.RESULTS, metaclass=_NamedEnumeration):  # pyright: ignore
         "eigenvalue), not a minimum: raise saddle_checks to escape along it."
     )
     distances_at_rounding = (
-        "Converged: every distance is at rounding level, so the shapes are one orbit of the "
-        "registration's group."
+        "converged: every distance is at rounding level (at most sqrt(eps) x the mean's "
+        "size): the shapes are one orbit of the registration's group."
     )
-    mean_velocity_small = "Converged: the mean velocity's norm is at most tol x RMS distance."
+    mean_velocity_small = "converged: the mean velocity's norm is at most tol x RMS distance."
     sum_sq_stalled = (
-        "Converged: the line search's step (full, or halved after the full one raised the sum) "
-        "changed the sum of squared distances by less than tol (relative)."
+        "converged: the line search's step (the full one, or the halved one it took after the "
+        "full one raised the sum) changed the sum of squared distances by less than tol "
+        "(relative)."
     )
     line_search_failed = (
         "The line search failed: no step along the mean velocity, halved as often as "
         "allowed, gave a finite sum of squared distances that was not larger."
     )
+
+
+# The codes that mean "converged"; a Karcher mean has three (its criteria), every other
+# solve one.
+CONVERGED_CODES = ("successful", "distances_at_rounding", "mean_velocity_small", "sum_sq_stalled")
+
+
+def status_record(cls):
+    """Give a result record (a NamedTuple) the members the result protocol shares.
+
+    Every result of the package carries ``converged`` (a 0-d bool array: the solve met
+    its criterion), ``result`` (one ``RESULTS`` member per cause), ``num_steps`` and
+    ``message``; this decorator checks the first three are there (as fields or
+    properties) and installs the last two members the records share: ``message``, the
+    code's own words from ``RESULTS`` ('' for ``successful``) passed through the record's
+    ``_explain(words)`` when it has one (which node, which pair, the saddle's eigenvalue),
+    and the short repr of :func:`record_repr`. A class decorator rather than a base class:
+    a NamedTuple cannot take a mixin.
+    """
+    missing = [k for k in ("converged", "result", "num_steps") if not hasattr(cls, k)]
+    if missing:
+        raise TypeError(f"{cls.__name__} lacks the result protocol's {missing}")
+    explain = getattr(cls, "_explain", None)
+
+    def message(self) -> str:
+        words = result_message(self.result)
+        return words if explain is None else explain(self, words)
+
+    message.__doc__ = (
+        "Why the solve stopped, in words: the result code's own ('' when it converged; a "
+        "Karcher mean names its criterion), with what this record adds to them."
+    )
+    cls.message = property(message)
+    cls.__repr__ = record_repr
+    return cls
 
 
 def result_message(result: RESULTS) -> str:
@@ -130,12 +166,12 @@ def first_failure(results: RESULTS, ok: Array) -> RESULTS:
     return RESULTS.where(jnp.all(ok), RESULTS.successful, failed)
 
 
-def unsolved_message(record, kind: str, k: int, last: int) -> str:
+def unsolved_message(record, kind: str, k: int, last: int, words: str) -> str:
     """'' for a converged ``record``; else which ``kind`` (node, rung) k of last did not
-    solve and the code's words: the message of a record of sequential solves."""
+    solve and the code's ``words``: the message of a record of sequential solves."""
     if bool(record.converged):
         return ""
-    return f"{kind} {k} of {last} did not solve: {result_message(record.result)}"
+    return f"{kind} {k} of {last} did not solve: {words}"
 
 
 # How a result record prints (issue 48): Equinox's short form, arrays as dtype[shape].

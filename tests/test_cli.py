@@ -365,7 +365,7 @@ def test_distances_reports_each_pair_and_exits_3_when_one_did_not_converge(
             converged,
             change,
             converged=np.asarray(False),
-            result=ej.RESULTS.max_steps_reached,
+            result=ej.RESULTS.nonlinear_max_steps_reached,
             num_steps=np.asarray(30),
         )
 

@@ -139,7 +139,7 @@ CASES = {
     "srnf_geodesic capped": (lambda: _srnf_geodesic(max_steps=2), "nonlinear_max_steps_reached"),
     "log": (_log, "successful"),
     "karcher_mean": (_karcher, "mean_velocity_small"),
-    "karcher_mean capped": (lambda: _karcher(max_steps=0), "max_steps_reached"),
+    "karcher_mean capped": (lambda: _karcher(max_steps=0), "nonlinear_max_steps_reached"),
     "distance_matrix": (_distance_matrix, "successful"),
     "spherical_parametrization": (_sphere_map, "successful"),
     "fit_metric": (_fit_metric, "successful"),
@@ -164,6 +164,9 @@ def test_every_result_record_follows_the_protocol(case):
     karcher = isinstance(res, ej.KarcherResult)
     converged_codes = KARCHER_CONVERGED if karcher else {"successful"}
     assert bool(np.all(res.converged)) == (name in converged_codes)
+    # converged: a 0-d bool array in every record (issue 53), not a Python bool.
+    assert np.asarray(res.converged).dtype == np.bool_ and np.ndim(res.converged) == 0
+    assert not isinstance(res.converged, bool)
     # A message exactly when it did not converge; a Karcher mean names its criterion.
     assert isinstance(res.message, str)
     if karcher:
@@ -446,3 +449,42 @@ def test_batched_and_traced_records_print_as_summaries():
     assert "path=f64[13,3,25,49]" in traced[0] and "converged=bool[]" in traced[0]
     assert "result=RESULTS(traced)" in traced[0] and "refinement=Refinement(" in traced[0]
     assert "result=RESULTS[3](traced)" in traced[1] and "distance=f64[3]" in traced[1]
+
+
+def test_every_result_record_shares_one_status_protocol():
+    """Every record with a ``converged`` field gets ``message`` and its repr from one place
+    (``status_record``): no hand-written message property, the code's words from RESULTS;
+    and one code per cause: a step limit is ``nonlinear_max_steps_reached`` everywhere."""
+    import ast
+    import pathlib
+
+    from elastic_jax import _results
+
+    records = [
+        obj
+        for module in (ej, io)
+        for obj in vars(module).values()
+        if isinstance(obj, type) and "converged" in getattr(obj, "_fields", ())
+    ]
+    assert len(records) == 11
+    for cls in records:
+        assert isinstance(vars(cls)["message"], property), cls.__name__
+        assert cls.__repr__ is _results.record_repr, cls.__name__
+    # Karcher's words are RESULTS' words: a converged criterion prints them unchanged, a
+    # stop says "stopped: " before them.
+    mean = np.zeros((3, M, N))
+    for name in ("distances_at_rounding", "mean_velocity_small", "sum_sq_stalled"):
+        code = getattr(ej.RESULTS, name)
+        record = ej.KarcherResult(mean, [], [], [], [], [], np.asarray(True), 2, 3, code)
+        assert record.message == ej.RESULTS.message(code) and record.message
+    code = ej.RESULTS.line_search_failed
+    record = ej.KarcherResult(mean, [], [], [], [], [], np.asarray(False), 2, 3, code)
+    assert record.message == "stopped: " + ej.RESULTS.message(code)
+    package = pathlib.Path(ej.__file__).parent
+    limits = sorted(
+        str(path.relative_to(package))
+        for path in package.rglob("*.py")
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.Attribute) and node.attr == "max_steps_reached"
+    )
+    assert limits == []

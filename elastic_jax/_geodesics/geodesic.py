@@ -53,11 +53,12 @@ from .._options import (
     ShapeOptions,
     settings_from,
 )
-from .._results import RESULTS, record_repr, result_message
+from .._results import RESULTS, status_record
 from .._runtime.cache import solver_jit
 from .solvers import Minimum, default_tol, lanczos_smallest, minimize
 
 
+@status_record
 class GeodesicResult(NamedTuple):
     """A geodesic between parametrized surfaces; a pytree, batched by ``jax.vmap``.
 
@@ -95,15 +96,10 @@ class GeodesicResult(NamedTuple):
     grad_norm: Float[Array, ""]
     min_curvature: Float[Array, ""]
 
-    __repr__ = record_repr
-
-    @property
-    def message(self) -> str:
-        """Why the solver stopped, in its own words ('' when it converged)."""
-        message = result_message(self.result)
+    def _explain(self, words: str) -> str:
         if RESULTS.name(self.result) == "saddle_point":  # no eager == (a program of its own)
-            message += f" (smallest Hessian eigenvalue {float(self.min_curvature):.3g})"
-        return message
+            words += f" (smallest Hessian eigenvalue {float(self.min_curvature):.3g})"
+        return words
 
 
 def _straight_frames(f1, f2, n_times, frames=None):

@@ -45,10 +45,11 @@ from .._options import (
     ShapeOptions,
     settings_from,
 )
-from .._results import RESULTS, first_failure, record_repr, unsolved_message
+from .._results import RESULTS, first_failure, status_record, unsolved_message
 from .._runtime.cache import solver_jit
 
 
+@status_record
 class ShootingResult(NamedTuple):
     """A geodesic shot from a surface with an initial velocity; a pytree (vmappable).
 
@@ -84,13 +85,9 @@ class ShootingResult(NamedTuple):
     result: RESULTS
     num_steps: Int[Array, ""]
 
-    __repr__ = record_repr
-
-    @property
-    def message(self) -> str:
-        """Which node did not solve and why ('' when every node did)."""
+    def _explain(self, words: str) -> str:
         last = self.path.shape[-4] - 1
-        return unsolved_message(self, "node", int(self.n_valid), last)
+        return unsolved_message(self, "node", int(self.n_valid), last, words)
 
 
 def default_newton_tol(dtype) -> float:

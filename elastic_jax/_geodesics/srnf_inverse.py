@@ -41,13 +41,14 @@ from .._geometry.numerics import sqrt_inverse_pair
 from .._geometry.srnf import center_unchecked, sqrt_normal, srnf_unchecked, surface_area_unchecked
 from .._geometry.validation import as_surface, check_pair
 from .._options import FROM_OPTIONS, SOLVERS, FromOptions, ShapeOptions, settings_from
-from .._results import RESULTS, first_failure, record_repr, result_message
+from .._results import RESULTS, first_failure, status_record
 from .._runtime.cache import cached, solver_jit
 from .solvers import minimize
 
 __all__ = ["SrnfGeodesic", "SrnfInversion", "srnf_geodesic", "srnf_invert"]
 
 
+@status_record
 class SrnfInversion(NamedTuple):
     """A surface whose SRNF approximates a given q; a pytree.
 
@@ -76,14 +77,8 @@ class SrnfInversion(NamedTuple):
     grad_norm: Float[Array, ""]
     level_residuals: Float[Array, " levels"]
 
-    __repr__ = record_repr
 
-    @property
-    def message(self) -> str:
-        """Why the last level's solver stopped, in its own words ('' when it converged)."""
-        return result_message(self.result)
-
-
+@status_record
 class SrnfGeodesic(NamedTuple):
     """The inverted SRNF straight line between two surfaces (paper, Table 2: L_i); a pytree.
 
@@ -116,15 +111,11 @@ class SrnfGeodesic(NamedTuple):
     result: RESULTS
     num_steps: Int[Array, ""]
 
-    __repr__ = record_repr
-
-    @property
-    def message(self) -> str:
-        """Which nodes did not converge and why ('' when all did)."""
+    def _explain(self, words: str) -> str:
         if bool(self.converged):
             return ""
         failed = np.flatnonzero(~np.asarray(self.nodes_converged)).tolist()
-        return f"nodes {failed} did not converge: {result_message(self.result)}"
+        return f"nodes {failed} did not converge: {words}"
 
 
 @cached

@@ -51,7 +51,7 @@ from .._geometry.harmonics import check_degree
 from .._geometry.metric import SplitMetric, metric_inner, split_bilinear
 from .._geometry.units import units_of
 from .._options import FROM_OPTIONS, FromOptions, ShapeOptions, settings_from
-from .._results import RESULTS, first_failure, record_repr, unsolved_message
+from .._results import RESULTS, first_failure, status_record, unsolved_message
 from .._runtime.cache import solver_jit
 from .shooting import (
     as_velocity,
@@ -63,6 +63,7 @@ from .shooting import (
 )
 
 
+@status_record
 class TransportResult(NamedTuple):
     """A vector carried along a path by parallel transport (Galerkin or the ladder); a pytree.
 
@@ -97,13 +98,9 @@ class TransportResult(NamedTuple):
     num_steps: Int[Array, ""]
     frame: Float[Array, "2 3 m-2 n-1"]
 
-    __repr__ = record_repr
-
-    @property
-    def message(self) -> str:
-        """Which rung did not solve and why ('' when every rung did)."""
+    def _explain(self, words: str) -> str:
         last = self.vectors.shape[-4] - 1
-        return unsolved_message(self, "rung", int(self.n_valid), last)
+        return unsolved_message(self, "rung", int(self.n_valid), last, words)
 
 
 def _ladder(metric, w, path, values, dframe, *, scheme, midpoint, tol, max_newton):

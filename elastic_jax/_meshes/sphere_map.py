@@ -54,7 +54,7 @@ import scipy.spatial
 from .._checks import check_grid_shape, check_int, check_positive
 from .._errors import ConvergenceWarning, InputError
 from .._geometry.grid import from_distinct, grid_directions
-from .._results import RESULTS, record_repr, result_message
+from .._results import RESULTS, status_record
 from .._runtime.cache import cached
 
 # Faces whose area is below this fraction of the mean face area count as zero-area.
@@ -110,6 +110,7 @@ class ParametrizationError(MeshError):
         self.flipped = flipped
 
 
+@status_record
 class SphericalParametrization(NamedTuple):
     """A bijective map of a closed genus-0 mesh onto the unit sphere, with its quality.
 
@@ -130,12 +131,10 @@ class SphericalParametrization(NamedTuple):
             the mesh and on the sphere's chord triangle (0 for a conformal map).
         energy: the final distortion energy per unit area (2 for an isometry, the minimum).
         iterations: L-BFGS iterations in all.
-        converged: True when the energy stopped decreasing (relative change below ``rtol``
-            over a round of iterations) before ``max_steps``.
+        converged: ``()`` bool array, True when the energy stopped decreasing (relative
+            change below ``rtol`` over a round of iterations) before ``max_steps``.
         seconds: wall-clock time of the whole parametrization.
     """
-
-    __repr__ = record_repr
 
     vertices: np.ndarray
     faces: np.ndarray
@@ -146,7 +145,7 @@ class SphericalParametrization(NamedTuple):
     angle_error: float
     energy: float
     iterations: int
-    converged: bool
+    converged: np.ndarray
     seconds: float
 
     # The result protocol (elastic_jax.RESULTS), from the fields above.
@@ -157,13 +156,9 @@ class SphericalParametrization(NamedTuple):
 
     @property
     def result(self) -> RESULTS:
-        """``successful``, or ``max_steps_reached`` (the energy still fell at max_steps)."""
-        return RESULTS.successful if self.converged else RESULTS.max_steps_reached
-
-    @property
-    def message(self) -> str:
-        """Why the map's optimization stopped early ('' when it converged)."""
-        return result_message(self.result)
+        """``successful``, or ``nonlinear_max_steps_reached`` (the energy still fell at
+        max_steps)."""
+        return RESULTS.successful if self.converged else RESULTS.nonlinear_max_steps_reached
 
     def spherical_areas(self) -> np.ndarray:
         """``(F,)`` signed areas of the faces' spherical triangles; they sum to 4 pi for a
@@ -698,7 +693,7 @@ def _record(
         angle_error=float(np.degrees(np.abs(angles_sphere - angles_mesh).mean())),
         energy=energy,
         iterations=iterations,
-        converged=converged,
+        converged=np.asarray(bool(converged)),
         seconds=time.perf_counter() - start,
     )
 

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._results import RESULTS, record_repr, result_message
+from .._results import RESULTS, record_repr, status_record
 
 MODULI = ("diff", "rigid")
 
@@ -62,6 +62,7 @@ class Levels(NamedTuple):
     __repr__ = record_repr
 
 
+@status_record
 class ShapeGeodesicResult(NamedTuple):
     """A geodesic between shapes; a pytree, batched by ``jax.vmap``.
 
@@ -119,30 +120,23 @@ class ShapeGeodesicResult(NamedTuple):
     refinement: Refinement
     levels: Levels | None = None
 
-    __repr__ = record_repr
-
-    @property
-    def message(self) -> str:
-        """How the solve ended, in words; '' when the last round met outer_tol.
-
-        A converged result whose last round was refused (its full step, resolved by the
-        grid, raised the energy: the composed reparametrization's interpolation cost more
-        than the step gained) says so.
-        """
-        message = result_message(self.result)
+    def _explain(self, words: str) -> str:
+        # A converged result whose last round was refused (its full step, resolved by the
+        # grid, raised the energy: the composed reparametrization's interpolation cost
+        # more than the step gained) says so.
         if RESULTS.name(self.result) == "saddle_point":  # no eager == (a program of its own)
-            message += f" (smallest Hessian eigenvalue {float(self.min_curvature):.3g})"
+            words += f" (smallest Hessian eigenvalue {float(self.min_curvature):.3g})"
         history, k = np.asarray(self.energy_history), int(self.rounds)
         # After at least one accepted round: a first round refused at once is a match at
         # interpolation noise (identical inputs), not a registration held back.
-        if not message and k >= 2 and history[k + 1] == history[k] > 0:
+        if not words and k >= 2 and history[k + 1] == history[k] > 0:
             change = 100.0 * (history[k - 1] - history[k]) / history[k]
-            message = (
+            words = (
                 "the rounds ended where the next round's Diff step raised the energy (the "
                 f"last accepted round lowered it by {change:.2g} %); refinement shows how a "
                 "finer grid sees the result"
             )
-        return message
+        return words
 
 
 def turned_back(res, end):

@@ -18,7 +18,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._errors import ConvergenceWarning, InputError
 from .._geometry.metric import SplitMetric
 from .._options import ShapeOptions
-from .._results import RESULTS, record_repr, result_message
+from .._results import RESULTS, status_record
 from .._runtime.atomic import save_npz_atomic
 from .batching import (
     check_batch,
@@ -31,6 +31,7 @@ from .batching import (
 from .checkpoints import fingerprint_of, load_checkpoint
 
 
+@status_record
 class DistanceMatrixResult(NamedTuple):
     """Pairwise shape distances and the status of each pair's solve.
 
@@ -55,18 +56,14 @@ class DistanceMatrixResult(NamedTuple):
     result: RESULTS
     num_steps: Int[Array, ""]
 
-    __repr__ = record_repr
-
-    @property
-    def message(self) -> str:
-        """How many pairs did not converge, the first of them and why ('' when all did)."""
+    def _explain(self, words: str) -> str:
         if bool(self.converged):
             return ""
         upper = np.triu(~np.asarray(self.pairs_converged), 1)
         first = tuple(int(i) for i in np.argwhere(upper)[0])
         return (
             f"{int(upper.sum())} of {upper.shape[0] * (upper.shape[0] - 1) // 2} pairs did not "
-            f"converge; the first, {first}: {result_message(self.result)}"
+            f"converge; the first, {first}: {words}"
         )
 
 

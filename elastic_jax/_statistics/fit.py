@@ -39,7 +39,7 @@ from .._geometry.metric import SplitMetric
 from .._geometry.numerics import safe_sqrt
 from .._options import ShapeOptions
 from .._registration.problem import make_bases, make_problem, path_energy_at
-from .._results import RESULTS, record_repr, result_message
+from .._results import RESULTS, status_record
 from .._runtime.atomic import save_npz_atomic
 from .batching import (
     check_batch,
@@ -65,6 +65,7 @@ OBJECTIVES = ("nca", "stress")
 COEFFICIENTS = "abcd"
 
 
+@status_record
 class MetricFit(NamedTuple):
     """A split metric fitted to a collection (:func:`fit_metric`).
 
@@ -104,13 +105,6 @@ class MetricFit(NamedTuple):
     result: RESULTS
     num_steps: Int[Array, ""]
     evaluations: Int[Array, ""]
-
-    __repr__ = record_repr
-
-    @property
-    def message(self) -> str:
-        """Why the fit stopped without converging ('' when it converged)."""
-        return result_message(self.result)
 
 
 def normalized(metric: SplitMetric) -> np.ndarray:

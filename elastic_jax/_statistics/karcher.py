@@ -35,7 +35,7 @@ from .._geometry.validation import as_surface
 from .._options import ShapeOptions, check_int, check_positive
 from .._registration.problem import on_grid
 from .._registration.shape import registration_at, shape_geodesic
-from .._results import RESULTS, record_repr
+from .._results import RESULTS, status_record
 from .._runtime.atomic import save_npz_atomic
 from .batching import (
     check_batch,
@@ -51,29 +51,10 @@ from .checkpoints import fingerprint_of, load_checkpoint
 _HALVINGS = 4
 
 
-# Why a Karcher iteration stopped: result code -> words (KarcherResult.message).
-_MESSAGES = {
-    "distances_at_rounding": "converged: every distance is at rounding level (at most "
-    "sqrt(eps) x the mean's size): the shapes are one orbit of the registration's group",
-    "mean_velocity_small": "converged: the mean velocity's norm is at most tol x RMS distance",
-    "sum_sq_stalled": "converged: the line search's step (the full one, or the halved one "
-    "it took after the full one raised the sum) changed the sum of squared distances by "
-    "less than tol (relative)",
-    "line_search_failed": "stopped: line search failed: no step along the mean velocity "
-    f"(halved up to {_HALVINGS} times) gave a finite sum of squared distances that was not larger",
-    "resolution_limited": "stopped: line search failed (no step along the mean velocity, "
-    f"halved up to {_HALVINGS} times, gave a sum of squared distances that was not larger) "
-    "while some of the geodesics at the mean ended resolution_limited (their registration "
-    "stopped at the stretch the grid resolves; geodesics_converged is False for them): the "
-    "sum has kinks there that no step resolves; a finer grid may go further",
-    "max_steps_reached": "stopped: max_steps Karcher steps taken",
-    "nonfinite": "stopped: the distances at the mean are not finite",
-}
-
-
 _CONVERGED = ("distances_at_rounding", "mean_velocity_small", "sum_sq_stalled")
 
 
+@status_record
 class KarcherResult(NamedTuple):
     """A Karcher mean, the registered collection and how the iteration went.
 
@@ -95,7 +76,8 @@ class KarcherResult(NamedTuple):
             ``distances_at_rounding``, ``mean_velocity_small``, ``sum_sq_stalled`` (all three
             converged), ``line_search_failed``, ``resolution_limited`` (the line search
             failed while some geodesics at the mean are resolution_limited),
-            ``max_steps_reached`` or ``nonfinite``; ``RESULTS.name(result)`` is its name.
+            ``nonlinear_max_steps_reached`` (max_steps Karcher steps) or ``nonfinite``;
+            ``RESULTS.name(result)`` is its name.
         level_distances: ``(K, L)`` for a resolved mean (``options.rtol``): each shape's
             distance to the starting mean on each grid of ``options.levels`` (NaN on the
             grids past the one where its levels agreed within rtol); the mean, the
@@ -109,18 +91,31 @@ class KarcherResult(NamedTuple):
     velocities: Array
     geodesics_converged: Array
     history: np.ndarray
-    converged: bool
+    converged: np.ndarray
     num_steps: int
     num_solves: int
     result: RESULTS
     level_distances: np.ndarray | None = None
 
-    __repr__ = record_repr
-
-    @property
-    def message(self) -> str:
-        """Why the iteration stopped, in words (also when it converged: which criterion)."""
-        return _MESSAGES[RESULTS.name(self.result)]
+    def _explain(self, words: str) -> str:
+        # A Karcher mean names its criterion also when it converged; a stop says what
+        # stopped the iteration rather than an inner solve.
+        name = RESULTS.name(self.result)
+        if name in _CONVERGED:
+            return words
+        if name == "resolution_limited":
+            words = (
+                f"line search failed (no step along the mean velocity, halved up to {_HALVINGS} "
+                "times, gave a sum of squared distances that was not larger) while some of the "
+                "geodesics at the mean ended resolution_limited (their registration stopped at "
+                "the stretch the grid resolves; geodesics_converged is False for them): the sum "
+                "has kinks there that no step resolves; a finer grid may go further"
+            )
+        elif name == "nonlinear_max_steps_reached":
+            words = f"max_steps Karcher steps taken ({int(self.num_steps)})"
+        elif name == "nonfinite":
+            words = "the distances at the mean are not finite"
+        return f"stopped: {words}"
 
 
 class _Solved(NamedTuple):
@@ -262,7 +257,7 @@ class _KarcherIteration(NamedTuple):
         if norm <= self.tol * max(rms, np.finfo(np.float64).tiny):
             return "mean_velocity_small"
         if state.step >= self.max_steps:
-            return "max_steps_reached"
+            return "nonlinear_max_steps_reached"
         return None
 
     def step(self, state: _KarcherState) -> _KarcherState:
@@ -441,7 +436,7 @@ def karcher_mean(
     not converged when no halving lowers the SSD ("line_search_failed"; "resolution_limited"
     when some of the geodesics at the mean ended resolution_limited, their registration
     held at the stretch the grid resolves, so that the SSD has kinks there), after
-    max_steps steps ("max_steps_reached"), or when the distances at the mean are not
+    max_steps steps ("nonlinear_max_steps_reached"), or when the distances at the mean are not
     finite ("nonfinite"). ``result`` (an ``elastic_jax.RESULTS``) and ``message`` say which.
 
     Args:
@@ -651,7 +646,7 @@ def karcher_mean(
         velocities=solved.velocities,
         geodesics_converged=solved.converged,
         history=np.asarray(state.history),
-        converged=result in _CONVERGED,
+        converged=np.asarray(result in _CONVERGED),
         num_steps=state.step,
         num_solves=state.num_solves,
         result=getattr(RESULTS, result),

@@ -24,9 +24,10 @@ from .._options import ShapeOptions
 from .._registration.problem import make_bases, make_problem, path_frames_at, rotate_surface
 from .._registration.records import turned_back
 from .._registration.shape import shape_geodesic
-from .._results import RESULTS, record_repr, result_message
+from .._results import RESULTS, status_record
 
 
+@status_record
 class LogResult(NamedTuple):
     """The initial velocity of the geodesic from f1 to (the registered) f2.
 
@@ -61,13 +62,6 @@ class LogResult(NamedTuple):
     num_steps: Int[Array, ""]
     frames: Float[Array, "2 2 3 m-2 n-1"]
     path_frames: Float[Array, "N 2 3 m-2 n-1"]
-
-    __repr__ = record_repr
-
-    @property
-    def message(self) -> str:
-        """Why the geodesic solve stopped, in its own words ('' when it converged)."""
-        return result_message(self.result)
 
 
 def log(
