@@ -484,7 +484,7 @@ def karcher_mean(
         >>> spheres = np.stack([shapes.sample(shapes.sphere, 13, 25, radius=r) for r in (1, 2)])
         >>> res = ej.karcher_mean(spheres, ej.SplitMetric(1.0, 1.0, 0.1, 0.0), modulo="none",
         ...                       options=ej.ShapeOptions(degree=3, n_times=5))
-        >>> res.converged, round(float(res.mean[2, 0, 0]), 6)  # the sphere of radius 1.5
+        >>> bool(res.converged), round(float(res.mean[2, 0, 0]), 6)  # the sphere of radius 1.5
         (True, 1.5)
     """
     strategy = check_batch(modulo, strategy, batch_size)
