@@ -314,3 +314,16 @@ def test_the_options_record_has_one_name():
         and "cfg" in {a.arg for a in ast.walk(node.args) if isinstance(a, ast.arg)}
     )
     assert named_cfg == []
+
+
+def test_cli_commands_are_clients_of_the_public_results():
+    """A command learns what a solve did from its result, not from the library's warnings
+    (the entry point alone silences them, once) nor by re-slicing a record (issue 53)."""
+    offences = sorted(
+        f"{_module_name(p)}: {ast.unparse(node)[:60]}"
+        for p in (PACKAGE / "cli").glob("*.py")
+        if p.name != "__init__.py"
+        for node in ast.walk(ast.parse(p.read_text()))
+        if isinstance(node, ast.Attribute) and node.attr in ("catch_warnings", "_replace")
+    )
+    assert offences == []

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import pathlib
-import warnings
 
 from .common import Progress, environment_record, json_floats, json_safe, metric_from, write_figure
 from .karcher import solve_karcher
@@ -14,7 +13,6 @@ def run_pca(args, progress: Progress) -> dict:
     import numpy as np
 
     from .. import io, plot
-    from .._errors import ConvergenceWarning
     from .._runtime.atomic import save_npz_atomic, write_text_atomic
     from .._statistics.pca import mode_path, sigmas_reached, tangent_pca
 
@@ -54,16 +52,12 @@ def run_pca(args, progress: Progress) -> dict:
     if n_modes < args.modes:
         progress(f"{k} shapes span at most {k - 1} modes: keeping {n_modes}")
     # Modes whose variance is at round-off (tangent_pca's rtol) are not modes: fewer kept.
-    # The kept ones are the leading ones of the full decomposition (explained is already
-    # relative to the total variance).
-    full = tangent_pca((mean, velocities), metric)
-    n_modes = min(n_modes, int(full.modes.shape[0]))
-    pca = full._replace(
-        modes=full.modes[:n_modes],
-        variances=full.variances[:n_modes],
-        explained=full.explained[:n_modes],
-        scores=full.scores[:, :n_modes],
-    )
+    # Asking tangent_pca for fewer keeps the leading ones of the same decomposition
+    # (explained stays relative to the total variance).
+    data = (mean, velocities)
+    full = tangent_pca(data, metric)
+    pca = full if n_modes >= full.modes.shape[0] else tangent_pca(data, metric, n_modes=n_modes)
+    n_modes = int(pca.modes.shape[0])
     explained = np.asarray(pca.explained)
     progress("explained variance by mode: " + ", ".join(f"{100 * e:.1f} %" for e in explained))
     # Shot with the scheme of the mean's geodesics (central is refused by preflight).
@@ -71,12 +65,11 @@ def run_pca(args, progress: Progress) -> dict:
     paths, unconverged = [], []
     for mode in range(n_modes):
         progress(f"mode {mode + 1}: shooting +-{args.sigmas:g} sigma from the mean")
-        # mode_path returns the path only; a failed Newton step shows as its warning.
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", ConvergenceWarning)
-            path = mode_path(pca, mode, metric, sigmas=args.sigmas, **shoot_options)
-        paths.append(np.asarray(path))
-        if any(issubclass(w.category, ConvergenceWarning) for w in caught):
+        path = np.asarray(mode_path(pca, mode, metric, sigmas=args.sigmas, **shoot_options))
+        paths.append(path)
+        # A shot whose Newton step failed leaves the nodes beyond it NaN: a finite path is
+        # both shots converged.
+        if not np.isfinite(path).all():
             progress(f"mode {mode + 1}: a shooting step did not converge")
             unconverged.append(mode + 1)
     paths = np.stack(paths)
