@@ -445,7 +445,7 @@ def test_karcher_and_shape_geodesic_equal_the_library(tmp_path, capsys):
         np.stack(fs), METRIC, modulo="rigid", max_steps=2, options=SHAPE_OPTIONS, strategy="loop"
     )
     assert code == (0 if res.converged else cli.EXIT_NOT_CONVERGED)
-    assert summary["converged"] is res.converged and summary["result"] == ej.RESULTS.name(
+    assert summary["converged"] is bool(res.converged) and summary["result"] == ej.RESULTS.name(
         res.result
     )
     assert summary["history"]["sum_sq_distances"] == res.history[:, 0].tolist()
