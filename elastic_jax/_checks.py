@@ -56,6 +56,13 @@ def is_concrete(*values) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(values))
 
 
+def check_progress(progress):
+    """``progress``: None or a callable (the solves call it with a dict of numbers)."""
+    if progress is not None and not callable(progress):
+        raise InputError(f"progress must be a callable taking a dict; got {progress!r}")
+    return progress
+
+
 def check_grid_shape(shape: tuple[int, ...], name: str) -> tuple[int, int]:
     """Check that ``shape`` is ``(..., 3, m, n)`` with odd n and m, n >= 5; return (m, n)."""
     if len(shape) < 3 or shape[-3] != 3:

@@ -115,11 +115,6 @@ class RESULTS(optx.RESULTS, metaclass=_NamedEnumeration):  # pyright: ignore
     )
 
 
-# The codes that mean "converged"; a Karcher mean has three (its criteria), every other
-# solve one.
-CONVERGED_CODES = ("successful", "distances_at_rounding", "mean_velocity_small", "sum_sq_stalled")
-
-
 def status_record(cls):
     """Give a result record (a NamedTuple) the members the result protocol shares.
 

@@ -604,3 +604,11 @@ def test_new_surfaces_on_the_same_grid_trace_nothing_new():
         _top_level_traces(lambda call=call: np.asarray(call(first)))
         again = _top_level_traces(lambda call=call: np.asarray(call(second)))
         assert again == [], (name, again)
+
+
+@pytest.mark.parametrize("job", ["karcher_mean", "distance_matrix", "fit_metric"])
+def test_a_progress_that_is_not_callable_is_named_before_any_solve(job):
+    spheres = jnp.stack([shapes.sample(shapes.sphere, M, N, radius=r) for r in (1.0, 2.0)])
+    args = (spheres, [0, 1]) if job == "fit_metric" else (spheres, METRIC)
+    with pytest.raises(ej.InputError, match="progress must be a callable taking a dict; got 3"):
+        getattr(ej, job)(*args, progress=3)

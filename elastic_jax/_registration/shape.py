@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from .._checks import is_concrete
+from .._checks import check_progress, is_concrete
 from .._errors import ConvergenceWarning, InputError
 from .._geodesics.geodesic import GeodesicResult
 from .._geodesics.solvers import default_tol
@@ -309,8 +309,7 @@ def shape_geodesic(
         True
     """
     check_choice("modulo", modulo, MODULI)
-    if progress is not None and not callable(progress):
-        raise InputError(f"progress must be a callable taking a dict; got {progress!r}")
+    check_progress(progress)
     resolved = resolve_options(options, changes)
     f1, f2 = check_pair(f1, f2, same_grid=False)
     if symmetric:

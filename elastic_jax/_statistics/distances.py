@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._checks import check_progress
 from .._errors import ConvergenceWarning, InputError
 from .._geometry.metric import SplitMetric
 from .._options import ShapeOptions
@@ -199,6 +200,7 @@ def distance_matrix(
         (:class:`ConvergenceWarning`) once, naming the pairs.
     """
     strategy = check_batch(modulo, strategy, batch_size)
+    check_progress(progress)
     shapes, options = check_collection(shapes, options)
     k = shapes.shape[0]
     settings = job_settings(metric, modulo, options, batch_size=batch_size)

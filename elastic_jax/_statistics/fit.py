@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._checks import check_bool, check_choice, check_int, check_positive
+from .._checks import check_bool, check_choice, check_int, check_positive, check_progress
 from .._errors import ConvergenceWarning, InputError
 from .._geodesics.solvers import minimize
 from .._geometry.bases import basis_np, frames_between, perturbed_frames
@@ -321,6 +321,7 @@ def fit_metric(
             symmetric, finite and non-negative, ``learn`` not two or more of "abcd".
     """
     strategy = check_batch(modulo, strategy, batch_size)
+    check_progress(progress)
     shapes, options = check_collection(shapes, options)
     k = shapes.shape[0]
     if k < 3:

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import check_bool
+from .._checks import check_bool, check_progress
 from .._errors import ConvergenceWarning, InputError
 from .._geometry.grid import sphere_points
 from .._geometry.harmonics import vector_fields_np
@@ -488,6 +488,7 @@ def karcher_mean(
         (True, 1.5)
     """
     strategy = check_batch(modulo, strategy, batch_size)
+    check_progress(progress)
     shapes, options = check_collection(shapes, options, levels=True)
     max_steps = check_int("max_steps", max_steps, 0)
     tol = check_positive("tol", tol)
