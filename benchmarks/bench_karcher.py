@@ -70,11 +70,13 @@ coll = jnp.asarray(np.stack(coll), {dtype!r})
 metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 warnings.simplefilter("ignore", ej.ConvergenceWarning)
 
+job = ej.JobOptions(strategy=strategy)
+
 def run():
     if task == "karcher":
-        kw = dict(modulo="rigid", max_steps=1, strategy=strategy, options=options)
+        kw = dict(modulo="rigid", max_steps=1, job=job, options=options)
         return ej.karcher_mean(coll, metric, **kw)
-    kw = dict(modulo="rigid", strategy=strategy, options=options)
+    kw = dict(modulo="rigid", job=job, options=options)
     return ej.distance_matrix(coll, metric, **kw)
 
 t = time.perf_counter(); jax.block_until_ready(run()); first = time.perf_counter() - t
@@ -150,7 +152,7 @@ def resolved(args, emit, environment) -> None:
         modulo="rigid",
         options=options,
         max_steps=args.max_steps,
-        progress=progress,
+        job=ej.JobOptions(progress=progress),
     )
     seconds = time.perf_counter() - start
     levels = res.level_distances.tolist()  # NaN (past a shape's last level) as null

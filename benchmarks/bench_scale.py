@@ -199,7 +199,7 @@ while len(coll) < k:
     i += 1
 coll = np.stack(coll)
 options = ej.ShapeOptions(degree=5, vf_degree=5, n_times=7)
-kwargs = dict(modulo="rigid", options=options, strategy="map", batch_size=4)
+kwargs = dict(modulo="rigid", options=options)
 client = None
 if workers:
     from dask.distributed import Client, LocalCluster
@@ -208,7 +208,8 @@ if workers:
     client = Client(cluster)
     ej.enable_compilation_cache({cache!r}, client=client)
 t0 = time.perf_counter()
-res = ej.distance_matrix(coll, metric, client=client, **kwargs)
+job = ej.JobOptions(strategy="map", batch_size=4, client=client)
+res = ej.distance_matrix(coll, metric, job=job, **kwargs)
 seconds = time.perf_counter() - t0
 np.save({out!r}, np.asarray(res.distances))
 print(json.dumps({{"seconds": seconds, "pairs": k * (k - 1) // 2,

@@ -64,6 +64,7 @@ from ._runtime.cache import clear_caches as clear_caches
 from ._runtime.cache import enable_compilation_cache as enable_compilation_cache
 from ._statistics.distances import DistanceMatrixResult as DistanceMatrixResult
 from ._statistics.distances import distance_matrix as distance_matrix
+from ._statistics.driver import JobOptions as JobOptions
 from ._statistics.fit import MetricFit as MetricFit
 from ._statistics.fit import fit_metric as fit_metric
 from ._statistics.karcher import KarcherResult as KarcherResult
@@ -83,6 +84,7 @@ __all__ = [
     "DistanceMatrixResult",
     "GeodesicResult",
     "InputError",
+    "JobOptions",
     "KarcherResult",
     "Levels",
     "LogResult",

@@ -301,8 +301,8 @@ def _fake_karcher(calls):
         # A resolved mean's first solves report their levels; a phase is not a line.
         level = {"level": 2, "levels": 4, "grid": (25, 49), "energy": 0.5, "step": 0}
         level.update({"shape": 1, "shapes": k, "seconds": 12.3})
-        kwargs["progress"]({**level, "stage": "registration rounds"})
-        kwargs["progress"]({**level, "stage": "level", "distance": 0.25, "converged": True})
+        kwargs["job"].progress({**level, "stage": "registration rounds"})
+        kwargs["job"].progress({**level, "stage": "level", "distance": 0.25, "converged": True})
         return ej.KarcherResult(
             mean=shapes[0],
             distances=np.zeros(k),
@@ -404,7 +404,11 @@ def test_ctrl_c_then_resume_equals_the_library(tmp_path, capsys):
     code = cli.main([*argv, "--resume"])
     summary = json.loads(capsys.readouterr().out)
     expected = ej.distance_matrix(
-        np.stack(fs), METRIC, modulo="rigid", strategy="loop", options=SHAPE_OPTIONS
+        np.stack(fs),
+        METRIC,
+        modulo="rigid",
+        options=SHAPE_OPTIONS,
+        job=ej.JobOptions(strategy="loop"),
     )
     converged = np.asarray(expected.pairs_converged)
     assert code == (0 if converged.all() else cli.EXIT_NOT_CONVERGED)
@@ -442,7 +446,12 @@ def test_karcher_and_shape_geodesic_equal_the_library(tmp_path, capsys):
     code = cli.main(argv)
     summary = json.loads(capsys.readouterr().out)
     res = ej.karcher_mean(
-        np.stack(fs), METRIC, modulo="rigid", max_steps=2, options=SHAPE_OPTIONS, strategy="loop"
+        np.stack(fs),
+        METRIC,
+        modulo="rigid",
+        max_steps=2,
+        options=SHAPE_OPTIONS,
+        job=ej.JobOptions(strategy="loop"),
     )
     assert code == (0 if res.converged else cli.EXIT_NOT_CONVERGED)
     assert summary["converged"] is bool(res.converged) and summary["result"] == ej.RESULTS.name(
@@ -599,7 +608,11 @@ def test_fit_metric_equals_the_library_and_scores_the_held_out_files(tmp_path, c
     code = cli.main(argv)
     summary = json.loads(capsys.readouterr().out)
     assert code == 0, summary["message"]
-    small = {"modulo": "none", "options": ej.ShapeOptions(degree=3, n_times=5), "strategy": "loop"}
+    small = {
+        "modulo": "none",
+        "options": ej.ShapeOptions(degree=3, n_times=5),
+        "job": ej.JobOptions(strategy="loop"),
+    }
     fit = ej.fit_metric(np.stack(f[:4]), labels[:4], **small)
     got = [summary["metric"][c] for c in "abcd"]
     np.testing.assert_allclose(got, [getattr(fit.metric, c) for c in "abcd"], rtol=1e-9)

@@ -47,10 +47,13 @@ def client():
 
 def test_distance_matrix_and_karcher_mean_equal_the_in_process_ones(client):
     coll = _collection()
-    kwargs = {"modulo": "none", "options": FAST, "strategy": "map", "batch_size": 2}
-    here = ej.distance_matrix(coll, METRIC, **kwargs)
+    kwargs = {"modulo": "none", "options": FAST}
+    job = ej.JobOptions(strategy="map", batch_size=2)
+    here = ej.distance_matrix(coll, METRIC, **kwargs, job=job)
     seen = []
-    there = ej.distance_matrix(coll, METRIC, client=client, progress=seen.append, **kwargs)
+    there = ej.distance_matrix(
+        coll, METRIC, **kwargs, job=job.replace(progress=seen.append, client=client)
+    )
     np.testing.assert_allclose(there.distances, here.distances, rtol=1e-9, atol=0)
     np.testing.assert_array_equal(there.pairs_converged, here.pairs_converged)
     assert int(there.num_steps) == int(here.num_steps)
@@ -61,8 +64,8 @@ def test_distance_matrix_and_karcher_mean_equal_the_in_process_ones(client):
     # A Karcher mean: chunks of 2 and 1 shapes (padded to 2), two steps.
     three = coll[:3]
     kwargs = {**kwargs, "max_steps": 2}
-    here = ej.karcher_mean(three, METRIC, **kwargs)
-    there = ej.karcher_mean(three, METRIC, client=client, **kwargs)
+    here = ej.karcher_mean(three, METRIC, **kwargs, job=job)
+    there = ej.karcher_mean(three, METRIC, **kwargs, job=job.replace(client=client))
     assert there.num_steps == here.num_steps == 2
     np.testing.assert_allclose(there.mean, here.mean, rtol=0, atol=1e-9)
     np.testing.assert_allclose(there.history, here.history, rtol=1e-9)
@@ -71,10 +74,11 @@ def test_distance_matrix_and_karcher_mean_equal_the_in_process_ones(client):
 
 def test_a_killed_worker_has_its_task_rerun(client, tmp_path):
     coll = _collection()
-    kwargs = {"modulo": "none", "options": FAST, "strategy": "map", "batch_size": 1}
+    kwargs = {"modulo": "none", "options": FAST}
+    job = ej.JobOptions(strategy="map", batch_size=1)
     # Chunks of two pairs here, one pair a task there: each pair is solved on its own,
     # so neither the batch nor the worker changes its numbers.
-    here = ej.distance_matrix(coll, METRIC, **{**kwargs, "batch_size": 2})
+    here = ej.distance_matrix(coll, METRIC, **kwargs, job=job.replace(batch_size=2))
     pids = list(client.run(os.getpid).values())
     killed = []
 
@@ -85,7 +89,7 @@ def test_a_killed_worker_has_its_task_rerun(client, tmp_path):
 
     path = tmp_path / "pairs.npz"
     there = ej.distance_matrix(
-        coll, METRIC, client=client, checkpoint=path, progress=kill_one, **kwargs
+        coll, METRIC, **kwargs, job=job.replace(checkpoint=path, progress=kill_one, client=client)
     )
     assert killed == [1]
     np.testing.assert_allclose(there.distances, here.distances, rtol=1e-9, atol=0)
@@ -99,11 +103,12 @@ def test_a_killed_worker_has_its_task_rerun(client, tmp_path):
 @pytest.mark.slow
 def test_fit_metric_on_the_cluster_equals_the_in_process_fit(client):
     coll, labels = shapes.two_classes("bending", 4, M, N, seed=3)
-    kwargs = {"modulo": "none", "options": FAST, "strategy": "map", "batch_size": 2}
+    kwargs = {"modulo": "none", "options": FAST}
+    job = ej.JobOptions(strategy="map", batch_size=2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
-        here = ej.fit_metric(coll, labels, max_steps=2, **kwargs)
-        there = ej.fit_metric(coll, labels, max_steps=2, client=client, **kwargs)
+        here = ej.fit_metric(coll, labels, max_steps=2, **kwargs, job=job)
+        there = ej.fit_metric(coll, labels, max_steps=2, **kwargs, job=job.replace(client=client))
     assert int(there.num_steps) == int(here.num_steps) >= 1
     for c in "abcd":
         assert getattr(there.metric, c) == pytest.approx(getattr(here.metric, c), rel=1e-9)
@@ -114,4 +119,4 @@ def test_fit_metric_on_the_cluster_equals_the_in_process_fit(client):
 def test_bad_clients_are_refused():
     coll = _collection()[:2]
     with pytest.raises(ej.InputError, match="dask.distributed.Client"):
-        ej.distance_matrix(coll, METRIC, modulo="none", options=FAST, client=42)
+        ej.distance_matrix(coll, METRIC, modulo="none", options=FAST, job=ej.JobOptions(client=42))

@@ -142,11 +142,18 @@ def test_the_fits_distances_are_the_solves(modulo):
         options = SHAPE.replace(differential="chain", interpolation="spline")
     fit = _quiet(
         lambda: ej.fit_metric(
-            f, labels, modulo=modulo, options=options, max_steps=0, strategy="loop"
+            f,
+            labels,
+            modulo=modulo,
+            options=options,
+            max_steps=0,
+            job=ej.JobOptions(strategy="loop"),
         )
     )
     d = _quiet(
-        lambda: ej.distance_matrix(f, DEFAULT, modulo=modulo, options=options, strategy="loop")
+        lambda: ej.distance_matrix(
+            f, DEFAULT, modulo=modulo, options=options, job=ej.JobOptions(strategy="loop")
+        )
     )
     # The fit's metric is normalized (a + b + c + d = 1): distances scale by sqrt(2.1).
     # Two solves of each pair in two programs, which round differently: they agree to the
@@ -225,8 +232,8 @@ def _assert_gradient_matches(f, labels, modulo, options, w, coefficients):
                 init=ej.SplitMetric(*w),
                 learn="abcd",
                 max_steps=0,
-                strategy="loop",
                 temperature=0.5,
+                job=ej.JobOptions(strategy="loop"),
             )
         )
         return fit
@@ -325,13 +332,18 @@ def test_where_the_default_is_right_the_fitted_metric_stays_right():
 
 def test_a_fit_resumed_from_its_checkpoint_ends_where_one_run_ends(tmp_path):
     f, labels = capsules(4, 6)
-    run = {"modulo": "none", "options": FAST, "strategy": "loop"}
-    whole = _quiet(lambda: ej.fit_metric(f, labels, max_steps=3, **run))
+    run = {"modulo": "none", "options": FAST}
+    loop = ej.JobOptions(strategy="loop")
+    whole = _quiet(lambda: ej.fit_metric(f, labels, max_steps=3, **run, job=loop))
     path = tmp_path / "fit.npz"
-    first = _quiet(lambda: ej.fit_metric(f, labels, max_steps=1, checkpoint=path, **run))
+    first = _quiet(
+        lambda: ej.fit_metric(f, labels, max_steps=1, **run, job=loop.replace(checkpoint=path))
+    )
     assert int(first.num_steps) == 1
     resumed = _quiet(
-        lambda: ej.fit_metric(f, labels, max_steps=3, checkpoint=path, resume=True, **run)
+        lambda: ej.fit_metric(
+            f, labels, max_steps=3, **run, job=loop.replace(checkpoint=path, resume=True)
+        )
     )
     assert int(resumed.num_steps) == int(whole.num_steps)
     assert int(resumed.evaluations) == int(whole.evaluations)
@@ -343,7 +355,11 @@ def test_a_fit_resumed_from_its_checkpoint_ends_where_one_run_ends(tmp_path):
     # Another metric to start from is another fit: its checkpoint is refused.
     with pytest.raises(ej.InputError, match="other shapes or settings"):
         ej.fit_metric(
-            f, labels, init=ej.SplitMetric(1, 1, 1, 0), checkpoint=path, resume=True, **run
+            f,
+            labels,
+            init=ej.SplitMetric(1, 1, 1, 0),
+            **run,
+            job=loop.replace(checkpoint=path, resume=True),
         )
 
 
@@ -371,7 +387,9 @@ def test_the_animals_fit_ends_converged():
             f.append(np.einsum("ij,jk,kmn->imn", turn, stretch, g))
             labels.append(label)
     fit = _quiet(
-        lambda: ej.fit_metric(np.stack(f), labels, modulo="rigid", options=SHAPE, strategy="loop")
+        lambda: ej.fit_metric(
+            np.stack(f), labels, modulo="rigid", options=SHAPE, job=ej.JobOptions(strategy="loop")
+        )
     )
     assert fit.converged and fit.result == ej.RESULTS.successful, ej.RESULTS.name(fit.result)
     assert float(fit.objective_after) < float(fit.objective_before)

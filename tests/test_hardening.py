@@ -23,7 +23,10 @@ def _library_cases():
     nan_init = np.full((3, 45), np.nan)
     zeros = jnp.zeros(())
     return {  # what the call gets wrong -> (call, the word the message must contain)
-        "batch_size": (lambda: ej.distance_matrix(PAIR, METRIC, batch_size=-1), "batch_size"),
+        "batch_size": (
+            lambda: ej.distance_matrix(PAIR, METRIC, job=ej.JobOptions(batch_size=-1)),
+            "batch_size",
+        ),
         "karcher max_steps": (lambda: ej.karcher_mean(PAIR, METRIC, max_steps=-1), "max_steps"),
         "step_size": (
             lambda: ej.karcher_mean(PAIR, METRIC, step_size=float("nan")),
@@ -62,7 +65,10 @@ def _library_cases():
         "float n_times": (lambda: ej.geodesic(F1, F2, METRIC, n_times=5.0), "n_times"),
         "saddle_checks": (lambda: ej.geodesic(F1, F2, METRIC, saddle_checks=-1), "saddle_checks"),
         "solver": (lambda: ej.geodesic(F1, F2, METRIC, solver="adam"), "solver"),
-        "strategy": (lambda: ej.distance_matrix(PAIR, METRIC, strategy="fast"), "strategy"),
+        "strategy": (
+            lambda: ej.distance_matrix(PAIR, METRIC, job=ej.JobOptions(strategy="fast")),
+            "strategy",
+        ),
     }
 
 
@@ -178,7 +184,11 @@ def test_the_last_chunk_is_padded_to_the_compiled_batch():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
         before = _batching._distances_batch.jitted()._cache_size()
         res = ej.distance_matrix(
-            shapes3, METRIC, modulo="none", options=options, strategy="map", batch_size=2
+            shapes3,
+            METRIC,
+            modulo="none",
+            options=options,
+            job=ej.JobOptions(batch_size=2, strategy="map"),
         )
         # Three pairs in chunks of 2 and 1: one compilation, not two.
         assert _batching._distances_batch.jitted()._cache_size() - before == 1

@@ -73,7 +73,9 @@ def test_concentric_spheres_mean_is_the_mean_radius():
 @pytest.mark.slow
 def test_karcher_mean_of_moved_concentric_spheres_modulo_rigid():
     spheres = _moved_spheres()
-    res = ej.karcher_mean(spheres, METRIC, modulo="rigid", options=SHAPE, strategy="loop")
+    res = ej.karcher_mean(
+        spheres, METRIC, modulo="rigid", options=SHAPE, job=ej.JobOptions(strategy="loop")
+    )
     assert res.converged, res.message
     sum_sq = res.history[:, 0]
     assert np.all(np.diff(sum_sq) <= 0)
@@ -121,15 +123,18 @@ def test_resolved_mean_of_moebius_read_concentric_spheres(modulo, tmp_path, monk
     options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)  # rtol: the default
     spheres = _moebius_spheres(M, N, radii)
     path = tmp_path / "mean.npz"
-    kwargs = {"modulo": modulo, "options": options, "checkpoint": path}
+    kwargs = {"modulo": modulo, "options": options}
+    import elastic_jax._statistics.driver as driver
     import elastic_jax._statistics.karcher as karcher
 
-    written, save = [], karcher.save_npz_atomic
+    written, save = [], driver.save_npz_atomic
     monkeypatch.setattr(
-        karcher, "save_npz_atomic", lambda p, **arrays: written.append(arrays) or save(p, **arrays)
+        driver, "save_npz_atomic", lambda p, **arrays: written.append(arrays) or save(p, **arrays)
     )
     reports = []
-    res = ej.karcher_mean(spheres, METRIC, progress=reports.append, **kwargs)
+    res = ej.karcher_mean(
+        spheres, METRIC, **kwargs, job=ej.JobOptions(checkpoint=path, progress=reports.append)
+    )
     assert res.converged, res.message
     # Step 0's levelled solves report each level of each shape as it ends, with the
     # distance the result records; then one report per step.
@@ -189,7 +194,9 @@ def test_resolved_mean_of_moebius_read_concentric_spheres(modulo, tmp_path, monk
         karcher, "shape_geodesic", lambda *a, **k: levelled.append(1) or solve(*a, **k)
     )
     with pytest.warns(ej.ConvergenceWarning, match="max_steps"):
-        again = ej.karcher_mean(spheres, METRIC, resume=True, max_steps=0, **kwargs)
+        again = ej.karcher_mean(
+            spheres, METRIC, max_steps=0, **kwargs, job=ej.JobOptions(checkpoint=path, resume=True)
+        )
     assert len(levelled) == 1
     np.testing.assert_allclose(again.level_distances, res.level_distances, rtol=1e-10, atol=1e-14)
     np.testing.assert_allclose(again.history[0], res.history[0], rtol=1e-9)
@@ -250,7 +257,13 @@ def test_karcher_mean_modulo_diff_reaches_its_fixed_point():
     # fails at this tol: the warm solves keep finding lower registrations.
     coll = _three_reparametrized()
     res = ej.karcher_mean(
-        coll, METRIC, modulo="diff", options=SHAPE, strategy="loop", tol=1e-5, max_steps=6
+        coll,
+        METRIC,
+        modulo="diff",
+        options=SHAPE,
+        tol=1e-5,
+        max_steps=6,
+        job=ej.JobOptions(strategy="loop"),
     )
     assert res.converged, res.message
     sum_sq, norms = res.history[:, 0], res.history[:, 1]
@@ -271,7 +284,8 @@ def test_warm_start_keeps_the_lower_of_two_registrations():
     against 2.17683: the search lands in a slightly worse minimum than the warm start's
     continuation of the previous one)."""
     coll = _three_reparametrized()
-    kwargs = {"modulo": "diff", "options": SHAPE, "strategy": "loop", "max_steps": 1}
+    kwargs = {"modulo": "diff", "options": SHAPE, "job": ej.JobOptions(strategy="loop")}
+    kwargs["max_steps"] = 1
     with pytest.warns(ej.ConvergenceWarning, match="max_steps Karcher steps taken"):
         fresh = ej.karcher_mean(coll, METRIC, **kwargs)
     with pytest.warns(ej.ConvergenceWarning, match="max_steps Karcher steps taken"):
@@ -296,7 +310,9 @@ def test_karcher_mean_modulo_diff_forward_scheme_converges():
         ]
     )
     options = SHAPE.replace(scheme="forward")
-    res = ej.karcher_mean(coll, METRIC, modulo="diff", options=options, strategy="loop")
+    res = ej.karcher_mean(
+        coll, METRIC, modulo="diff", options=options, job=ej.JobOptions(strategy="loop")
+    )
     assert res.converged, res.message
     assert np.all(np.diff(res.history[:, 0]) <= 0)
     assert res.history[-1, 0] < 0.9 * res.history[0, 0]
@@ -304,8 +320,9 @@ def test_karcher_mean_modulo_diff_forward_scheme_converges():
 
 def test_distance_matrix_record_equals_single_solves_and_resumes(tmp_path):
     spheres = _moved_spheres()
-    kwargs = {"modulo": "rigid", "options": SHAPE, "strategy": "loop"}
-    res = ej.distance_matrix(spheres, METRIC, **kwargs)
+    kwargs = {"modulo": "rigid", "options": SHAPE}
+    loop = ej.JobOptions(strategy="loop")
+    res = ej.distance_matrix(spheres, METRIC, **kwargs, job=loop)
     assert isinstance(res, ej.DistanceMatrixResult)
     d, change = np.asarray(res.distances), np.asarray(res.refinement_change)
     assert np.asarray(res.pairs_converged).all() and bool(res.converged)
@@ -332,10 +349,14 @@ def test_distance_matrix_record_equals_single_solves_and_resumes(tmp_path):
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        ej.distance_matrix(spheres, METRIC, checkpoint=path, progress=kill, **kwargs)
+        ej.distance_matrix(
+            spheres, METRIC, **kwargs, job=loop.replace(checkpoint=path, progress=kill)
+        )
     saved = np.load(path)
     assert saved["done"].tolist() == [True, False, False] and bool(saved["converged"][0])
-    resumed = ej.distance_matrix(spheres, METRIC, checkpoint=path, resume=True, **kwargs)
+    resumed = ej.distance_matrix(
+        spheres, METRIC, **kwargs, job=loop.replace(checkpoint=path, resume=True)
+    )
     jax.tree_util.tree_map(np.testing.assert_array_equal, resumed, res)
 
 
@@ -360,10 +381,18 @@ def test_distance_matrix_modulo_none_matches_geodesics(tmp_path):
 
     with pytest.raises(KeyboardInterrupt):
         ej.distance_matrix(
-            coll, METRIC, modulo="none", options=FAST, batch_size=1, checkpoint=path, progress=kill
+            coll,
+            METRIC,
+            modulo="none",
+            options=FAST,
+            job=ej.JobOptions(batch_size=1, checkpoint=path, progress=kill),
         )
     resumed = ej.distance_matrix(
-        coll, METRIC, modulo="none", options=FAST, batch_size=1, checkpoint=path, resume=True
+        coll,
+        METRIC,
+        modulo="none",
+        options=FAST,
+        job=ej.JobOptions(batch_size=1, checkpoint=path, resume=True),
     )
     np.testing.assert_allclose(resumed.distances, d, rtol=1e-12)
 
@@ -372,10 +401,10 @@ def test_distance_matrix_modulo_none_matches_geodesics(tmp_path):
 def test_strategies_agree_and_permutation_does_not_matter():
     coll = _collection()
     kwargs = {"modulo": "none", "options": FAST, "max_steps": 15}
-    loop = ej.karcher_mean(coll, METRIC, strategy="loop", **kwargs)
+    loop = ej.karcher_mean(coll, METRIC, **kwargs, job=ej.JobOptions(strategy="loop"))
     assert loop.converged
     for strategy in ("vmap", "map"):
-        other = ej.karcher_mean(coll, METRIC, strategy=strategy, **kwargs)
+        other = ej.karcher_mean(coll, METRIC, **kwargs, job=ej.JobOptions(strategy=strategy))
         assert float(jnp.abs(other.mean - loop.mean).max()) < 1e-6
     permuted = ej.karcher_mean(coll[::-1], METRIC, init=coll[0], **kwargs)
     assert float(jnp.abs(permuted.mean - loop.mean).max()) < 1e-5
@@ -401,9 +430,13 @@ def test_resume_after_a_kill_equals_an_uninterrupted_run(tmp_path):
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        ej.karcher_mean(coll, METRIC, checkpoint=path, progress=kill_after_two, **kwargs)
+        ej.karcher_mean(
+            coll, METRIC, **kwargs, job=ej.JobOptions(checkpoint=path, progress=kill_after_two)
+        )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["karcher.npz"]  # nothing half-written
-    resumed = ej.karcher_mean(coll, METRIC, checkpoint=path, resume=True, **kwargs)
+    resumed = ej.karcher_mean(
+        coll, METRIC, **kwargs, job=ej.JobOptions(checkpoint=path, resume=True)
+    )
     np.testing.assert_allclose(resumed.mean, full.mean, atol=1e-12)
     np.testing.assert_allclose(resumed.history, full.history, rtol=1e-12)
     np.testing.assert_allclose(resumed.distances, full.distances, rtol=1e-12)
@@ -413,7 +446,9 @@ def test_resume_after_a_kill_equals_an_uninterrupted_run(tmp_path):
         full.result,
     )
     with pytest.raises(ValueError, match="other shapes or settings"):
-        ej.karcher_mean(coll[::-1], METRIC, checkpoint=path, resume=True, **kwargs)
+        ej.karcher_mean(
+            coll[::-1], METRIC, **kwargs, job=ej.JobOptions(checkpoint=path, resume=True)
+        )
 
 
 def test_one_orbit_converges_at_step_zero():
@@ -424,7 +459,11 @@ def test_one_orbit_converges_at_step_zero():
     shift = jnp.asarray([0.3, -0.1, 0.2])[:, None, None]
     moved = [jnp.einsum("ij,jmn->imn", shapes.random_rotation(k), f) + k * shift for k in (3, 5)]
     res = ej.karcher_mean(
-        jnp.stack([f, *moved]), METRIC, modulo="rigid", options=SHAPE, strategy="loop"
+        jnp.stack([f, *moved]),
+        METRIC,
+        modulo="rigid",
+        options=SHAPE,
+        job=ej.JobOptions(strategy="loop"),
     )
     assert res.converged and ej.RESULTS.name(res.result) == "distances_at_rounding", res.message
     assert (res.num_steps, res.num_solves) == (0, 1)
@@ -457,7 +496,9 @@ def test_line_search_rejects_steps_that_raise_the_sum_or_are_not_finite(monkeypa
 
     monkeypatch.setattr(_batching, "_one_geodesic", nan_after_first)
     with pytest.warns(ej.ConvergenceWarning, match="line search"):
-        res = ej.karcher_mean(coll, METRIC, modulo="none", options=FAST, strategy="loop")
+        res = ej.karcher_mean(
+            coll, METRIC, modulo="none", options=FAST, job=ej.JobOptions(strategy="loop")
+        )
     assert ej.RESULTS.name(res.result) == "line_search_failed" and not res.converged
     assert res.num_steps == 0 and res.history.shape == (1, 3) and np.isfinite(res.distances).all()
     np.testing.assert_array_equal(res.mean, coll[0])
@@ -472,7 +513,9 @@ def test_line_search_rejects_steps_that_raise_the_sum_or_are_not_finite(monkeypa
 
     monkeypatch.setattr(_batching, "_one_geodesic", limited_then_nan)
     with pytest.warns(ej.ConvergenceWarning, match="resolution_limited"):
-        res = ej.karcher_mean(coll, METRIC, modulo="none", options=FAST, strategy="loop")
+        res = ej.karcher_mean(
+            coll, METRIC, modulo="none", options=FAST, job=ej.JobOptions(strategy="loop")
+        )
     assert ej.RESULTS.name(res.result) == "resolution_limited" and not res.converged
     assert res.num_steps == 0 and res.num_solves == 6  # the first solves and 5 trials
 
@@ -512,7 +555,7 @@ def test_sharded_equals_unsharded():
     assert sharded["devices"] == 4
     coll = _collection()
     single = ej.karcher_mean(
-        coll, METRIC, modulo="none", strategy="vmap", max_steps=2, options=FAST
+        coll, METRIC, modulo="none", max_steps=2, options=FAST, job=ej.JobOptions(strategy="vmap")
     )
     np.testing.assert_allclose(np.asarray(sharded["mean"]).reshape(3, M, N), single.mean, atol=1e-9)
 
@@ -522,7 +565,7 @@ def test_errors():
     with pytest.raises(ValueError, match="modulo must be one of"):
         ej.karcher_mean(coll, METRIC, modulo="affine")
     with pytest.raises(ValueError, match="strategy must be one of"):
-        ej.distance_matrix(coll, METRIC, strategy="threads")
+        ej.distance_matrix(coll, METRIC, job=ej.JobOptions(strategy="threads"))
     with pytest.raises(ValueError, match=r"\(K, 3, m, n\) with K >= 2"):
         ej.karcher_mean(coll[:1], METRIC)
     with pytest.raises(TypeError, match="options must be a ShapeOptions"):
@@ -535,7 +578,7 @@ def test_errors():
         with pytest.raises(ValueError, match=name):
             ej.karcher_mean(coll, METRIC, **{name: value})
     with pytest.raises(ValueError, match="batch_size"):
-        ej.distance_matrix(coll, METRIC, batch_size=0)
+        ej.distance_matrix(coll, METRIC, job=ej.JobOptions(batch_size=0))
     with pytest.raises(ValueError, match="init must be one surface"):
         ej.karcher_mean(coll, METRIC, init=coll)
 
@@ -556,8 +599,8 @@ def test_mean_is_invariant_to_reparametrization_and_rotation():
         METRIC,
         modulo="rigid",
         options=SHAPE,
-        strategy="loop",
         max_steps=3,
+        job=ej.JobOptions(strategy="loop"),
     )
     to_f = ej.shape_geodesic(res.mean, f, METRIC, modulo="rigid", options=SHAPE).distance
     reference = ej.shape_geodesic(
@@ -592,7 +635,12 @@ def test_new_surfaces_on_the_same_grid_trace_nothing_new():
         ),
         "karcher step": lambda c: (
             ej.karcher_mean(
-                c, METRIC, modulo="rigid", options=SHAPE, strategy="loop", max_steps=1
+                c,
+                METRIC,
+                modulo="rigid",
+                options=SHAPE,
+                max_steps=1,
+                job=ej.JobOptions(strategy="loop"),
             ).mean
         ),
     }
@@ -606,9 +654,9 @@ def test_new_surfaces_on_the_same_grid_trace_nothing_new():
         assert again == [], (name, again)
 
 
-@pytest.mark.parametrize("job", ["karcher_mean", "distance_matrix", "fit_metric"])
-def test_a_progress_that_is_not_callable_is_named_before_any_solve(job):
+@pytest.mark.parametrize("name", ["karcher_mean", "distance_matrix", "fit_metric"])
+def test_a_progress_that_is_not_callable_is_named_before_any_solve(name):
     spheres = jnp.stack([shapes.sample(shapes.sphere, M, N, radius=r) for r in (1.0, 2.0)])
-    args = (spheres, [0, 1]) if job == "fit_metric" else (spheres, METRIC)
+    args = (spheres, [0, 1]) if name == "fit_metric" else (spheres, METRIC)
     with pytest.raises(ej.InputError, match="progress must be a callable taking a dict; got 3"):
-        getattr(ej, job)(*args, progress=3)
+        getattr(ej, name)(*args, job=ej.JobOptions(progress=3))

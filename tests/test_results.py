@@ -109,7 +109,12 @@ def _fit_metric(**changes):
     )
     res = _quiet(
         lambda: ej.fit_metric(
-            coll, [0, 0, 1, 1], modulo="none", options=FAST, strategy="loop", **changes
+            coll,
+            [0, 0, 1, 1],
+            modulo="none",
+            options=FAST,
+            **changes,
+            job=ej.JobOptions(strategy="loop"),
         )
     )
     return res, None

@@ -185,7 +185,7 @@ def _cached_line() -> int:
 # The public API as users import it; a rename or a removal is a decision, not an accident
 # of moving code (issue 31: the tree may change, these names may not).
 PUBLIC = {
-    "elastic_jax": """ConvergenceWarning DistanceMatrixResult GeodesicResult InputError
+    "elastic_jax": """ConvergenceWarning DistanceMatrixResult GeodesicResult InputError JobOptions
         KarcherResult Levels LogResult MetricFit RESULTS Refinement ShapeGeodesicResult ShapeOptions
         RetrievalScores ShootingResult SphericalHarmonics SplitMetric SrnfGeodesic
         SrnfInversion TangentPCA TransportResult WarmupReport base_inner center clear_caches

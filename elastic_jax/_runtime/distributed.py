@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import jax
 import numpy as np
@@ -109,6 +109,7 @@ class Pool:
         # Every worker gets the collection once (broadcast): tasks carry indices only.
         self._shapes = self.client.scatter(np.asarray(shapes), broadcast=True, hash=False)
         self._settings = (metric, modulo, options, strategy)
+        self._running: set = set()  # the futures submitted and not yet collected
 
     def __enter__(self) -> Pool:
         return self
@@ -117,45 +118,58 @@ class Pool:
         self.close()
 
     def close(self) -> None:
+        # A job stopped between two steps leaves no task of its behind.
+        self._cancel(list(self._running))
         self._shapes.release()
         if self._owned:
             self.client.close()
 
-    def _as_completed(self, futures: dict, finished: Callable) -> None:
-        """Call ``finished(key, result)`` as each task ends, in the order they end."""
+    def _as_completed(self, futures: dict) -> Iterator:
+        """``(key, result)`` as each task of ``futures`` (future -> key) ends, in the order
+        they end."""
+        self._running.update(futures)
         try:
             for future in distributed.as_completed(list(futures)):
-                finished(futures[future], future.result())
+                yield futures[future], future.result()
         finally:
             # On an error or Ctrl-C, the tasks not collected are not left running.
-            self.client.cancel([f for f in futures if not f.done()])
+            self._cancel(futures)
+
+    def _cancel(self, futures) -> None:
+        self.client.cancel([f for f in futures if not f.done()])
+        self._running.difference_update(futures)
 
     def _in_order(self, futures: dict) -> list:
         """The results of ``futures`` (future -> its index 0..n-1), in index order."""
         parts = [None] * len(futures)
-
-        def finished(i, result):
+        for i, result in self._as_completed(futures):
             parts[i] = result
-
-        self._as_completed(futures, finished)
         return parts
 
-    def _submit(self, task, chunk, *args, size: int):
-        """One task on the scattered collection with this job's settings; never cached
-        by Dask (pure=False): a rerun after a resume solves again."""
+    def _submit(self, task, chunk, *args, size: int, settings=None):
+        """One task on the scattered collection with this job's settings (or
+        ``settings``); never cached by Dask (pure=False): a rerun after a resume solves
+        again."""
         return self.client.submit(
-            task, chunk, self._shapes, *args, self._settings, size, self._modes, pure=False
+            task,
+            chunk,
+            self._shapes,
+            *args,
+            self._settings if settings is None else settings,
+            size,
+            self._modes,
+            pure=False,
         )
 
-    def distances(self, chunk, rows, cols, chunks, size: int, finished: Callable) -> None:
+    def distances(self, chunk, rows, cols, chunks, size: int) -> Iterator:
         """Solve the pairs (rows[a:b], cols[a:b]) of every chunk (a, b) with
-        ``chunk(first, second, *settings, size)``; ``finished((a, b), result)`` as each
-        ends."""
+        ``chunk(first, second, *settings, size)``: ``((a, b), result)`` as each ends
+        (all are submitted now, collected as they end)."""
         futures = {
             self._submit(_pairs_task, chunk, rows[a:b], cols[a:b], size=size): (a, b)
             for a, b in chunks
         }
-        self._as_completed(futures, finished)
+        return self._as_completed(futures)
 
     def solved_pairs(self, chunk, rows, cols, chunks, size: int, metric, starts=None) -> list:
         """The pairs (rows[a:b], cols[a:b]) of every chunk (a, b) solved under ``metric``
@@ -180,11 +194,15 @@ class Pool:
         }
         return self._in_order(futures)
 
-    def velocities(self, chunk, mean, chunks, size: int, starts=None) -> tuple:
+    def velocities(self, chunk, mean, chunks, size: int, starts=None, options=None) -> tuple:
         """The geodesics from every shape to ``mean``, chunk by chunk, each by
         ``chunk(mean, shapes, *settings, size, starts)``: the fields of its result, each
         with the shapes' leading axis concatenated. ``starts``: None or (gammas,
-        rotations) with that axis, each shape's warm start."""
+        rotations) with that axis, each shape's warm start. ``options``: the solves'
+        (a resolved mean's working grid) instead of the pool's."""
+        settings = self._settings
+        if options is not None:
+            settings = (settings[0], settings[1], options, settings[3])
         mean = np.asarray(mean, self._dtype)
         starts = None if starts is None else tuple(np.asarray(x, self._dtype) for x in starts)
 
@@ -193,7 +211,13 @@ class Pool:
 
         futures = {
             self._submit(
-                _shapes_task, chunk, np.arange(a, b), mean, chunk_starts(a, b), size=size
+                _shapes_task,
+                chunk,
+                np.arange(a, b),
+                mean,
+                chunk_starts(a, b),
+                size=size,
+                settings=settings,
             ): i
             for i, (a, b) in enumerate(chunks)
         }

@@ -4,32 +4,28 @@ optionally on a Dask cluster.
 
 from __future__ import annotations
 
-import os
-import pathlib
-import time
-import warnings
-from collections.abc import Callable
+from collections.abc import Iterator
 from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._checks import check_progress
-from .._errors import ConvergenceWarning, InputError
+from .._checks import check_choice
+from .._errors import InputError
 from .._geometry.metric import SplitMetric
 from .._options import ShapeOptions
 from .._results import RESULTS, status_record
-from .._runtime.atomic import save_npz_atomic
 from .batching import (
-    check_batch,
+    MODULI,
     check_collection,
     chunk_bounds,
     default_chunk,
     distance_chunk,
     job_settings,
 )
-from .checkpoints import fingerprint_of, load_checkpoint
+from .checkpoints import fingerprint_of
+from .driver import JobOptions, check_job, open_pool, run
 
 
 @status_record
@@ -70,7 +66,8 @@ class DistanceMatrixResult(NamedTuple):
 
 class _PairsState(NamedTuple):
     """The pairs (i, j), i < j, in row-major order of the upper triangle: what each
-    finished one gave, and which are done. Its fields are the checkpoint's arrays."""
+    finished one gave, and which are done (the checkpoint's arrays); the pairs done when
+    this run began and the chunks still running (neither saved)."""
 
     values: np.ndarray
     converged: np.ndarray
@@ -78,63 +75,102 @@ class _PairsState(NamedTuple):
     result_codes: np.ndarray
     num_steps: np.ndarray
     done: np.ndarray
+    done_before: int = 0
+    pending: Iterator | None = None
+
+
+_SAVED = _PairsState._fields[:6]
 
 
 class _PairsJob(NamedTuple):
-    """A distance matrix as init / step / terminate over a :class:`_PairsState`; a step is
-    one finished chunk of pairs (chunks may finish in any order on a cluster).
-    :func:`distance_matrix` is the driver: chunks, checkpoints, progress, the pool."""
+    """A distance matrix as the driver's job (_statistics/driver.py): a step is one
+    finished chunk of pairs; on a cluster the chunks finish in any order."""
 
-    count: int  # K, the shapes
+    shapes: Array
+    metric: SplitMetric
+    modulo: str
+    options: ShapeOptions
+    strategy: str
+    chunk: int | None  # pairs per chunk (None: all)
+    fingerprint: str
+    pool: object = None
 
     @property
-    def rows(self) -> np.ndarray:
-        return np.triu_indices(self.count, 1)[0]
-
-    @property
-    def cols(self) -> np.ndarray:
-        return np.triu_indices(self.count, 1)[1]
+    def count(self) -> int:
+        return self.shapes.shape[0]
 
     @property
     def pairs(self) -> int:
         return self.count * (self.count - 1) // 2
 
-    def init(self) -> _PairsState:
+    def _started(self, state: _PairsState) -> _PairsState:
+        """The state with its chunks not done under way (solved lazily, one per step)."""
+        rows, cols = np.triu_indices(self.count, 1)
+        size = min(self.chunk or self.pairs, self.pairs)
+        todo = [
+            (a, b) for a, b in chunk_bounds(self.pairs, self.chunk) if not state.done[a:b].all()
+        ]
+        settings = (self.metric, self.modulo, self.options, self.strategy, size)
+        if self.pool is not None:
+            pending = self.pool.distances(distance_chunk, rows, cols, todo, size)
+        else:
+            # Index per chunk: all K(K-1)/2 pairs at once would copy every surface K - 1 times.
+            pending = (
+                ((a, b), distance_chunk(self.shapes[rows[a:b]], self.shapes[cols[a:b]], *settings))
+                for a, b in todo
+            )
+        return state._replace(done_before=int(state.done.sum()), pending=iter(pending))
+
+    def init(self, saved, sink) -> _PairsState:
         p = self.pairs
         nan = np.full(p, np.nan)
-        return _PairsState(
-            nan,
-            np.zeros(p, bool),
-            nan.copy(),
-            np.zeros(p, np.int32),
-            np.zeros(p, np.int64),
-            np.zeros(p, bool),
+        zeros = np.zeros(p, bool)
+        state = _PairsState(
+            nan, zeros, nan.copy(), np.zeros(p, np.int32), np.zeros(p, np.int64), zeros.copy()
         )
+        return self._started(state)
 
-    def restore(self, saved: dict, path) -> _PairsState:
-        missing = set(_PairsState._fields) - set(saved)
+    def restore(self, saved: dict) -> _PairsState:
+        missing = set(_SAVED) - set(saved)
         if missing:
             raise InputError(
-                f"checkpoint {str(path)!r} has no {sorted(missing)}: an earlier release wrote "
-                "it; start over without resuming"
+                f"the checkpoint has no {sorted(missing)}: an earlier release wrote it; start "
+                "over without resuming"
             )
-        return _PairsState(*(np.array(saved[key]) for key in _PairsState._fields))
+        return self._started(_PairsState(*(np.array(saved[key]) for key in _SAVED)))
 
-    def step(self, state: _PairsState, chunk: tuple[int, int], out: tuple) -> _PairsState:
-        """The state with chunk (a, b)'s pairs done: ``out`` is distance_chunk's output.
-        Written in place: a copy per chunk would cost O(pairs) for every finished chunk."""
-        a, b = chunk
-        for field, part in zip(state[:-1], out, strict=True):
+    def step(self, state: _PairsState) -> tuple[_PairsState, bool]:
+        """The state with the next finished chunk's pairs written in (in place: a copy per
+        chunk would cost O(pairs) for every finished chunk)."""
+        finished = next(state.pending, None)
+        if finished is None:  # a failed chunk raises in next(): this is a bug if reached
+            raise RuntimeError("distance_matrix: some chunks of pairs were never solved")
+        (a, b), out = finished
+        for field, part in zip(state[:5], out, strict=True):
             field[a:b] = np.asarray(part)[: b - a]
         state.done[a:b] = True
-        return state
+        return state, True
 
-    def terminate(self, state: _PairsState) -> bool:
-        return bool(state.done.all())
+    def terminate(self, state: _PairsState) -> str | None:
+        return "successful" if state.done.all() else None
 
-    def result(self, state: _PairsState, dtype) -> DistanceMatrixResult:
+    def arrays(self, state: _PairsState) -> dict | None:
+        if int(state.done.sum()) == state.done_before:  # no pair solved in this run yet
+            return None
+        return {key: getattr(state, key) for key in _SAVED}
+
+    def report(self, state: _PairsState, seconds: float) -> dict | None:
+        now = int(state.done.sum())
+        if now == state.done_before:  # no chunk finished in this run yet
+            return None
+        rate = (now - state.done_before) / seconds if seconds > 0 else 0.0
+        left = self.pairs - now
+        return {"pairs_done": now, "pairs": self.pairs, "eta_s": left / rate if rate > 0 else None}
+
+    def result(self, state: _PairsState, code: str) -> DistanceMatrixResult:
         """The symmetric record from the upper triangle."""
-        rows, cols, k = self.rows, self.cols, self.count
+        rows, cols = np.triu_indices(self.count, 1)
+        k = self.count
 
         def symmetric(upper, diagonal, kind):
             matrix = np.zeros((k, k), kind)
@@ -145,6 +181,7 @@ class _PairsJob(NamedTuple):
 
         unconverged = np.flatnonzero(~state.converged)
         first = state.result_codes[unconverged[0]] if unconverged.size else None
+        dtype = self.shapes.dtype
         return DistanceMatrixResult(
             distances=jnp.asarray(symmetric(state.values, 0.0, np.float64), dtype=dtype),
             pairs_converged=jnp.asarray(symmetric(state.converged, True, bool)),
@@ -156,6 +193,11 @@ class _PairsJob(NamedTuple):
             num_steps=jnp.asarray(state.num_steps.sum()),
         )
 
+    def warning(self, record: DistanceMatrixResult) -> str:
+        ok = np.asarray(record.pairs_converged)
+        failed = [(int(i), int(j)) for i, j in np.argwhere(np.triu(~ok, 1))]
+        return f"distance_matrix: {len(failed)} of {self.pairs} pairs did not converge: {failed}"
+
 
 def distance_matrix(
     shapes: Float[ArrayLike, "K 3 m n"],
@@ -163,12 +205,7 @@ def distance_matrix(
     *,
     modulo: str = "rigid",
     options: ShapeOptions | None = None,
-    batch_size: int | None = None,
-    strategy: str = "auto",
-    checkpoint: str | os.PathLike | None = None,
-    resume: bool = False,
-    progress: Callable[[dict], None] | None = None,
-    client=None,
+    job: JobOptions | None = None,
 ) -> DistanceMatrixResult:
     """Pairwise shape distances: K(K-1)/2 geodesics, batched (:ref:`math §7 <math-7>`).
 
@@ -178,86 +215,37 @@ def distance_matrix(
     resolved karcher_mean's are (:ref:`math §10 <math-10>`). For resolved distances,
     resample the shapes to the grid their levels resolve at (a resolved mean's
     ``level_distances`` tells which) or solve the pairs with shape_geodesic. The record
-    is symmetrized from the upper triangle. With
-    ``checkpoint`` every finished chunk of pairs is saved atomically; ``resume=True``
-    skips the chunks already done.
+    is symmetrized from the upper triangle. With ``job.checkpoint`` every finished chunk
+    of pairs is saved atomically; ``job.resume`` skips the chunks already done.
 
     Args:
         shapes: ``(K, 3, m, n)`` surfaces on one grid; metric: split metric coefficients.
-        modulo, options, strategy, checkpoint, resume: as in :func:`karcher_mean`
-            (options without its levels: above).
-        progress: called after each chunk with a dict: pairs_done, pairs (in all),
-            seconds (since the call began) and eta_s (the time left at this run's rate).
-        batch_size: pairs per chunk (one batched call, one checkpoint); default all pairs
-            for "vmap", 8 for "map" and 1 for "loop", which gain nothing from big chunks.
-        client: a ``dask.distributed.Client`` or a scheduler address: the chunks run as
-            tasks on its workers, checkpointed as they arrive (in any order); a worker
-            lost mid-task has its task rerun by Dask. The numbers equal the in-process
-            ones (each pair is solved on its own). None: this process.
+        modulo, options: as in :func:`karcher_mean` (options without its levels: above).
+        job: how the job runs (:class:`JobOptions`): a chunk is ``batch_size`` pairs (one
+            batched call, one checkpoint, one task on a cluster; default all pairs for
+            "vmap", 8 for "map" and 1 for "loop"). ``progress`` hears after each chunk:
+            pairs_done, pairs (in all), seconds and eta_s (the time left at this run's
+            rate). On a cluster the chunks are checkpointed as they arrive, in any order,
+            and a worker lost mid-task has its task rerun by Dask; the numbers equal the
+            in-process ones (each pair is solved on its own).
 
     Returns:
         :class:`DistanceMatrixResult`. If some pair did not converge it also warns
         (:class:`ConvergenceWarning`) once, naming the pairs.
     """
-    strategy = check_batch(modulo, strategy, batch_size)
-    check_progress(progress)
+    job = check_job(job)
+    check_choice("modulo", modulo, MODULI)
     shapes, options = check_collection(shapes, options)
-    k = shapes.shape[0]
-    settings = job_settings(metric, modulo, options, batch_size=batch_size)
-    fingerprint = fingerprint_of(shapes, **settings)
-    path = None if checkpoint is None else pathlib.Path(checkpoint)
-    job = _PairsJob(k)
-    state = job.init()
-    saved = load_checkpoint(path, fingerprint) if path is not None and resume else None
-    if saved is not None:
-        state = job.restore(saved, path)
-
-    chunk_size = default_chunk(strategy) if batch_size is None else batch_size
-    size = min(chunk_size or job.pairs, job.pairs)
-    todo = [(a, b) for a, b in chunk_bounds(job.pairs, chunk_size) if not state.done[a:b].all()]
-    started, done_before = time.perf_counter(), int(state.done.sum())
-
-    def finished(chunk, out):
-        nonlocal state
-        state = job.step(state, chunk, out)
-        if path is not None:
-            save_npz_atomic(path, fingerprint=fingerprint, **state._asdict())
-        if progress is not None:
-            seconds = time.perf_counter() - started
-            now, left = int(state.done.sum()), int((~state.done).sum())
-            rate = (now - done_before) / seconds if seconds > 0 else 0.0
-            progress(
-                {
-                    "pairs_done": now,
-                    "pairs": job.pairs,
-                    "seconds": seconds,
-                    "eta_s": left / rate if rate > 0 else None,
-                }
-            )
-
-    rows, cols = job.rows, job.cols
-    if client is not None:
-        from .._runtime.distributed import Pool
-
-        with Pool(client, shapes, metric, modulo, options, strategy) as pool:
-            pool.distances(distance_chunk, rows, cols, todo, size, finished)
-    else:
-        for a, b in todo:
-            # Index per chunk: all K(K-1)/2 pairs at once would copy every surface K - 1 times.
-            first, second = shapes[rows[a:b]], shapes[cols[a:b]]
-            finished((a, b), distance_chunk(first, second, metric, modulo, options, strategy, size))
-    if not job.terminate(state):  # a failed chunk raises above: this is a bug if reached
-        raise RuntimeError("distance_matrix: some chunks of pairs were never solved")
-
-    result = job.result(state, shapes.dtype)
-    converged = state.converged
-    if not converged.all():
-        failed = [
-            (int(i), int(j)) for i, j, ok in zip(rows, cols, converged, strict=True) if not ok
-        ]
-        warnings.warn(
-            f"distance_matrix: {len(failed)} of {rows.size} pairs did not converge: {failed}",
-            ConvergenceWarning,
-            stacklevel=2,
-        )
-    return result
+    strategy = job.resolved_strategy
+    settings = job_settings(metric, modulo, options, batch_size=job.batch_size)
+    pairs = _PairsJob(
+        shapes,
+        metric,
+        modulo,
+        options,
+        strategy,
+        default_chunk(strategy) if job.batch_size is None else job.batch_size,
+        fingerprint_of(shapes, **settings),
+    )
+    with open_pool(job.client, shapes, metric, modulo, options, strategy) as pool:
+        return run(pairs, job.checkpoint, job.resume, job.progress, pool)

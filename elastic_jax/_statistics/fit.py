@@ -15,13 +15,7 @@ objective went down, and adjust the box by how well the model predicted it.
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import os
-import pathlib
-import time
-import warnings
-from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -29,8 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._checks import check_bool, check_choice, check_int, check_positive, check_progress
-from .._errors import ConvergenceWarning, InputError
+from .._checks import check_choice, check_int, check_positive
+from .._errors import InputError
 from .._geodesics.solvers import minimize
 from .._geometry.bases import basis_np, frames_between, perturbed_frames
 from .._geometry.differential import interior_frame
@@ -40,16 +34,16 @@ from .._geometry.numerics import safe_sqrt
 from .._options import ShapeOptions
 from .._registration.problem import make_bases, make_problem, path_energy_at
 from .._results import RESULTS, status_record
-from .._runtime.atomic import save_npz_atomic
 from .batching import (
-    check_batch,
+    MODULI,
     check_collection,
     chunk_bounds,
     default_chunk,
     job_settings,
     registered_chunk,
 )
-from .checkpoints import fingerprint_of, load_checkpoint
+from .checkpoints import fingerprint_of
+from .driver import JobOptions, check_job, open_pool, run
 from .retrieval import check_distances, check_labels
 
 # The least share of a learned coefficient in a + b + c + d = 1 (times the learned
@@ -254,12 +248,7 @@ def fit_metric(
     temperature: float = 0.1,
     max_steps: int = 30,
     tol: float = 1e-3,
-    batch_size: int | None = None,
-    strategy: str = "auto",
-    checkpoint: str | os.PathLike | None = None,
-    resume: bool = False,
-    progress: Callable[[dict], None] | None = None,
-    client=None,
+    job: JobOptions | None = None,
 ) -> MetricFit:
     """Fit the split metric's coefficients to labels or to target dissimilarities.
 
@@ -299,17 +288,15 @@ def fit_metric(
         temperature: NCA's softness, in units of the squared mean distance.
         max_steps: trust region steps at most (each one batched solve of all pairs).
         tol: the gradient norm that ends the fit.
-        batch_size, strategy: how the pairs are batched, as in :func:`distance_matrix`.
-        checkpoint: path of an .npz written atomically after the first solve of all pairs
-            and after every step (the coefficients, the trust region, the held solutions).
-        resume: continue from ``checkpoint`` (refused if it belongs to other shapes,
-            labels, targets or settings; ``max_steps`` may differ). A fit killed during a
-            step loses that step's solves only.
-        progress: called after each step with a dict: step, objective, grad_norm, metric
-            (a, b, c, d), radius, accepted, seconds.
-        client: a ``dask.distributed.Client`` or a scheduler address: every step's pairs
-            are solved as tasks on its workers (chunks of ``batch_size``), as in
-            :func:`distance_matrix`; the numbers equal the in-process ones.
+        job: how the job runs (:class:`JobOptions`): the pairs are batched as in
+            :func:`distance_matrix` (``batch_size``, ``strategy``; on a cluster every
+            step's pairs are tasks on its workers, the numbers equal the in-process
+            ones). The checkpoint is written after the first solve of all pairs and after
+            every step (the coefficients, the trust region, the held solutions); a resume
+            is refused if it belongs to other shapes, labels, targets or settings
+            (``max_steps`` may differ), and a fit killed during a step loses that step's
+            solves only. ``progress`` hears after each step: step, objective, grad_norm,
+            metric (a, b, c, d), radius, accepted, seconds.
 
     Returns:
         :class:`MetricFit`. A fit that did not converge also warns
@@ -320,8 +307,8 @@ def fit_metric(
             with NaN or a class of one shape or one class only, targets not square,
             symmetric, finite and non-negative, ``learn`` not two or more of "abcd".
     """
-    strategy = check_batch(modulo, strategy, batch_size)
-    check_progress(progress)
+    job = check_job(job)
+    check_choice("modulo", modulo, MODULI)
     shapes, options = check_collection(shapes, options)
     k = shapes.shape[0]
     if k < 3:
@@ -336,7 +323,6 @@ def fit_metric(
         raise InputError(f"objective={objective!r} needs {needs}")
     free = check_learn(learn)
     max_steps = check_int("max_steps", max_steps, 0)
-    resume = check_bool("resume", resume)
     tol = check_positive("tol", tol)
     dtype = shapes.dtype
     rows = np.triu_indices(k, 1)[0]
@@ -364,12 +350,11 @@ def fit_metric(
             learn=learn,
             temperature=temperature,
             tol=tol,
-            batch_size=batch_size,
+            batch_size=job.batch_size,
         ),
     )
-    path = None if checkpoint is None else pathlib.Path(checkpoint)
-    saved = load_checkpoint(path, fingerprint) if path is not None and resume else None
-    chunk = default_chunk(strategy) if batch_size is None else batch_size
+    strategy = job.resolved_strategy
+    chunk = default_chunk(strategy) if job.batch_size is None else job.batch_size
     solves = _Solves(
         shapes,
         modulo,
@@ -379,38 +364,21 @@ def fit_metric(
         min(chunk or rows.size, rows.size),
         _evaluation_bases(shapes.shape[-2:], options, modulo, dtype),
     )
-    job = _FitJob(data, jnp.asarray(fixed, dtype), free, objective, k, tol, solves)
-    with contextlib.ExitStack() as stack:
-        if client is not None:
-            from .._runtime.distributed import Pool
-
-            stack.enter_context(
-                pool := Pool(client, shapes, job.metric_at(theta0), modulo, options, strategy)
-            )
-            job = job._replace(solves=solves._replace(pool=pool))
-        state = job.init(theta0) if saved is None else job.restore(saved, dtype)
-        _save(path, fingerprint, state)
-        began = time.perf_counter()
-        while (result := job.terminate(state, max_steps)) is None:
-            state, accepted = job.step(state)
-            _save(path, fingerprint, state)
-            if progress is not None:
-                progress(
-                    {
-                        **job.report(state),
-                        "accepted": accepted,
-                        "seconds": time.perf_counter() - began,
-                    }
-                )
-    fit = job.result(state, theta0, result, max_steps)
-    if not bool(fit.converged):
-        warnings.warn(
-            f"fit_metric: not converged after {int(fit.num_steps)} steps (gradient norm "
-            f"{float(fit.grad_norm):.3g} > tol {tol:g}): {fit.message}",
-            ConvergenceWarning,
-            stacklevel=2,
-        )
-    return fit
+    fit = _FitJob(
+        data,
+        jnp.asarray(fixed, dtype),
+        free,
+        objective,
+        k,
+        tol,
+        max_steps,
+        theta0,
+        solves,
+        fingerprint,
+    )
+    first = fit.metric_at(theta0)
+    with open_pool(job.client, shapes, first, modulo, options, strategy) as pool:
+        return run(fit, job.checkpoint, job.resume, job.progress, pool)
 
 
 class _Solves(NamedTuple):
@@ -423,7 +391,6 @@ class _Solves(NamedTuple):
     chunk: int | None
     size: int
     bases: object
-    pool: object = None
 
 
 class _FitState(NamedTuple):
@@ -436,11 +403,11 @@ class _FitState(NamedTuple):
     steps: int
     evaluations: int
     history: list  # the objective at the start and after each step
+    accepted: bool | None = None  # whether the last step was (None: no step yet)
 
 
 class _FitJob(NamedTuple):
-    """A fit as init / step / terminate over a :class:`_FitState` (:func:`fit_metric` is
-    the driver: checkpoints, progress, the pool)."""
+    """A fit as the driver's job (_statistics/driver.py) over a :class:`_FitState`."""
 
     data: object  # (classmates (K, K), temperature) for "nca"; targets (P,) for "stress"
     fixed: Array  # (4,) the held coefficients' shares
@@ -448,7 +415,11 @@ class _FitJob(NamedTuple):
     objective: str
     k: int
     tol: float
+    max_steps: int
+    theta0: Array  # (F,) where the fit started
     solves: _Solves
+    fingerprint: str
+    pool: object = None
 
     def metric_at(self, theta) -> SplitMetric:
         return SplitMetric(*(float(w) for w in np.asarray(self.weights(theta))))
@@ -468,14 +439,15 @@ class _FitJob(NamedTuple):
         )
 
     def solve(self, theta, starts) -> _Held:
-        return _solve_pairs(self.metric_at(theta), starts, self.solves)
+        return _solve_pairs(self.metric_at(theta), starts, self.solves, self.pool)
 
-    def init(self, theta) -> _FitState:
-        held = self.solve(theta, None)
-        value = self.value_and_grad(held.parts, theta)[0]
-        return _FitState(theta, held, held, _RADIUS[0], 0, 1, [float(value)])
+    def init(self, saved, sink) -> _FitState:
+        held = self.solve(self.theta0, None)
+        value = self.value_and_grad(held.parts, self.theta0)[0]
+        return _FitState(self.theta0, held, held, _RADIUS[0], 0, 1, [float(value)])
 
-    def restore(self, saved: dict, dtype) -> _FitState:
+    def restore(self, saved: dict) -> _FitState:
+        dtype = self.theta0.dtype
         held = _Held(
             saved["parts"],
             tuple(jnp.asarray(saved[k], dtype) for k in _STARTS),
@@ -492,15 +464,15 @@ class _FitJob(NamedTuple):
             list(saved["history"]),
         )
 
-    def terminate(self, state: _FitState, max_steps: int) -> RESULTS | None:
-        """The result code when the fit stops here, None while it goes on."""
+    def terminate(self, state: _FitState) -> str | None:
+        """The result's name when the fit stops here, None while it goes on."""
         grad = self.value_and_grad(state.held.parts, state.theta)[1]
         if float(jnp.linalg.norm(grad)) <= self.tol:
-            return RESULTS.successful
+            return "successful"
         if state.radius < _RADIUS[2]:
-            return RESULTS.stalled
-        if state.steps >= max_steps:
-            return RESULTS.nonlinear_max_steps_reached
+            return "stalled"
+        if state.steps >= self.max_steps:
+            return "nonlinear_max_steps_reached"
         return None
 
     def step(self, state: _FitState) -> tuple[_FitState, bool]:
@@ -537,9 +509,12 @@ class _FitJob(NamedTuple):
             steps=state.steps + 1,
             evaluations=state.evaluations + 1,
             history=history,
-        ), accepted
+            accepted=accepted,
+        ), True
 
-    def report(self, state: _FitState) -> dict:
+    def report(self, state: _FitState, seconds: float) -> dict | None:
+        if state.accepted is None:  # the first solve: progress hears of steps only
+            return None
         value, grad = self.value_and_grad(state.held.parts, state.theta)
         return {
             "step": state.steps,
@@ -547,9 +522,31 @@ class _FitJob(NamedTuple):
             "grad_norm": float(jnp.linalg.norm(grad)),
             "metric": tuple(float(w) for w in self.weights(state.theta)),
             "radius": state.radius,
+            "accepted": state.accepted,
         }
 
-    def result(self, state: _FitState, theta0, result: RESULTS, max_steps: int) -> MetricFit:
+    def warning(self, fit: MetricFit) -> str:
+        return (
+            f"fit_metric: not converged after {int(fit.num_steps)} steps (gradient norm "
+            f"{float(fit.grad_norm):.3g} > tol {self.tol:g}): {fit.message}"
+        )
+
+    def arrays(self, state: _FitState) -> dict:
+        return {
+            "theta": np.asarray(state.theta),
+            "radius": state.radius,
+            "steps": state.steps,
+            "evaluations": state.evaluations,
+            "history": np.asarray(state.history),
+            "parts": state.held.parts,
+            "converged": state.held.converged,
+            "before_parts": state.before.parts,
+            "before_converged": state.before.converged,
+            **{k: np.asarray(x) for k, x in zip(_STARTS, state.held.starts, strict=True)},
+        }
+
+    def result(self, state: _FitState, code: str) -> MetricFit:
+        theta0, max_steps, result = self.theta0, self.max_steps, getattr(RESULTS, code)
         rows, cols = np.triu_indices(self.k, 1)
         value, grad = self.value_and_grad(state.held.parts, state.theta)
         dtype = state.theta.dtype
@@ -584,26 +581,6 @@ class _FitJob(NamedTuple):
             num_steps=jnp.asarray(state.steps),
             evaluations=jnp.asarray(state.evaluations),
         )
-
-
-def _save(path, fingerprint: str, state: _FitState) -> None:
-    """The fit's checkpoint, written atomically (nothing without a path)."""
-    if path is None:
-        return
-    save_npz_atomic(
-        path,
-        fingerprint=fingerprint,
-        theta=np.asarray(state.theta),
-        radius=state.radius,
-        steps=state.steps,
-        evaluations=state.evaluations,
-        history=np.asarray(state.history),
-        parts=state.held.parts,
-        converged=state.held.converged,
-        before_parts=state.before.parts,
-        before_converged=state.before.converged,
-        **{k: np.asarray(x) for k, x in zip(_STARTS, state.held.starts, strict=True)},
-    )
 
 
 def _objective_data(objective, labels, targets, temperature, k: int, dtype):
@@ -645,17 +622,15 @@ def _evaluation_bases(grid, options: ShapeOptions, modulo: str, dtype):
     return make_bases(m, n, options, dtype)
 
 
-def _solve_pairs(metric, starts, solves: _Solves) -> _Held:
+def _solve_pairs(metric, starts, solves: _Solves, pool=None) -> _Held:
     """All pairs solved at ``metric`` (from ``starts`` when given) and their energy parts;
     on the pool's workers when there is one (the parts are computed here)."""
     shapes, modulo, options = solves.shapes, solves.modulo, solves.options
     rows, cols = np.triu_indices(shapes.shape[0], 1)
     chunks = chunk_bounds(rows.size, solves.chunk)
     settings = (metric, modulo, options, solves.strategy, solves.size)
-    if solves.pool is not None:
-        outs = solves.pool.solved_pairs(
-            registered_chunk, rows, cols, chunks, solves.size, metric, starts
-        )
+    if pool is not None:
+        outs = pool.solved_pairs(registered_chunk, rows, cols, chunks, solves.size, metric, starts)
     else:
         outs = [
             registered_chunk(

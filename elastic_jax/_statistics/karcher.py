@@ -10,13 +10,8 @@ options travel as one :class:`ShapeOptions` record; the Karcher iteration's own 
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import os
-import pathlib
-import time
 import warnings
-from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -24,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import check_bool, check_progress
+from .._checks import check_bool, check_choice
 from .._errors import ConvergenceWarning, InputError
 from .._geometry.grid import sphere_points
 from .._geometry.harmonics import vector_fields_np
@@ -36,16 +31,16 @@ from .._options import ShapeOptions, check_int, check_positive
 from .._registration.problem import on_grid
 from .._registration.shape import registration_at, shape_geodesic
 from .._results import RESULTS, status_record
-from .._runtime.atomic import save_npz_atomic
 from .batching import (
-    check_batch,
+    MODULI,
     check_collection,
     chunk_bounds,
     default_chunk,
     job_settings,
     velocity_chunk,
 )
-from .checkpoints import fingerprint_of, load_checkpoint
+from .checkpoints import fingerprint_of
+from .driver import JobOptions, check_job, open_pool, run
 
 # Halvings of a Karcher step that raised the sum of squared distances before giving up.
 _HALVINGS = 4
@@ -201,8 +196,10 @@ def _direction(metric, mean, solved: _Solved, modulo: str, options: ShapeOptions
 
 class _KarcherState(NamedTuple):
     """Where a Karcher iteration stands: the mean, its K geodesics and step direction, the
-    steps taken, the batches solved, the history rows (sum_sq, norm, step size) and, once
-    a step has decided it, why the iteration stops (else None)."""
+    steps taken, the batches solved, the history rows (sum_sq, norm, step size), the
+    options the solves use (a resolved mean's working grid), the first solves' level
+    distances (a resolved mean's; else None) and, once a step has decided it, why the
+    iteration stops (else None)."""
 
     mean: Array
     solved: _Solved
@@ -210,39 +207,116 @@ class _KarcherState(NamedTuple):
     step: int
     num_solves: int
     history: tuple
+    working: ShapeOptions
+    level_distances: np.ndarray | None
     stop: str | None = None
 
 
-class _KarcherIteration(NamedTuple):
-    """The Karcher iteration as init / step / terminate over a :class:`_KarcherState`
-    (the shape of an optimistix solver; :func:`karcher_mean` is the driver that adds the
-    checkpoints, the progress reports and the pool).
+class _KarcherJob(NamedTuple):
+    """The Karcher iteration as the driver's job (_statistics/driver.py): the geodesics
+    at the starting mean (by levels for a resolved mean), then line searches along the
+    mean velocity."""
 
-    ``solve(mean, previous_solved)`` gives the K geodesics at a mean (a batch of solves),
-    ``direction(mean, solved)`` the step direction there.
-    """
-
-    solve: Callable
-    direction: Callable
-    count: int  # K, the shapes
+    shapes: Array
+    start: Array  # the starting mean
+    metric: SplitMetric
+    modulo: str
+    options: ShapeOptions  # the inner solves'; rtol set only for a resolved mean
+    strategy: str
+    chunks: tuple  # (a, b) bounds of the chunks of shapes
     tol: float
     step_size: float
     max_steps: int
+    warm_start: bool
+    fingerprint: str
+    pool: object = None
 
-    def init(self, mean) -> _KarcherState:
-        """Step 0: the geodesics at the starting mean."""
-        solved = self.solve(mean, None)
-        direction = self.direction(mean, solved)
+    @property
+    def count(self) -> int:  # K, the shapes
+        return self.shapes.shape[0]
+
+    def _solve(self, working: ShapeOptions, at, starts) -> _Solved:
+        """The K geodesics at the mean ``at`` (a batch of solves, chunk by chunk)."""
+        size = self.chunks[0][1] - self.chunks[0][0]
+        if self.pool is not None:
+            out = self.pool.velocities(velocity_chunk, at, self.chunks, size, starts, working)
+            return _Solved(*(jnp.asarray(x) for x in out))
+        parts = [
+            velocity_chunk(
+                at,
+                self.shapes[a:b],
+                self.metric,
+                self.modulo,
+                working,
+                self.strategy,
+                size,
+                None if starts is None else tuple(x[a:b] for x in starts),
+            )
+            for a, b in self.chunks
+        ]
+        return _Solved(*(jnp.concatenate(p) for p in zip(*parts, strict=True)))
+
+    def _continued(self, working: ShapeOptions, at, previous: _Solved) -> _Solved:
+        """The geodesics at ``at``, each started where it was at the previous mean when
+        the mean is resolved (continued) or warm-started; else a fresh search."""
+        if self.options.resolves:
+            starts = (previous.gammas, previous.rotations, previous.coefficients)
+        elif self.warm_start:
+            starts = (previous.gammas, previous.rotations)
+        else:
+            starts = None
+        return self._solve(working, at, starts)
+
+    def _direction(self, mean, solved: _Solved, working: ShapeOptions) -> _Direction:
+        return _direction(self.metric, mean, solved, self.modulo, working)
+
+    def init(self, saved: dict | None, sink) -> _KarcherState:
+        """Step 0: the geodesics at the starting mean; for a resolved mean by levels, shape
+        by shape (each kept in the checkpoint as it ends), then read on its working grid."""
+        mean, working, starts, levels = self.start, self.options, None, None
+        if self.options.resolves:
+            report = None
+            if sink.report is not None:
+
+                def report(k, info):
+                    sink.report({**info, "step": 0, "shape": k, "shapes": self.count})
+
+            mean, working, starts, levels = _resolved_start(
+                self.shapes, mean, self.metric, self.modulo, self.options, saved, sink.save, report
+            )
+        elif self.warm_start:  # the identity registration
+            m, n = self.shapes.shape[-2:]
+            e1 = sphere_points(m, n, self.shapes.dtype)
+            eye = jnp.eye(3, dtype=self.shapes.dtype)
+            k = self.count
+            starts = (jnp.broadcast_to(e1, (k, *e1.shape)), jnp.broadcast_to(eye, (k, 3, 3)))
+        solved = self._solve(working, mean, starts)
+        direction = self._direction(mean, solved, working)
         history = ((direction.sum_sq, direction.norm, 0.0),)
-        return _KarcherState(mean, solved, direction, 0, 1, history)
+        return _KarcherState(mean, solved, direction, 0, 1, history, working, levels)
 
-    def restore(self, saved: dict) -> _KarcherState:
-        """The state a checkpoint holds (its direction evaluated again, no solve)."""
+    def restore(self, saved: dict) -> _KarcherState | None:
+        """The state a checkpoint holds (its direction evaluated again, no solve); None
+        for one written during a resolved mean's first, levelled solves."""
+        if "mean" not in saved:
+            return None
         mean = jnp.asarray(saved["mean"])
         solved = _Solved(*(jnp.asarray(saved[f"solved_{k}"]) for k in _Solved._fields))
         history = tuple(tuple(row) for row in saved["history"].tolist())
-        step, num_solves = int(saved["step"]), int(saved["num_solves"])
-        return _KarcherState(mean, solved, self.direction(mean, solved), step, num_solves, history)
+        working, levels = self.options, None
+        if self.options.resolves:
+            levels = np.asarray(saved["level_distances"])
+            working = self.options.replace(grid=tuple(mean.shape[-2:]), rtol=None)
+        return _KarcherState(
+            mean,
+            solved,
+            self._direction(mean, solved, working),
+            int(saved["step"]),
+            int(saved["num_solves"]),
+            history,
+            working,
+            levels,
+        )
 
     def terminate(self, state: _KarcherState) -> str | None:
         """Why the iteration stops at ``state`` (a RESULTS name), or None to step on."""
@@ -260,14 +334,14 @@ class _KarcherIteration(NamedTuple):
             return "nonlinear_max_steps_reached"
         return None
 
-    def step(self, state: _KarcherState) -> _KarcherState:
-        """One line search along the mean velocity: the accepted trial as the new state,
-        or the same mean with ``stop`` set (every trial solved is counted either way)."""
+    def step(self, state: _KarcherState) -> tuple[_KarcherState, bool]:
+        """One line search along the mean velocity: the accepted trial as the new state
+        (kept), or the same mean with ``stop`` set (every trial solved is counted)."""
         sum_sq, num_solves = state.direction.sum_sq, state.num_solves
         s = self.step_size
         for _ in range(_HALVINGS + 1):
             trial_mean = state.mean + s * state.direction.velocity
-            trial = self.solve(trial_mean, state.solved)
+            trial = self._continued(state.working, trial_mean, state.solved)
             num_solves += 1
             trial_sum_sq = float(jnp.sum(trial.distances**2))
             # NaN compares False: a non-finite trial is never accepted.
@@ -278,13 +352,13 @@ class _KarcherIteration(NamedTuple):
             # registrations' own scatter (each is a nonconvex search), and halving a
             # step the SSD cannot resolve only looks for a lower draw of that scatter.
             if s == self.step_size and trial_sum_sq - sum_sq <= self.tol * sum_sq:
-                return state._replace(num_solves=num_solves, stop="sum_sq_stalled")
+                return state._replace(num_solves=num_solves, stop="sum_sq_stalled"), False
             s *= 0.5
         else:
             limited = bool(np.any(np.asarray(state.solved.limited)))
             stop = "resolution_limited" if limited else "line_search_failed"
-            return state._replace(num_solves=num_solves, stop=stop)
-        direction = self.direction(trial_mean, trial)
+            return state._replace(num_solves=num_solves, stop=stop), False
+        direction = self._direction(trial_mean, trial, state.working)
         # A halved step counts too: the full step raised the SSD by more than tol, and
         # the best halving lowered it by less, so no step along this direction changes
         # it by more than tol. Counting full steps only, the shared animals' mean (levels
@@ -292,7 +366,7 @@ class _KarcherIteration(NamedTuple):
         # ended line_search_failed at the same SSD to 1e-5, an outcome that flipped with
         # the registrations' rounding.
         stalled = sum_sq - trial_sum_sq <= self.tol * sum_sq
-        return _KarcherState(
+        return state._replace(
             mean=trial_mean,
             solved=trial,
             direction=direction,
@@ -300,6 +374,50 @@ class _KarcherIteration(NamedTuple):
             num_solves=num_solves,
             history=(*state.history, (direction.sum_sq, direction.norm, s)),
             stop="sum_sq_stalled" if stalled else None,
+        ), True
+
+    def arrays(self, state: _KarcherState) -> dict:
+        """The mean and its geodesics (and a resolved mean's first level distances)."""
+        extra = {} if state.level_distances is None else {"level_distances": state.level_distances}
+        return {
+            "mean": np.asarray(state.mean),
+            "step": state.step,
+            "history": np.asarray(state.history),
+            "num_solves": state.num_solves,
+            **{f"solved_{k}": np.asarray(v) for k, v in state.solved._asdict().items()},
+            **extra,
+        }
+
+    def report(self, state: _KarcherState, seconds: float) -> dict:
+        sum_sq, norm, step_size = state.history[-1]
+        return {
+            "step": state.step,
+            "sum_sq_distances": sum_sq,
+            "mean_velocity_norm": norm,
+            "step_size": step_size,
+            "num_solves": state.num_solves,
+        }
+
+    def result(self, state: _KarcherState, code: str) -> KarcherResult:
+        solved = state.solved
+        return KarcherResult(
+            mean=state.mean,
+            distances=solved.distances,
+            registered=solved.registered,
+            velocities=solved.velocities,
+            geodesics_converged=solved.converged,
+            history=np.asarray(state.history),
+            converged=np.asarray(code in _CONVERGED),
+            num_steps=state.step,
+            num_solves=state.num_solves,
+            result=getattr(RESULTS, code),
+            level_distances=state.level_distances,
+        )
+
+    def warning(self, res: KarcherResult) -> str:
+        return (
+            f"karcher_mean: {res.message} (sum of squared distances "
+            f"{res.history[:, 0].round(6).tolist()})"
         )
 
 
@@ -376,13 +494,8 @@ def karcher_mean(
     max_steps: int = 10,
     tol: float = 1e-3,
     step_size: float = 1.0,
-    batch_size: int | None = None,
-    strategy: str = "auto",
-    checkpoint: str | os.PathLike | None = None,
-    resume: bool = False,
-    progress: Callable[[dict], None] | None = None,
-    client=None,
     warm_start: bool = False,
+    job: JobOptions | None = None,
 ) -> KarcherResult:
     """Karcher (Frechet) mean of a collection of surfaces (paper section 4.1,
     :ref:`math §7 <math-7>`).
@@ -451,26 +564,22 @@ def karcher_mean(
         max_steps: most Karcher steps (accepted updates of the mean); 0 only evaluates.
         tol: the two convergence tests above.
         step_size: the first trial step, in units of the mean velocity.
-        batch_size: shapes per batched call (bounds memory); default all.
-        strategy: ``"vmap"``, ``"map"``, ``"loop"`` or ``"auto"`` (``default_strategy()``).
-        checkpoint: path of an .npz written atomically after the first solves and after
-            every accepted step (the mean and its geodesics); for a resolved mean also
-            after each shape's first, levelled solve.
-        resume: continue from ``checkpoint`` (refused if it belongs to other inputs).
-        progress: called after the first solves (step 0) and after each accepted step
-            with a dict (step, sum_sq_distances, mean_velocity_norm, step_size, num_solves,
-            seconds since the call began). A resolved mean also reports its first,
-            levelled solves as they go: :func:`shape_geodesic`'s dicts (stage, level,
-            levels, grid, energy; distance and converged when a level ends) with step 0,
-            shape (its index), shapes (K) and seconds since the call began.
         warm_start: the second, warm-started solve per shape described above (modulo
             "rigid" / "diff" on one grid, ``rtol=None``; twice the solves per step, the
             warm one without a search). A resolved mean continues every solve already.
-        client: a ``dask.distributed.Client`` or a scheduler address: each step's
-            chunks of shapes (``batch_size``; default one shape per chunk for "loop",
-            all for "vmap", 8 for "map") run as tasks on its workers (the ``dask``
-            extra); a resolved mean's first, levelled solves run in this process. The
-            numbers equal the in-process ones. None: this process.
+        job: how the job runs (:class:`JobOptions`). A chunk is ``batch_size`` shapes
+            (default all in process; on a cluster one for "loop", all for "vmap", 8 for
+            "map"). The checkpoint is written after the first solves and after every
+            accepted step (the mean and its geodesics), for a resolved mean also after
+            each shape's first, levelled solve; a resume is refused if it belongs to
+            other inputs. ``progress`` hears after the first solves (step 0) and after
+            each accepted step: step, sum_sq_distances, mean_velocity_norm, step_size,
+            num_solves, seconds; a resolved mean's first, levelled solves also report as
+            they go: :func:`shape_geodesic`'s dicts (stage, level, levels, grid, energy;
+            distance and converged when a level ends) with step 0, shape (its index),
+            shapes (K) and seconds. On a cluster each step's chunks run as tasks on its
+            workers (a resolved mean's first, levelled solves run in this process); the
+            numbers equal the in-process ones.
 
     Returns:
         :class:`KarcherResult`. One that did not converge also warns
@@ -487,177 +596,48 @@ def karcher_mean(
         >>> bool(res.converged), round(float(res.mean[2, 0, 0]), 6)  # the sphere of radius 1.5
         (True, 1.5)
     """
-    strategy = check_batch(modulo, strategy, batch_size)
-    check_progress(progress)
+    job = check_job(job)
+    check_choice("modulo", modulo, MODULI)
     shapes, options = check_collection(shapes, options, levels=True)
     max_steps = check_int("max_steps", max_steps, 0)
     tol = check_positive("tol", tol)
     step_size = check_positive("step_size", step_size)
+    mean = _starting_mean(shapes, init, modulo)
+    # Resolved (options.rtol, the default): step 0 by levels, then continuations on the
+    # grid the distances needed. Modulo "none" has no registration to carry: one grid.
+    if modulo == "none" or not options.resolves:
+        options = options.replace(rtol=None)
+    warm_start = check_bool("warm_start", warm_start) and modulo != "none" and not options.resolves
+    strategy = job.resolved_strategy
+    settings = job_settings(metric, modulo, options, step_size=step_size, tol=tol, warm=warm_start)
+    batch_size = job.batch_size
+    if batch_size is None and job.client is not None:
+        batch_size = default_chunk(strategy)
+    iteration = _KarcherJob(
+        shapes,
+        mean,
+        metric,
+        modulo,
+        options,
+        strategy,
+        tuple(chunk_bounds(shapes.shape[0], batch_size)),
+        tol,
+        step_size,
+        max_steps,
+        warm_start,
+        fingerprint_of(shapes, mean, **settings),
+    )
+    with open_pool(job.client, shapes, metric, modulo, options, strategy) as pool:
+        return run(iteration, job.checkpoint, job.resume, job.progress, pool)
+
+
+def _starting_mean(shapes, init, modulo: str):
+    """The starting mean: ``init`` (checked against the shapes) or the first shape;
+    centred for modulo "rigid"."""
     mean = shapes[0] if init is None else as_surface(init, "init")
     if mean.shape != shapes.shape[1:] or mean.dtype != shapes.dtype:
         raise InputError(
             f"init must be one surface {shapes.shape[1:]} {shapes.dtype} like the shapes; "
             f"got {mean.shape} {mean.dtype}"
         )
-    if modulo == "rigid":
-        mean = center_unchecked(mean)
-    # Resolved (options.rtol, the default): step 0 by levels, then continuations on the
-    # grid the distances needed. Modulo "none" has no registration to carry: one grid.
-    resolved = options.resolves and modulo != "none"
-    if not resolved:
-        options = options.replace(rtol=None)
-    warm_start = check_bool("warm_start", warm_start) and modulo != "none" and not resolved
-    settings = job_settings(metric, modulo, options, step_size=step_size, tol=tol, warm=warm_start)
-    fingerprint = fingerprint_of(shapes, mean, **settings)
-    path = None if checkpoint is None else pathlib.Path(checkpoint)
-
-    if batch_size is None and client is not None:
-        batch_size = default_chunk(strategy)
-    chunks = chunk_bounds(shapes.shape[0], batch_size)
-    size = chunks[0][1] - chunks[0][0]
-
-    started = time.perf_counter()
-    saved = load_checkpoint(path, fingerprint) if path is not None and resume else None
-    first_starts, level_distances = None, None
-    if resolved and saved is not None and "mean" in saved:
-        level_distances = np.asarray(saved["level_distances"])
-        options = options.replace(grid=tuple(saved["mean"].shape[-2:]), rtol=None)
-    elif resolved:
-
-        def keep(finished):  # step 0's levels, shape by shape: a kill loses one solve
-            if path is not None:
-                save_npz_atomic(path, fingerprint=fingerprint, **finished)
-
-        def level_report(k, info):  # step 0's levelled solves, phase by phase
-            progress(
-                {
-                    **info,
-                    "step": 0,
-                    "shape": k,
-                    "shapes": shapes.shape[0],
-                    "seconds": time.perf_counter() - started,
-                }
-            )
-
-        mean, options, first_starts, level_distances = _resolved_start(
-            shapes,
-            mean,
-            metric,
-            modulo,
-            options,
-            saved,
-            keep,
-            None if progress is None else level_report,
-        )
-        saved = None
-    elif warm_start:  # the identity registration
-        k, m, n = shapes.shape[0], *shapes.shape[-2:]
-        e1 = sphere_points(m, n, shapes.dtype)
-        eye = jnp.eye(3, dtype=shapes.dtype)
-        first_starts = (jnp.broadcast_to(e1, (k, *e1.shape)), jnp.broadcast_to(eye, (k, 3, 3)))
-
-    def solve_at(at, previous: _Solved | None) -> _Solved:
-        if previous is None:
-            starts = first_starts
-        elif resolved:
-            starts = (previous.gammas, previous.rotations, previous.coefficients)
-        elif warm_start:
-            starts = (previous.gammas, previous.rotations)
-        else:
-            starts = None
-        if pool is not None:
-            return _Solved(
-                *(jnp.asarray(x) for x in pool.velocities(velocity_chunk, at, chunks, size, starts))
-            )
-        parts = [
-            velocity_chunk(
-                at,
-                shapes[a:b],
-                metric,
-                modulo,
-                options,
-                strategy,
-                size,
-                None if starts is None else tuple(x[a:b] for x in starts),
-            )
-            for a, b in chunks
-        ]
-        return _Solved(*(jnp.concatenate(p) for p in zip(*parts, strict=True)))
-
-    def save(state: _KarcherState):
-        if path is not None:
-            extra = {} if level_distances is None else {"level_distances": level_distances}
-            save_npz_atomic(
-                path,
-                mean=np.asarray(state.mean),
-                step=state.step,
-                history=np.asarray(state.history),
-                num_solves=state.num_solves,
-                fingerprint=fingerprint,
-                **{f"solved_{k}": np.asarray(v) for k, v in state.solved._asdict().items()},
-                **extra,
-            )
-
-    def report(state: _KarcherState):
-        if progress is not None:
-            sum_sq, norm, step_size = state.history[-1]
-            progress(
-                {
-                    "step": state.step,
-                    "sum_sq_distances": sum_sq,
-                    "mean_velocity_norm": norm,
-                    "step_size": step_size,
-                    "num_solves": state.num_solves,
-                    "seconds": time.perf_counter() - started,
-                }
-            )
-
-    with contextlib.ExitStack() as stack:
-        pool = None
-        if client is not None:
-            from .._runtime.distributed import Pool
-
-            pool = stack.enter_context(Pool(client, shapes, metric, modulo, options, strategy))
-        iteration = _KarcherIteration(
-            solve=solve_at,
-            direction=lambda at, solved: _direction(metric, at, solved, modulo, options),
-            count=shapes.shape[0],
-            tol=tol,
-            step_size=step_size,
-            max_steps=max_steps,
-        )
-        if saved is not None:
-            state = iteration.restore(saved)
-        else:
-            state = iteration.init(mean)
-            save(state)
-            report(state)
-        while (result := iteration.terminate(state)) is None:
-            before = state.step
-            state = iteration.step(state)
-            if state.step > before:  # an accepted step: kept on disk, reported
-                save(state)
-                report(state)
-
-    solved = state.solved
-    res = KarcherResult(
-        mean=state.mean,
-        distances=solved.distances,
-        registered=solved.registered,
-        velocities=solved.velocities,
-        geodesics_converged=solved.converged,
-        history=np.asarray(state.history),
-        converged=np.asarray(result in _CONVERGED),
-        num_steps=state.step,
-        num_solves=state.num_solves,
-        result=getattr(RESULTS, result),
-        level_distances=level_distances,
-    )
-    if not res.converged:
-        warnings.warn(
-            f"karcher_mean: {res.message} (sum of squared distances "
-            f"{res.history[:, 0].round(6).tolist()})",
-            ConvergenceWarning,
-            stacklevel=2,
-        )
-    return res
+    return center_unchecked(mean) if modulo == "rigid" else mean

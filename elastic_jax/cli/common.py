@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 
 from .._errors import InputError
 from .._options import ShapeOptions
+from .._statistics.driver import JobOptions
 
 CHECKPOINTS = {
     "karcher": "karcher_checkpoint.npz",
@@ -342,6 +343,19 @@ def collection_settings(args, m: int, n: int, options: ShapeOptions) -> dict:
         "dtype": args.dtype,
         **input_settings(args),
     }
+
+
+def job_options(args, checkpoint=None, progress=None):
+    """The :class:`JobOptions` of a collection command: --batch-size, --strategy,
+    --client, and (with a checkpoint) --resume."""
+    return JobOptions(
+        batch_size=args.batch_size,
+        strategy=args.strategy,
+        checkpoint=checkpoint,
+        resume=bool(args.resume) if checkpoint is not None else False,
+        progress=progress,
+        client=args.client,
+    )
 
 
 def checked_flag(flag: str, check: Callable, *args):

@@ -10,6 +10,7 @@ from .common import (
     Progress,
     collection_settings,
     environment_record,
+    job_options,
     json_floats,
     prepare,
     result_fields,
@@ -45,12 +46,7 @@ def run_distances(args, progress: Progress) -> dict:
         metric,
         modulo=args.modulo,
         options=options,
-        batch_size=args.batch_size,
-        strategy=args.strategy,
-        checkpoint=checkpoint,
-        resume=args.resume,
-        progress=report,
-        client=args.client,
+        job=job_options(args, checkpoint, report),
     )
     seconds = time.perf_counter() - start
     matrix = np.asarray(res.distances)

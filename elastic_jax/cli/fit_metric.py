@@ -12,6 +12,7 @@ from .common import (
     Progress,
     collection_settings,
     environment_record,
+    job_options,
     json_floats,
     prepare,
     result_fields,
@@ -104,12 +105,7 @@ def run_fit_metric(args, progress: Progress) -> dict:
         temperature=args.temperature,
         max_steps=args.fit_steps,
         tol=args.fit_tol,
-        batch_size=args.batch_size,
-        strategy=args.strategy,
-        checkpoint=args.out / CHECKPOINTS["fit-metric"],
-        resume=args.resume,
-        progress=report,
-        client=args.client,
+        job=job_options(args, args.out / CHECKPOINTS["fit-metric"], report),
     )
     seconds = time.perf_counter() - start
     coefficients = {c: float(getattr(fit.metric, c)) for c in "abcd"}
@@ -155,9 +151,7 @@ def run_fit_metric(args, progress: Progress) -> dict:
                 which,
                 modulo=args.modulo,
                 options=options,
-                batch_size=args.batch_size,
-                strategy=args.strategy,
-                client=args.client,
+                job=job_options(args),
             )
             held_out[name] = retrieval_scores(res.distances, test_labels)._asdict()
             arrays[f"test_distances_{name}"] = np.asarray(res.distances)

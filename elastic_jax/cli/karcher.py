@@ -10,6 +10,7 @@ from .common import (
     Progress,
     collection_settings,
     environment_record,
+    job_options,
     json_floats,
     prepare,
     result_fields,
@@ -81,13 +82,8 @@ def solve_karcher(args, progress: Progress):
         max_steps=args.karcher_steps,
         tol=args.tol,
         step_size=args.step_size,
-        batch_size=args.batch_size,
-        strategy=args.strategy,
-        checkpoint=checkpoint,
-        resume=args.resume,
-        progress=report,
-        client=args.client,
         warm_start=args.warm_start,
+        job=job_options(args, checkpoint, report),
     )
     seconds = time.perf_counter() - start
     mean = np.asarray(res.mean)
