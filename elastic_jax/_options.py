@@ -20,6 +20,7 @@ __all__ = [
     "check_choice",
     "check_int",
     "check_positive",
+    "options_with",
     "settings_from",
 ]
 
@@ -271,8 +272,11 @@ def settings_from(function: str, options: ShapeOptions | None, **keywords) -> di
 
     One record holds every path and solver setting, so that a limit has one name and one
     default wherever it is used (``geodesic``, ``shoot``, ``parallel_transport`` and the
-    solves between shapes). A keyword given together with a record that says otherwise is
-    refused: which of the two was meant cannot be known.
+    solves between shapes). The one rule for a keyword that names a field of the record
+    (issue 53), here and in :func:`options_with`: left out (``FROM_OPTIONS``), it is the
+    record's; given while ``options`` is None, it sets that field of the default record;
+    given beside a record, it must equal the record's field (an equal value is accepted),
+    and one that says otherwise is refused: which of the two was meant cannot be known.
     """
     if options is None:
         record = ShapeOptions()
@@ -296,3 +300,18 @@ def settings_from(function: str, options: ShapeOptions | None, **keywords) -> di
             )
         settings[name] = value
     return settings
+
+
+def options_with(function: str, options: ShapeOptions | None, changes: dict) -> ShapeOptions:
+    """The record of a call that takes ``options`` and keyword fields (``**changes``):
+    ``options`` (its defaults when None) with the keywords given, under the rule of
+    :func:`settings_from`: beside a record, a keyword must agree with it (an InputError
+    otherwise); without one, it sets that field. An unknown field is a TypeError, as in
+    :meth:`ShapeOptions.replace`.
+    """
+    # Each value validated and normalized alone (grids and levels as tuples of ints), so
+    # that an equal value given in another form agrees with the record's.
+    given = ShapeOptions().replace(**changes) if changes else None
+    settings = settings_from(function, options, **{name: getattr(given, name) for name in changes})
+    record = ShapeOptions() if options is None else options
+    return record.replace(**settings) if settings else record

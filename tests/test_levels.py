@@ -34,7 +34,9 @@ def test_an_input_on_a_finer_grid_is_read_through_its_interpolant():
     ):
         options = OPTIONS.replace(differential=differential, interpolation=interpolation)
         same = ej.shape_geodesic(f1, coarse, METRIC, modulo="rigid", options=options)
-        mixed = ej.shape_geodesic(f1, fine, METRIC, modulo="rigid", options=options, grid=(13, 25))
+        mixed = ej.shape_geodesic(
+            f1, fine, METRIC, modulo="rigid", options=options.replace(grid=(13, 25))
+        )
         assert mixed.path.shape == same.path.shape == (5, 3, 13, 25)
         np.testing.assert_allclose(
             mixed.parametrized_distance, same.parametrized_distance, rtol=rtol
@@ -200,7 +202,9 @@ def test_a_level_continues_the_registration_and_path_of_the_one_below():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
         res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
-        below = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=OPTIONS, grid=(9, 17))
+        below = ej.shape_geodesic(
+            f1, f2, METRIC, modulo="rigid", options=OPTIONS.replace(grid=(9, 17))
+        )
     np.testing.assert_allclose(res.levels.distances[0], below.distance, rtol=1e-12)
 
     cfg = OPTIONS.replace(grid=(13, 25))

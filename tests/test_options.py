@@ -16,7 +16,7 @@ import pytest
 
 import elastic_jax as ej
 from elastic_jax import shapes
-from elastic_jax._options import FROM_OPTIONS
+from elastic_jax._options import FROM_OPTIONS, options_with
 
 M, N = 13, 25
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
@@ -113,3 +113,42 @@ def test_a_keyword_that_contradicts_the_record_is_refused():
         ej.shoot(f1, f2 - f1, METRIC, n_times=7, options=FAST)
     with pytest.raises(ej.InputError, match="options must be an elastic_jax.ShapeOptions"):
         ej.geodesic(f1, f2, METRIC, options={"degree": 3})
+
+
+def test_shape_geodesic_log_and_warmup_refuse_a_contradicting_keyword_as_geodesic_does():
+    """One rule beside the record everywhere (issue 53): the keyword changes of
+    shape_geodesic, log and warmup no longer apply on top of a record that says
+    otherwise. Refused before any solve, with geodesic's message."""
+    f1 = shapes.sample(shapes.sphere, M, N)
+    f2 = shapes.sample(shapes.ellipsoid, M, N)
+    with pytest.raises(ej.InputError) as by_geodesic:
+        ej.geodesic(f1, f2, METRIC, degree=5, options=FAST)
+    expected = str(by_geodesic.value).removeprefix("geodesic: ")
+    assert expected.startswith("degree=5 given as a keyword, and options has degree=3")
+    calls = {
+        "shape_geodesic": lambda: ej.shape_geodesic(f1, f2, METRIC, degree=5, options=FAST),
+        "log": lambda: ej.log(f1, f2, METRIC, degree=5, options=FAST),
+        "warmup": lambda: ej.warmup((M, N), degree=5, options=FAST),
+    }
+    for name, call in calls.items():
+        with pytest.raises(ej.InputError) as refused:
+            call()
+        assert str(refused.value) == f"{name}: {expected}"
+    with pytest.raises(TypeError, match="no field"):
+        ej.log(f1, f2, METRIC, degrees=3, options=FAST)
+
+
+def test_an_agreeing_keyword_beside_the_record_is_accepted():
+    """An equal value (also in another form: a grid as a list) passes the rule; shown
+    without a solve by the first error after it (the pair's dtypes, warmup's grid)."""
+    f1 = shapes.sample(shapes.sphere, M, N)
+    f2 = shapes.sample(shapes.ellipsoid, M, N).astype(np.float32)
+    record = FAST.replace(grid=(M, N))
+    with pytest.raises(ej.InputError, match="share one dtype"):
+        ej.shape_geodesic(f1, f2, METRIC, degree=3, grid=[M, N], options=record)
+    with pytest.raises(ej.InputError, match="input_grid must be"):
+        ej.warmup((M, 4), n_times=5, options=FAST)
+    assert options_with("f", record, {"degree": 3, "grid": [M, N]}) == record
+    # Without a record a keyword sets that field of the default one.
+    assert options_with("f", None, {"degree": 5}) == ej.ShapeOptions(degree=5)
+    assert options_with("f", FAST, {}) is FAST

@@ -28,8 +28,8 @@ def _check_gamma(res):
     np.testing.assert_allclose(jnp.linalg.norm(res.gamma, axis=0), 1.0, atol=1e-12)
 
 
-def _solve(f1, f2, areas=None, **kw):
-    res = ej.shape_geodesic(f1, f2, METRIC, options=OPTIONS, **kw)
+def _solve(f1, f2, areas=None, options=OPTIONS, **kw):
+    res = ej.shape_geodesic(f1, f2, METRIC, options=options, **kw)
     assert_area_bound(res.distance, f1, f2, METRIC, areas=areas)  # docs/math.md §9, on every one
     _check_gamma(res)
     return res
@@ -184,8 +184,10 @@ def test_self_recovery_on_cat1(phi):
     else:
         where = _diff_composition(M, N)
     moved = _grid_surface(ej.reparametrize(f, where, "bicubic"))
-    reference = _solve(f, g, **grid)
-    res = _solve(f, moved, areas=(1.0, 1.0), **grid)  # f o phi has f's area: the bound is 0
+    options = OPTIONS.replace(**grid)
+    reference = _solve(f, g, options=options)
+    # f o phi has f's area: the bound is 0.
+    res = _solve(f, moved, areas=(1.0, 1.0), options=options)
     assert float(res.distance) <= 0.15 * float(reference.distance)
 
 
@@ -233,7 +235,7 @@ def test_refinement_on_the_cats(capsys):
     grid = {"differential": "grid", "interpolation": "bicubic", "rtol": None}
     points = ej.sphere_points(M, N)
     f1, f2 = (ej.reparametrize(load_shape(name), points, "bicubic") for name in ("cat1", "cat2"))
-    res = _solve(f1, f2, **grid)
+    res = _solve(f1, f2, options=OPTIONS.replace(**grid))
     d, ref = float(res.distance), res.refinement
     assert abs(float(ref.distance_time) - d) < 0.01 * d
     # The parametrized geodesic's path carried to the same finer grid.
@@ -260,7 +262,7 @@ def test_joint_and_coordinate_descent_agree(bumpy_pair):
     stretch = jnp.asarray([1.3, 1.0, 0.8])
     f2 = jnp.einsum("i,imn->imn", stretch, shapes.sample(shapes.bumpy, M, N, rotation=h))
     joint = _solve(f1, f2)
-    coordinate = _solve(f1, f2, method="coordinate")
+    coordinate = _solve(f1, f2, options=OPTIONS.replace(method="coordinate"))
     assert abs(float(joint.distance) - float(coordinate.distance)) < 0.02 * float(joint.distance)
 
 
@@ -292,7 +294,7 @@ def test_shape_distance_is_below_the_parametrized_one_on_real_shapes(other):
     starts = {"init_candidates": 6} if other == "horse0" else {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
-        res = _solve(f1, f2, **starts)
+        res = _solve(f1, f2, options=OPTIONS.replace(**starts))
     assert float(res.distance) < 0.65 * float(res.parametrized_distance)
     assert bool(res.converged) or res.result == ej.RESULTS.resolution_limited
     assert float(res.refinement.distance_grid) < float(res.parametrized_distance)
@@ -367,7 +369,7 @@ def test_errors(bumpy_pair):
     with pytest.raises(ValueError, match="share one dtype"):
         ej.shape_geodesic(f1, f2.astype(jnp.float32), METRIC)
     with pytest.raises(ValueError, match="vf_degree=8 is too high for the 9 x 17 grid"):
-        ej.shape_geodesic(f1, f2, METRIC, options=OPTIONS, grid=(9, 17))
+        ej.shape_geodesic(f1, f2, METRIC, options=OPTIONS.replace(grid=(9, 17)))
     with pytest.raises(TypeError, match="no field"):
         ej.shape_geodesic(f1, f2, METRIC, degrees=3)
     with pytest.raises(TypeError, match="options must be a ShapeOptions"):

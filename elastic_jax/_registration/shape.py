@@ -39,7 +39,7 @@ from .._geometry.reparam import (
 )
 from .._geometry.units import in_units
 from .._geometry.validation import check_pair
-from .._options import ShapeOptions, check_choice
+from .._options import ShapeOptions, check_choice, options_with
 from .._results import RESULTS
 from .._runtime.cache import phase_chain, solver_jit
 from .coarse import coarse_phase, given_only_starts
@@ -172,13 +172,15 @@ def _shape_solve(metric, f1, f2, bases, options, rigid) -> ShapeGeodesicResult:
     return _solve_in_phases((metric, f1, f2, bases), options, rigid)
 
 
-def resolve_options(options: ShapeOptions | None, changes: dict) -> ShapeOptions:
-    """``options`` (default ShapeOptions()) with keyword changes applied and validated."""
-    if options is None:
-        options = ShapeOptions()
-    elif not isinstance(options, ShapeOptions):
+def resolve_options(
+    options: ShapeOptions | None, changes: dict, function: str = "shape_geodesic"
+) -> ShapeOptions:
+    """``options`` (default ShapeOptions()) with the keywords ``changes`` under the one
+    rule of :func:`elastic_jax._options.options_with`: beside a record a keyword must
+    agree with it (an InputError otherwise); without one it sets that field."""
+    if options is not None and not isinstance(options, ShapeOptions):
         raise TypeError(f"options must be a ShapeOptions; got {type(options).__name__}")
-    return options.replace(**changes) if changes else options
+    return options_with(function, options, changes)
 
 
 def working_grid_of(options: ShapeOptions, f1, f2) -> tuple[int, int]:
@@ -289,7 +291,10 @@ def shape_geodesic(
             call began, and during levels ``level`` and ``levels``; with ``symmetric``,
             ``order`` ("f1 -> f2", "f2 -> f1", "f1 -> f2 from f2 -> f1"). Concrete inputs
             only (no report inside a caller's trace). None (default): silent.
-        **changes: fields of ShapeOptions to change, e.g. ``degree=5, n_times=9``.
+        **changes: fields of ShapeOptions as keywords, e.g. ``degree=5, n_times=9``:
+            without ``options`` each sets that field of the default record; beside
+            ``options`` each must equal the record's field (an equal one is accepted,
+            another is an InputError: change the record with ``options.replace(...)``).
 
     Returns:
         :class:`ShapeGeodesicResult`. A result that did not converge also warns

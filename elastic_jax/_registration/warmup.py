@@ -102,9 +102,14 @@ def warmup(
     Args:
         input_grid: ``(m, n)``, the grid of the job's surfaces (odd n).
         modulo: ``"diff"``, ``"rigid"``, or a tuple of them.
-        options: the job's :class:`ShapeOptions` (default ``ShapeOptions()``).
+        options: the job's :class:`ShapeOptions` (default ``ShapeOptions()``). Its
+            ``rtol`` only says whether the job solves by levels: the warmup solves every
+            level whatever the distances.
         dtype: ``"float64"`` (needs ``jax_enable_x64``) or ``"float32"``.
-        **changes: fields of ShapeOptions to change.
+        **changes: fields of ShapeOptions as keywords (``degree=5``): without
+            ``options`` each sets that field of the default record; beside ``options``
+            each must equal the record's field (an equal one is accepted, another is an
+            InputError: change the record with ``options.replace(...)``).
 
     Returns:
         :class:`WarmupReport`.
@@ -118,7 +123,7 @@ def warmup(
         raise InputError("modulo: give at least one of 'diff', 'rigid'")
     for name in moduli:
         check_choice("modulo", name, MODULI)
-    resolved = resolve_options(options, changes)
+    resolved = resolve_options(options, changes, "warmup")
     try:
         m, n = (int(k) for k in input_grid)
     except (TypeError, ValueError):

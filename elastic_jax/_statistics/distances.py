@@ -211,12 +211,13 @@ def distance_matrix(
 
     Pair (i, j), i < j, uses shape_geodesic(shapes[i], shapes[j]) (or geodesic for
     modulo="none") on the collection's own grid: ``options.rtol`` and ``levels`` are not
-    used here, so these distances are not resolved by levels as shape_geodesic's and a
-    resolved karcher_mean's are (:ref:`math §10 <math-10>`). For resolved distances,
-    resample the shapes to the grid their levels resolve at (a resolved mean's
-    ``level_distances`` tells which) or solve the pairs with shape_geodesic. The record
-    is symmetrized from the upper triangle. With ``job.checkpoint`` every finished chunk
-    of pairs is saved atomically; ``job.resume`` skips the chunks already done.
+    used here (rtol is set to None), so these distances are not resolved by levels as
+    shape_geodesic's and a resolved karcher_mean's are (:ref:`math §10 <math-10>`). For
+    resolved distances, resample the shapes to the grid their levels resolve at (a
+    resolved mean's ``level_distances`` tells which) or solve the pairs with
+    shape_geodesic. The record is symmetrized from the upper triangle. With
+    ``job.checkpoint`` every finished chunk of pairs is saved atomically; ``job.resume``
+    skips the chunks already done.
 
     Args:
         shapes: ``(K, 3, m, n)`` surfaces on one grid; metric: split metric coefficients.

@@ -281,7 +281,9 @@ def fit_metric(
         labels: ``(K,)`` class ids (at least two classes, two shapes in each); or
         targets: ``(K, K)`` symmetric, non-negative dissimilarities (diagonal unused).
         modulo: ``"rigid"``, ``"diff"`` or ``"none"`` (parametrized geodesics).
-        options: the solves' :class:`ShapeOptions`.
+        options: the solves' :class:`ShapeOptions` (its defaults when None). The pairs
+            are solved on the collection's own grid, as in :func:`distance_matrix`: the
+            record's ``rtol`` and ``levels`` are not used (rtol is set to None).
         init: the metric to start from (default ``SplitMetric(1, 1, 0.1, 0)``).
         objective: ``"nca"`` or ``"stress"``; default: the one the data given calls for.
         learn: which coefficients move, a string of at least two of ``"abcd"``.

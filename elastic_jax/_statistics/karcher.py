@@ -559,7 +559,9 @@ def karcher_mean(
             (:func:`geodesic` with the options' degree, n_times, solver, max_steps, tol
             and scheme).
         options: :class:`ShapeOptions` of the inner solves (its defaults when None);
-            its ``rtol`` and ``levels`` resolve the mean's grid (above).
+            its ``rtol`` and ``levels`` resolve the mean's grid (above). Modulo "none"
+            solves on the shapes' grid: ``rtol`` and ``levels`` are not used there
+            (rtol is set to None).
         init: starting mean (default: the first shape).
         max_steps: most Karcher steps (accepted updates of the mean); 0 only evaluates.
         tol: the two convergence tests above.

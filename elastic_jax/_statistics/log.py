@@ -23,7 +23,7 @@ from .._geometry.validation import check_pair
 from .._options import ShapeOptions
 from .._registration.problem import make_bases, make_problem, path_frames_at, rotate_surface
 from .._registration.records import turned_back
-from .._registration.shape import shape_geodesic
+from .._registration.shape import resolve_options, shape_geodesic
 from .._results import RESULTS, status_record
 
 
@@ -90,9 +90,14 @@ def log(
         f1, f2: ``(3, m, n)`` immersions on one grid.
         metric: the split metric coefficients.
         modulo: ``"none"``, ``"diff"`` or ``"rigid"``.
-        options: :class:`ShapeOptions` (degree, n_times, scheme, ... and the registration);
-            keyword changes apply on top (``degree=5``). Solved on the inputs' grid (or
-            ``grid``): ``rtol``'s levels are not used.
+        options: :class:`ShapeOptions` (degree, n_times, scheme, ... and the registration;
+            its defaults when None). Solved on the inputs' grid (or ``grid``), not by
+            levels: the record's ``rtol`` and ``levels`` are not used (rtol is set to
+            None for the solve).
+        **changes: fields of ShapeOptions as keywords (``degree=5``): without
+            ``options`` each sets that field of the default record; beside ``options``
+            each must equal the record's field (an equal one is accepted, another is an
+            InputError: change the record with ``options.replace(...)``).
 
     Returns:
         :class:`LogResult`.
@@ -100,7 +105,7 @@ def log(
 
     check_choice("modulo", modulo, ("none", "diff", "rigid"))
     # On the inputs' grid, not by levels: the log's velocity and frames live there.
-    options = (ShapeOptions() if options is None else options).replace(**{**changes, "rtol": None})
+    options = resolve_options(options, changes, "log").replace(rtol=None)
     check_scheme(options.scheme)
     f1, f2 = check_pair(f1, f2)
     solve_frames = None
