@@ -28,7 +28,7 @@ class _NamedEnumeration(type(optx.RESULTS)):
     """
 
     def __getitem__(cls, item) -> str:
-        if isinstance(item._value, jax.core.Tracer):
+        if not _concrete(item._value):
             return "traced"
         if np.ndim(item._value) > 0:  # a batch of results (vmap): their names
             return str(np.vectorize(cls._name_of_code)(np.asarray(item._value)))

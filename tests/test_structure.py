@@ -327,3 +327,12 @@ def test_cli_commands_are_clients_of_the_public_results():
         if isinstance(node, ast.Attribute) and node.attr in ("catch_warnings", "_replace")
     )
     assert offences == []
+
+
+def test_a_concrete_only_check_is_spelled_one_way():
+    """Whether a value is traced is asked through _checks.is_concrete (issue 53: two
+    spellings in 20 branches); _results, a leaf that imports only the errors, has its own."""
+    spelled = sorted(
+        _module_name(p) for p in PACKAGE.rglob("*.py") if "core.Tracer" in p.read_text()
+    )
+    assert spelled == ["_checks", "_results"]

@@ -18,7 +18,7 @@ from .validation import as_surface
 
 
 def _coefficient(name: str, value):
-    if isinstance(value, jax.core.Tracer):
+    if not is_concrete(value):
         return value
     if isinstance(value, numbers.Real) and not isinstance(value, bool):
         arr = np.asarray(float(value))
@@ -242,7 +242,7 @@ def _broadcast_fields(f, u, v) -> tuple[Array, Array, Array]:
             raise InputError(
                 f"{name} must be a field on the grid of f, (..., {grid}); got {x.shape}"
             )
-        if not isinstance(x, jax.core.Tracer) and not np.isfinite(np.asarray(x)).all():
+        if is_concrete(x) and not np.isfinite(np.asarray(x)).all():
             raise InputError(f"{name} contains non-finite values (NaN or inf)")
     return tuple(jnp.broadcast_arrays(f, u, v))
 

@@ -10,6 +10,7 @@ import numpy as np
 import scipy.special
 from jaxtyping import Array, ArrayLike, Float
 
+from .._checks import is_concrete
 from .._errors import InputError
 from .._runtime.cache import cached
 from .differential import cross, dot, interior_frame, pole_fourier1, pole_phi_derivative
@@ -213,7 +214,7 @@ def moebius(x: Float[ArrayLike, "3 ..."], a: Float[ArrayLike, " 3"]) -> Float[Ar
     a = jnp.asarray(a, x.dtype)
     if x.shape[:1] != (3,) or a.shape != (3,):
         raise InputError(f"moebius needs x (3, ...) and a (3,); got {x.shape} and {a.shape}")
-    if not isinstance(a, jax.core.Tracer) and not float(jnp.linalg.norm(a)) < 1.0:
+    if is_concrete(a) and not float(jnp.linalg.norm(a)) < 1.0:
         raise InputError(f"moebius needs |a| < 1; got |a| = {float(jnp.linalg.norm(a))}")
     a = a.reshape((3,) + (1,) * (x.ndim - 1))
     d = x - a

@@ -6,7 +6,7 @@ import jax
 import numpy as np
 from jaxtyping import Array
 
-from .._checks import check_grid_shape, extents, grid_array, item_suffix
+from .._checks import check_grid_shape, extents, grid_array, is_concrete, item_suffix
 from .._errors import InputError
 from .differential import area_element, interior_frame
 
@@ -26,7 +26,7 @@ def as_surface(f, name: str, *, check_immersion: bool = True) -> jax.Array:
         InputError: naming the problem, the argument and the grid point.
     """
     f = well_formed(grid_array(f, name))
-    if not check_immersion or isinstance(f, jax.core.Tracer):
+    if not check_immersion or not is_concrete(f):
         return f
     m, n = f.shape[-2:]
     x = np.asarray(f)
