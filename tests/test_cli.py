@@ -175,7 +175,7 @@ def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, caps
 
 
 def test_out_checkpoints_and_locks_are_checked_before_any_work(tmp_path, capsys, monkeypatch):
-    from elastic_jax._statistics import karcher as _karcher
+    from elastic_jax.cli import karcher as _karcher
 
     good = _save(tmp_path, "good.npz", shapes.sample(shapes.sphere, M, N))
     other = _save(tmp_path, "other.npz", shapes.sample(shapes.sphere, M, N, radius=2.0))
@@ -265,7 +265,7 @@ def test_sigterm_is_handled_like_ctrl_c(tmp_path):
 
 
 def test_a_nan_solve_exits_3_with_valid_json(tmp_path, capsys, monkeypatch):
-    from elastic_jax._geodesics import geodesic as _geodesic
+    from elastic_jax.cli import geodesic as _geodesic
 
     def nan_geodesic(f1, f2, metric, **options):
         nan = np.float64(np.nan)
@@ -320,7 +320,7 @@ def _fake_karcher(calls):
 
 
 def test_karcher_builds_one_options_record_and_keeps_its_own_steps(tmp_path, capsys, monkeypatch):
-    from elastic_jax._statistics import karcher as _karcher
+    from elastic_jax.cli import karcher as _karcher
 
     calls = []
     monkeypatch.setattr(_karcher, "karcher_mean", _fake_karcher(calls))
@@ -352,7 +352,7 @@ def test_karcher_builds_one_options_record_and_keeps_its_own_steps(tmp_path, cap
 def test_distances_reports_each_pair_and_exits_3_when_one_did_not_converge(
     tmp_path, capsys, monkeypatch
 ):
-    from elastic_jax._statistics import distances as _distances
+    from elastic_jax.cli import distances as _distances
 
     def distance_matrix(shapes, metric, **kwargs):
         converged = np.ones((3, 3), bool)
@@ -522,7 +522,7 @@ def test_pca_and_shoot_equal_the_library_and_compose(tmp_path, capsys, monkeypat
     Karcher part, tested above, replaced by a record): its modes, scores and mode paths
     are the library's; shoot from its mean with its mode velocity lands where mode_path
     does."""
-    from elastic_jax._statistics import karcher as _karcher
+    from elastic_jax.cli import karcher as _karcher
 
     mean = np.asarray(shapes.sample(shapes.ellipsoid, M, N, axes=(1.0, 0.8, 0.6)))
     x, y, z = mean

@@ -336,3 +336,27 @@ def test_a_concrete_only_check_is_spelled_one_way():
         _module_name(p) for p in PACKAGE.rglob("*.py") if "core.Tracer" in p.read_text()
     )
     assert spelled == ["_checks", "_results"]
+
+
+def test_cli_imports_at_call_time_only_what_the_package_has_not_loaded():
+    """``import elastic_jax.cli`` runs elastic_jax/__init__ first, which loads jax, numpy and
+    every solver: importing those inside a command saves nothing (issue 53 counted 28).
+    What a command may import when it runs: io and plot (trimesh and matplotlib, about
+    0.2 s and 0.3 s that ``elastic_jax`` alone does not load), the optional Dask and the
+    POSIX-only fcntl."""
+    allowed = {
+        "from .. import io",
+        "from .. import plot",
+        "from .. import io, plot",
+        "import distributed",
+        "import fcntl",
+    }
+    late = sorted(
+        f"{p.name}: {ast.unparse(node)}"
+        for p in (PACKAGE / "cli").glob("*.py")
+        for function in ast.walk(ast.parse(p.read_text()))
+        if isinstance(function, ast.FunctionDef)
+        for node in ast.walk(function)
+        if isinstance(node, ast.Import | ast.ImportFrom) and ast.unparse(node) not in allowed
+    )
+    assert late == []

@@ -27,7 +27,10 @@ import sys
 import warnings
 from collections.abc import Sequence
 
-from .._errors import InputError
+import jax
+
+from .._errors import ConvergenceWarning, InputError
+from .._runtime.cache import enable_compilation_cache
 from .._runtime.precision import full_products
 from .bench import run_bench
 from .common import BadInput, Progress, one_line, write_summary
@@ -88,7 +91,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``elastic-jax`` (and ``python -m elastic_jax``); returns the exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(join_negative_values(argv))
-    import jax
 
     if args.dtype == "float64":
         # The program chooses its precision (the library never changes JAX's global config);
@@ -98,8 +100,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         # Solves compile for 5-60 s and a command runs once per process: keep the
         # executables (and the exported shape solve) on disk; a program's choice, the
         # library never sets this by itself. A caller that set a cache keeps its own.
-        from .._runtime.cache import enable_compilation_cache
-
         try:
             enable_compilation_cache(args.cache_dir, exported=not args.no_export)
         except OSError as err:  # e.g. a read-only home: the run goes on, compiling
@@ -108,7 +108,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                 "compiling without a cache",
                 file=sys.stderr,
             )
-    from .._errors import ConvergenceWarning
 
     progress = Progress(args.quiet)
     previous = signal.signal(signal.SIGTERM, raise_terminated)

@@ -5,17 +5,16 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
+import jax
+import numpy as np
+
+from .._geodesics.geodesic import geodesic
+from .._geometry.energy import path_energy, straight_path
 from .common import Progress, environment_record, geodesic_options_from, prepare, result_fields
 from .demo import builtin_pair
 
 
 def run_bench(args, progress: Progress) -> dict:
-    import jax
-    import numpy as np
-
-    from .._geodesics.geodesic import geodesic
-    from .._geometry.energy import path_energy, straight_path
-
     m, n = args.grid or (50, 99)
     pair = builtin_pair(m, n, args.dtype)
     (f1, f2), metric, options = prepare(args, progress, [], geodesic_options_from, pair)

@@ -13,8 +13,15 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 
+import jax
+import numpy as np
+
 from .._errors import InputError
+from .._geometry.harmonics import check_degree
+from .._geometry.metric import SplitMetric
 from .._options import ShapeOptions
+from .._results import RESULTS
+from .._runtime.atomic import write_text_atomic
 from .._statistics.driver import JobOptions
 
 CHECKPOINTS = {
@@ -91,8 +98,6 @@ class Progress:
 
 
 def environment_record() -> dict:
-    import jax
-
     return {
         "python": platform.python_version(),
         "jax": jax.__version__,
@@ -157,7 +162,6 @@ def _load_all(
     files keep their own parametrization. ``spheres``: one sphere map file per input
     (io.load_surface's ``sphere``). ``normalize``: "none" or "area" (io.normalize_scale).
     ``maps``: a list that receives each input's io.VertexMap (None for a grid file)."""
-    import numpy as np
 
     from .. import io
 
@@ -191,8 +195,6 @@ def _load_all(
 
 
 def metric_from(args):
-    from .._geometry.metric import SplitMetric
-
     try:
         return SplitMetric(*args.metric)
     except ValueError as err:
@@ -200,8 +202,6 @@ def metric_from(args):
 
 
 def check_degrees(args, m: int, n: int) -> None:
-    from .._geometry.harmonics import check_degree
-
     for name in ("degree", "vf_degree"):
         value = getattr(args, name, None)
         if value is not None:
@@ -251,8 +251,6 @@ def json_safe(value):
 
 
 def write_summary(out: pathlib.Path, summary: dict) -> None:
-    from .._runtime.atomic import write_text_atomic
-
     target = out / "summary.json"
     summary["files"] = sorted({*summary.get("files", []), str(target)})
     # A failed solve's NaN becomes null: the file stays valid JSON (allow_nan=False).
@@ -276,8 +274,6 @@ def write_figure(target: pathlib.Path, make: Callable, progress: Progress) -> li
 
 
 def write_path(out: pathlib.Path, path, settings: dict, progress: Progress) -> list[str]:
-    import numpy as np
-
     from .. import io, plot
 
     if not np.isfinite(path).all():
@@ -323,7 +319,6 @@ def json_float(x) -> float | None:
 
 def json_floats(values) -> list:
     """Nested lists of floats for JSON, NaN and inf as null."""
-    import numpy as np
 
     values = np.asarray(values)
     if values.ndim == 0:
@@ -372,7 +367,6 @@ def one_line(err: Exception) -> str:
 
 def result_fields(res) -> dict:
     """The result protocol in a summary: converged, result (by name), message, num_steps."""
-    from .._results import RESULTS
 
     return {
         "converged": bool(res.converged),

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
+import numpy as np
+
+from .. import shapes
 from .common import Progress
 from .geodesic import run_geodesic
 
 
 def builtin_pair(m: int, n: int, dtype: str):
     """The demo's and bench's surfaces ``(2, 3, m, n)``: a straight and a bent cylinder."""
-    import numpy as np
-
-    from .. import shapes
 
     straight = shapes.sample(shapes.bent_cylinder, m, n, curvature=0.0)
     bent = shapes.sample(shapes.bent_cylinder, m, n, curvature=0.6, half_length=1.2)

@@ -6,6 +6,10 @@ import json
 import pathlib
 import time
 
+import numpy as np
+
+from .._runtime.atomic import save_npz_atomic, write_text_atomic
+from .._statistics.distances import distance_matrix
 from .common import (
     Progress,
     collection_settings,
@@ -20,11 +24,7 @@ from .common import (
 
 
 def run_distances(args, progress: Progress) -> dict:
-    import numpy as np
-
     from .. import plot
-    from .._runtime.atomic import save_npz_atomic, write_text_atomic
-    from .._statistics.distances import distance_matrix
 
     shapes, metric, options = prepare(args, progress, args.files, shape_geodesic_options)
     k, m, n = shapes.shape[0], *shapes.shape[2:]

@@ -6,6 +6,12 @@ from __future__ import annotations
 import pathlib
 import time
 
+import numpy as np
+
+from .._runtime.atomic import save_npz_atomic
+from .._statistics.distances import distance_matrix
+from .._statistics.fit import fit_metric
+from .._statistics.retrieval import retrieval_scores
 from .common import (
     CHECKPOINTS,
     BadInput,
@@ -44,7 +50,6 @@ def read_labels(path: str, files: list[str]) -> list[str]:
 
 def read_targets(path: str):
     """A (K, K) dissimilarity matrix from .npy, .npz (its first array) or a CSV/text file."""
-    import numpy as np
 
     p = pathlib.Path(path)
     if not p.is_file():
@@ -61,13 +66,6 @@ def read_targets(path: str):
 
 
 def run_fit_metric(args, progress: Progress) -> dict:
-    import numpy as np
-
-    from .._runtime.atomic import save_npz_atomic
-    from .._statistics.distances import distance_matrix
-    from .._statistics.fit import fit_metric
-    from .._statistics.retrieval import retrieval_scores
-
     shapes, metric, options = prepare(args, progress, args.files, shape_geodesic_options)
     k, m, n = shapes.shape[0], *shapes.shape[2:]
     labels = None if args.labels is None else read_labels(args.labels, args.files)

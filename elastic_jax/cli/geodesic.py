@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import time
 
+import jax
+import numpy as np
+
+from .._geodesics.geodesic import geodesic
 from .common import (
     Progress,
     environment_record,
@@ -16,11 +20,6 @@ from .common import (
 
 
 def run_geodesic(args, progress: Progress, surfaces=None, label=None) -> dict:
-    import jax
-    import numpy as np
-
-    from .._geodesics.geodesic import geodesic
-
     files = [args.source, args.target] if surfaces is None else []
     (f1, f2), metric, options = prepare(args, progress, files, geodesic_options_from, surfaces)
     m, n = f1.shape[1:]

@@ -5,6 +5,11 @@ from __future__ import annotations
 import json
 import time
 
+import numpy as np
+
+from .._results import RESULTS
+from .._runtime.atomic import save_npz_atomic
+from .._statistics.karcher import karcher_mean
 from .common import (
     CHECKPOINTS,
     Progress,
@@ -22,12 +27,8 @@ from .common import (
 def solve_karcher(args, progress: Progress):
     """The Karcher mean of ``args.files`` with its files and summary: (result, metric,
     options, summary), the summary holding ``files`` already written."""
-    import numpy as np
 
     from .. import io, plot
-    from .._results import RESULTS
-    from .._runtime.atomic import save_npz_atomic
-    from .._statistics.karcher import karcher_mean
 
     shapes, metric, options = prepare(args, progress, args.files, shape_geodesic_options)
     m, n = shapes.shape[2:]

@@ -5,16 +5,16 @@ from __future__ import annotations
 import json
 import pathlib
 
+import numpy as np
+
+from .._runtime.atomic import save_npz_atomic, write_text_atomic
+from .._statistics.pca import mode_path, sigmas_reached, tangent_pca
 from .common import Progress, environment_record, json_floats, json_safe, metric_from, write_figure
 from .karcher import solve_karcher
 
 
 def run_pca(args, progress: Progress) -> dict:
-    import numpy as np
-
     from .. import io, plot
-    from .._runtime.atomic import save_npz_atomic, write_text_atomic
-    from .._statistics.pca import mode_path, sigmas_reached, tangent_pca
 
     if args.karcher_output is None:
         karcher, metric, options, summary = solve_karcher(args, progress)

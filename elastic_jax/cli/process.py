@@ -5,15 +5,20 @@ the lock on --out, signals, and the Dask client.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import math
 import os
 import pathlib
 import tempfile
 
+import numpy as np
+
 from .._checks import check_grid_shape, check_int, check_positive
 from .._options import ShapeOptions
 from .._runtime.atomic import TEMPORARY, stale_temporaries
+from .._runtime.cache import enable_compilation_cache
+from .._statistics.fit import check_learn
 from .common import (
     CHECKPOINTS,
     KARCHER_OUTPUT_KEYS,
@@ -62,9 +67,6 @@ def _expand_directories(args) -> None:
 def _read_karcher_output(args) -> dict | None:
     """pca's only input as a karcher run's mean.npz (it holds ``velocities``): its arrays,
     with that run's metric, grid, dtype and options put into ``args``; else None."""
-    import dataclasses
-
-    import numpy as np
 
     if args.command != "pca" or len(args.files) != 1:
         return None
@@ -134,7 +136,6 @@ def preflight(args) -> None:
             raise BadInput("--test and --test-labels go together")
         if args.test is not None and args.labels is None:
             raise BadInput("--test scores a classification: it needs --labels")
-        from .._statistics.fit import check_learn
 
         checked_flag("--learn", lambda flag, value: check_learn(value), args.learn)
         for flag in ("--labels", "--targets", "--test-labels"):
@@ -245,8 +246,6 @@ def dask_client(args, stack: contextlib.ExitStack, progress: Progress):
         except OSError as err:
             raise BadInput(f"--scheduler {address}: cannot connect ({err})") from err
     if not args.no_cache:
-        from .._runtime.cache import enable_compilation_cache
-
         enable_compilation_cache(args.cache_dir, client=client, exported=not args.no_export)
     return client
 

@@ -4,6 +4,11 @@ from __future__ import annotations
 
 import time
 
+import jax
+import numpy as np
+
+from .._registration.shape import shape_geodesic
+from .._runtime.atomic import atomic_path, save_npz_atomic
 from .common import (
     Progress,
     environment_record,
@@ -39,7 +44,6 @@ def solve_reporter(progress: Progress):
 def write_on_mesh(directory, path, vertex_map, progress: Progress) -> list[str]:
     """Each frame of ``path (N, 3, m, n)`` at the mesh's vertices, with its faces, as
     ``target_mesh_NNN.ply`` (io.VertexMap.to_mesh)."""
-    from .._runtime.atomic import atomic_path
 
     progress(f"writing the path's {len(path)} frames on the target mesh to {directory}")
     digits = max(3, len(str(len(path) - 1)))
@@ -53,12 +57,7 @@ def write_on_mesh(directory, path, vertex_map, progress: Progress) -> list[str]:
 
 
 def run_shape_geodesic(args, progress: Progress) -> dict:
-    import jax
-    import numpy as np
-
     from .. import plot
-    from .._registration.shape import shape_geodesic
-    from .._runtime.atomic import save_npz_atomic
 
     files = [args.source, args.target]
     (f1, f2), metric, options = prepare(args, progress, files, shape_geodesic_options)

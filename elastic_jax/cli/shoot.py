@@ -5,6 +5,11 @@ from __future__ import annotations
 import json
 import time
 
+import jax
+import numpy as np
+
+from .._geodesics.shooting import shoot
+from .._runtime.atomic import save_npz_atomic
 from .common import (
     BadInput,
     Progress,
@@ -20,7 +25,6 @@ from .common import (
 
 def _load_velocity(name: str, shape: tuple, dtype: str):
     """The array ``v`` (or ``velocity``) of an .npz, checked against the surface's shape."""
-    import numpy as np
 
     try:
         with np.load(name) as data:
@@ -42,12 +46,6 @@ def _load_velocity(name: str, shape: tuple, dtype: str):
 
 
 def run_shoot(args, progress: Progress) -> dict:
-    import jax
-    import numpy as np
-
-    from .._geodesics.shooting import shoot
-    from .._runtime.atomic import save_npz_atomic
-
     (f,), metric, _ = prepare(args, progress, [args.source], lambda a: None)
     m, n = f.shape[1:]
     v = args.scale * _load_velocity(args.velocity, f.shape, args.dtype)

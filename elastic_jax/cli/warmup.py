@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import jax
+
+from .._registration.warmup import warmup, working_grids
 from .common import BadInput, Progress, check_degrees
 
 # The data's grid when none is given: the shared surfaces', and meshes' default.
@@ -10,7 +13,6 @@ DEFAULT_INPUT_GRID = (50, 99)
 
 def _grids(args) -> tuple[tuple[int, int], tuple[tuple[int, int], ...]]:
     """The inputs' grid and the working grids the job's options solve on."""
-    from .._registration.warmup import working_grids
 
     grid = tuple(args.grid) if args.grid else DEFAULT_INPUT_GRID
     return grid, working_grids(args.shape_options, grid)
@@ -25,10 +27,6 @@ def check_warmup(args) -> None:
 
 
 def run_warmup(args, progress: Progress) -> dict:
-    import jax
-
-    from .._registration.warmup import warmup
-
     if jax.config.jax_compilation_cache_dir is None:  # --cache-dir could not be created
         raise BadInput(f"warmup fills the compilation cache: {args.cache_dir} could not be one")
     moduli = ("diff", "rigid") if args.modulo == "both" else (args.modulo,)
