@@ -40,7 +40,7 @@ class _NamedEnumeration(type(optx.RESULTS)):
         """The item's message alone ('' for ``successful``)."""
         return super().__getitem__(item)
 
-    def from_code(cls, code: int):
+    def from_code(cls, code: int | np.integer):
         """The item whose code is ``code`` (a concrete int, e.g. one stored in a file)."""
         for candidate in getattr(cls, "_name_to_item", {}).values():
             if int(candidate._value) == int(code):

@@ -54,7 +54,8 @@ out = {
     "shape": ej.shape_geodesic(f1, f2, metric, modulo="rigid", options=shape_options).distance,
     "matrix": ej.distance_matrix(
         np.stack([f1, f2, 1.5 * f1]), metric, modulo="none",
-        options=ej.ShapeOptions(degree=3, n_times=5), strategy="map", batch_size=2,
+        options=ej.ShapeOptions(degree=3, n_times=5),
+        job=ej.JobOptions(strategy="map", batch_size=2),
     ).distances.sum(),
 }
 out = {key: float(value) for key, value in out.items()}

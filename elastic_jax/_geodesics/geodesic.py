@@ -18,6 +18,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import (
@@ -43,7 +44,7 @@ from .._geometry.harmonics import check_degree
 from .._geometry.interp import resample
 from .._geometry.metric import SplitMetric, split_bilinear
 from .._geometry.numerics import constant, safe_sqrt, sqrt_inverse_pair
-from .._geometry.units import in_units
+from .._geometry.units import Units, in_units
 from .._geometry.validation import check_pair
 from .._options import (
     FROM_OPTIONS,
@@ -102,14 +103,16 @@ class GeodesicResult(NamedTuple):
         return words
 
 
-def _straight_frames(f1, f2, n_times, frames=None):
+def _straight_frames(f1: ArrayLike, f2: ArrayLike, n_times: int, frames: tuple | None = None):
     """The straight line's interior frames; ``frames`` (start, end), each (a1, a2), when
     the ends' differentials are given rather than taken by central differences."""
     start, end = (interior_frame(f1), interior_frame(f2)) if frames is None else frames
     return frames_between(start, end, n_times)
 
 
-def _whitening(metric, mid1, mid2, dframe, n_times):
+def _whitening(
+    metric: SplitMetric, mid1: ArrayLike, mid2: ArrayLike, dframe: ArrayLike, n_times: int
+):
     """Factors of the change of variables X = A Z B that makes the energy's Hessian ~ 2 I.
 
     Returns (A, B, A^-1, B^-1, mean eigenvalue of M).
@@ -125,7 +128,7 @@ def _whitening(metric, mid1, mid2, dframe, n_times):
     points = dframe.shape[1] // 2
     shape = (3, *mid1.shape[-2:])
 
-    def quadratic(c):
+    def quadratic(c: ArrayLike):
         pert = c.reshape(3, k) @ dframe
         x1, x2 = pert[:, :points].reshape(shape), pert[:, points:].reshape(shape)
         return integrate_interior(split_bilinear(metric, mid1, mid2, x1, x2, x1, x2))
@@ -149,14 +152,22 @@ class _Scaling(NamedTuple):
     a_inv: Array
     b_inv: Array
 
-    def coefficients(self, z):
+    def coefficients(self, z: ArrayLike):
         return jnp.sqrt(self.energy_scale) * (self.a @ z @ self.b)
 
-    def whitened(self, coefficients):
+    def whitened(self, coefficients: ArrayLike):
         return (self.a_inv @ coefficients @ self.b_inv) / jnp.sqrt(self.energy_scale)
 
 
-def solver_scaling(metric, f1, f2, dframe, n_times, scheme, frames=None) -> _Scaling:
+def solver_scaling(
+    metric: SplitMetric,
+    f1: ArrayLike,
+    f2: ArrayLike,
+    dframe: ArrayLike,
+    n_times: int,
+    scheme: str,
+    frames: tuple | None = None,
+) -> _Scaling:
     straight_frames = _straight_frames(f1, f2, n_times, frames)
     straight = frame_energy(metric, *straight_frames, scheme)
     # The solver works on z with C = sqrt(E_s) A z B (see _whitening) and the energy
@@ -173,7 +184,7 @@ def solver_scaling(metric, f1, f2, dframe, n_times, scheme, frames=None) -> _Sca
     return _Scaling(energy_scale, straight, a, b, a_inv, b_inv)
 
 
-def saddle_threshold(dtype) -> float:
+def saddle_threshold(dtype: DTypeLike) -> float:
     """Curvature below which a stationary point of the scaled objective counts as a saddle.
 
     The scaled objective is energy / straight-line energy in whitened coordinates, where
@@ -199,21 +210,21 @@ _ESCAPE_LENGTHS = (0.05, 0.1, 0.2, 0.4, 0.8)
 
 
 def solve_path(
-    metric,
-    f1,
-    f2,
-    init,
-    values,
-    dframe,
+    metric: SplitMetric,
+    f1: ArrayLike,
+    f2: ArrayLike,
+    init: ArrayLike,
+    values: ArrayLike,
+    dframe: ArrayLike,
     *,
-    n_times,
-    solver,
-    max_steps,
-    tol,
-    scheme,
-    saddle_checks=None,
-    frames=None,
-    step_cap=None,
+    n_times: int,
+    solver: str,
+    max_steps: int | None,
+    tol: float | Array,
+    scheme: str,
+    saddle_checks: int | None = None,
+    frames: tuple | None = None,
+    step_cap: Array | None = None,
 ):
     """One parametrized geodesic (traceable; the jitted entry point is ``_geodesic``).
 
@@ -235,7 +246,7 @@ def solve_path(
     dtype = f1.dtype
     threshold = saddle_threshold(dtype)
 
-    def objective(z):
+    def objective(z: ArrayLike):
         frames = perturbed_frames(straight, scaling.coefficients(z), dframe)
         return frame_energy(metric, *frames, scheme) / scaling.energy_scale
 
@@ -245,7 +256,7 @@ def solve_path(
     # Drawn by numpy at trace time (the shape is static): a constant, no RNG to compile.
     lanczos_start = jnp.asarray(np.random.default_rng(0).standard_normal(x0.shape), dtype)
 
-    def checked_minimum(start):
+    def checked_minimum(start: ArrayLike):
         """Minimize from start; the Lanczos estimate (value, vector) of the end's curvature."""
         found = minimize(
             objective, start, solver=solver, max_steps=max_steps, tol=tol, step_cap=step_cap
@@ -256,7 +267,7 @@ def solve_path(
         # but the program compiles smaller than jax.linearize's, which splits out and
         # stores the tangent part: the saddle check compiled in 3.2 s instead of 4.2
         # (12 x 25 cats, degree 5, N 5), the same Ritz value to 15 digits.
-        def hessian_vector(v):
+        def hessian_vector(v: ArrayLike):
             return jax.jvp(jax.grad(objective), (found.x,), (v,))[1]
 
         curvature, direction = lanczos_smallest(
@@ -264,14 +275,14 @@ def solve_path(
         )
         return found, curvature, direction
 
-    def escape(x, direction):
+    def escape(x: ArrayLike, direction: ArrayLike):
         # The lowest of f(x) and f(x +- s v): never uphill.
         lengths = jnp.asarray(_ESCAPE_LENGTHS, dtype)
         trials = jnp.concatenate([jnp.zeros(1, dtype), lengths, -lengths])
         energies = jax.lax.map(lambda s: objective(x + s * direction), trials)
         return x + trials[jnp.argmin(energies)] * direction
 
-    def solve_round(state):
+    def solve_round(state: tuple):
         found, direction, _, steps, rounds = state
         # One loop for the first solve and the escapes, so that the solver and the
         # Hessian-vector product are compiled once.
@@ -279,7 +290,7 @@ def solve_path(
         found, curvature, direction = checked_minimum(start)
         return found, direction, curvature, steps + found.num_steps, rounds + 1
 
-    def again(state):
+    def again(state: tuple):
         curvature, rounds = state[2], state[4]
         return (rounds == 0) | ((rounds <= saddle_checks) & (curvature < threshold))
 
@@ -333,7 +344,17 @@ _geodesic = solver_jit(
 
 
 @functools.partial(jax.jit, static_argnames=("n_times", "scheme"))
-def _evaluate(metric, f1, f2, coefficients, values, dframe, *, n_times, scheme):
+def _evaluate(
+    metric: SplitMetric,
+    f1: ArrayLike,
+    f2: ArrayLike,
+    coefficients: ArrayLike,
+    values: ArrayLike,
+    dframe: ArrayLike,
+    *,
+    n_times: int,
+    scheme: str,
+):
     """The path, its energy and the straight line's energy at given coefficients."""
     straight = _straight_frames(f1, f2, n_times)
     energy = frame_energy(metric, *perturbed_frames(straight, coefficients, dframe), scheme)
@@ -341,7 +362,14 @@ def _evaluate(metric, f1, f2, coefficients, values, dframe, *, n_times, scheme):
     return path, energy, frame_energy(metric, *straight, scheme)
 
 
-def _check_solve_options(n_times, solver, max_steps, tol, scheme, dtype) -> tuple[int, int, float]:
+def _check_solve_options(
+    n_times: object,
+    solver: object,
+    max_steps: object,
+    tol: object,
+    scheme: object,
+    dtype: DTypeLike,
+) -> tuple[int, int, float]:
     """Validate the inner solves' options; returns n_times, max_steps and tol (whose
     default depends on the dtype)."""
     check_choice("solver", solver, SOLVERS)
@@ -352,7 +380,7 @@ def _check_solve_options(n_times, solver, max_steps, tol, scheme, dtype) -> tupl
     return n_times, max_steps, tol
 
 
-def _check_schedule(schedule, degree: int, m: int, n: int) -> list[tuple[int, ...]]:
+def _check_schedule(schedule: object, degree: int, m: int, n: int) -> list[tuple[int, ...]]:
     """The levels of a schedule as tuples of ints, each checked (InputError naming it)."""
     if isinstance(schedule, str) or not isinstance(schedule, Sequence):
         raise InputError(
@@ -552,7 +580,20 @@ def geodesic(
 
 
 @functools.partial(jax.jit, static_argnames=("n_times", "scheme"))
-def _finish(metric, g1, g2, f1, f2, solved, units, values, dframe, *, n_times, scheme):
+def _finish(
+    metric: SplitMetric,
+    g1: ArrayLike,
+    g2: ArrayLike,
+    f1: ArrayLike,
+    f2: ArrayLike,
+    solved: GeodesicResult,
+    units: Units,
+    values: ArrayLike,
+    dframe: ArrayLike,
+    *,
+    n_times: int,
+    scheme: str,
+):
     """The result in the user's units from the solve's: the path and its energies evaluated
     again at the optimal coefficients (differentiably, see geodesic), then the units
     restored. One compiled program: op by op, a first call would compile each operation
@@ -567,7 +608,9 @@ def _finish(metric, g1, g2, f1, f2, solved, units, values, dframe, *, n_times, s
     return _restore_units(unit_result, units, f1, f2)
 
 
-def _restore_units(result: GeodesicResult, units, f1, f2) -> GeodesicResult:
+def _restore_units(
+    result: GeodesicResult, units: Units, f1: ArrayLike, f2: ArrayLike
+) -> GeodesicResult:
     """A result solved in ``units`` expressed in the user's units again (the ends exact)."""
     s = units.scale
     path = units.restore(result.path)

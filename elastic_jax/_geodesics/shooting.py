@@ -22,10 +22,12 @@ from __future__ import annotations
 
 import functools
 import warnings
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_choice, check_finite, check_int, check_positive, is_concrete, real_array
@@ -90,14 +92,14 @@ class ShootingResult(NamedTuple):
         return unsolved_message(self, "node", int(self.n_valid), last, words)
 
 
-def default_newton_tol(dtype) -> float:
+def default_newton_tol(dtype: DTypeLike) -> float:
     """Tolerance of each step's Newton solve: on the relative residual and on the change of
     the coefficients (in units of the surface's size). Newton converges quadratically, so
     the result is near rounding level: 1e-10 in float64, 1e-4 in float32."""
     return 1e-10 if jnp.dtype(dtype) == jnp.float64 else 1e-4
 
 
-def frames_of(coefficients, dframe, shape):
+def frames_of(coefficients: ArrayLike, dframe: ArrayLike, shape: tuple[int, ...]):
     """The interior frames of sum_j c_j S_j, from the basis' precomputed differentials."""
     k = dframe.shape[0]
     points = dframe.shape[1] // 2
@@ -105,13 +107,13 @@ def frames_of(coefficients, dframe, shape):
     return pert[:, :points].reshape(shape), pert[:, points:].reshape(shape)
 
 
-def _frames_plus(frames, coefficients, dframe):
+def _frames_plus(frames: tuple, coefficients: ArrayLike, dframe: ArrayLike):
     """frames + the frames of sum_j c_j S_j."""
     shape = frames[0].shape
     return tuple(x + y for x, y in zip(frames, frames_of(coefficients, dframe, shape), strict=True))
 
 
-def _energy_of(metric, scheme, *frames):
+def _energy_of(metric: SplitMetric, scheme: str, *frames):
     """The energy of the short path through the given frames (the factor from its own T
     is common to all its terms and drops out of a stationarity equation)."""
     a1 = jnp.stack([a[0] for a in frames])
@@ -120,7 +122,18 @@ def _energy_of(metric, scheme, *frames):
 
 
 def node_solve(
-    metric, scheme, f_a, f_b, c_guess, values, dframe, *, unknown, tol, max_newton, frames=None
+    metric: SplitMetric,
+    scheme: str,
+    f_a: ArrayLike,
+    f_b: ArrayLike,
+    c_guess: ArrayLike,
+    values: ArrayLike,
+    dframe: ArrayLike,
+    *,
+    unknown: str,
+    tol: ArrayLike,
+    max_newton: int,
+    frames: tuple | None = None,
 ):
     """One node of a discrete geodesic f_a, f_mid, f_b by Newton's method on the energy's
     Euler-Lagrange equation in the middle node, projected on the surface basis.
@@ -141,17 +154,17 @@ def node_solve(
         base = 2.0 * f_b - f_a
         a_base = tuple(2.0 * x - y for x, y in zip(a_b, a_a, strict=True))
 
-        def frames(c, d):  # (first, middle, last)
+        def frames(c: ArrayLike, d: ArrayLike):  # (first, middle, last)
             return a_a, _frames_plus(a_b, d, dframe), _frames_plus(a_base, c, dframe)
 
     else:
         base = 0.5 * (f_a + f_b)
         a_base = tuple(0.5 * (x + y) for x, y in zip(a_a, a_b, strict=True))
 
-        def frames(c, d):
+        def frames(c: ArrayLike, d: ArrayLike):
             return a_a, _frames_plus(a_base, c + d, dframe), a_b
 
-    def gradient(c):
+    def gradient(c: ArrayLike):
         return jax.grad(lambda d: _energy_of(metric, scheme, *frames(c, d)))(zero)
 
     # The equation is solved as J(c0)^-1 g(c) = 0, J(c0) its Jacobian at Newton's start:
@@ -161,10 +174,10 @@ def node_solve(
     solver = optx.Newton(rtol=tol, atol=tol)
     factor = jax.scipy.linalg.lu_factor(jax.jacfwd(gradient)(c_guess))
 
-    def residual(c, _):
+    def residual(c: ArrayLike, _: None):
         return jax.scipy.linalg.lu_solve(factor, gradient(c))
 
-    def newton(c0, solve):
+    def newton(c0: ArrayLike, solve: Callable):
         sol = optx.root_find(solve, solver, c0, max_steps=max_newton, throw=False)
         return (
             sol.value,
@@ -174,7 +187,7 @@ def node_solve(
 
     first = newton(c_guess, residual)
 
-    def rescued(_):
+    def rescued(_: None):
         # Newton from the guess fails where a step's cells nearly collapse: on a real
         # horse's last node at 25 x 49 its first step was 4x too long and 67 degrees off
         # a root 0.4 guess-lengths away. The root is then followed from the guess,
@@ -196,24 +209,32 @@ def node_solve(
     return node, c, jnp.linalg.norm(residual(c, None)), steps, result
 
 
-def _newton_from(gradient, c0, shift, newton):
+def _newton_from(gradient: Callable, c0: ArrayLike, shift: ArrayLike, newton: Callable):
     """``newton`` on J(c0)^-1 (g(c) - shift) = 0 from c0 (J the Jacobian of g)."""
     factor = jax.scipy.linalg.lu_factor(jax.jacfwd(gradient)(c0))
     return newton(c0, lambda c, _: jax.scipy.linalg.lu_solve(factor, gradient(c) - shift))
 
 
-def _follow_root(gradient, start, g0, newton, *, rounds=48, smallest=2.0**-12):
+def _follow_root(
+    gradient: Callable,
+    start: ArrayLike,
+    g0: ArrayLike,
+    newton: Callable,
+    *,
+    rounds: int = 48,
+    smallest: float = 2.0**-12,
+):
     """Natural-parameter continuation of the root of g(c) = (1 - s) g0 from (start, 0) to
     s = 1 (g(start) = g0): Newton from the last root at s + ds, ds doubling after a
     solve and halving after a failure (at most 1/4, at least ``smallest``).
     Returns (c, whether s reached 1, Newton iterations)."""
     dtype = start.dtype
 
-    def keep_going(state):
+    def keep_going(state: tuple):
         _, s, ds, k, _ = state
         return (s < 1) & (ds >= smallest) & (k < rounds)
 
-    def step(state):
+    def step(state: tuple):
         c, s, ds, k, steps = state
         trial = jnp.minimum(s + ds, 1.0)
         c_new, result, k_new = _newton_from(gradient, c, (1 - trial) * g0, newton)
@@ -232,7 +253,20 @@ def _follow_root(gradient, start, g0, newton, *, rounds=48, smallest=2.0**-12):
     return c, s >= 1, steps
 
 
-def _shoot(metric, f, v, a_f, a_v, values, dframe, *, n_times, scheme, tol, max_newton):
+def _shoot(
+    metric: SplitMetric,
+    f: ArrayLike,
+    v: ArrayLike,
+    a_f: tuple,
+    a_v: tuple,
+    values: ArrayLike,
+    dframe: ArrayLike,
+    *,
+    n_times: int,
+    scheme: str,
+    tol: ArrayLike,
+    max_newton: int,
+):
     """Traceable shooting in the units of f (the jitted entry point is ``_shoot_jit``).
 
     The nodes' differentials travel with them: a_{k+1} = 2 a_k - a_{k-1} + sum_j c_j dS_j
@@ -250,10 +284,10 @@ def _shoot(metric, f, v, a_f, a_v, values, dframe, *, n_times, scheme, tol, max_
     size = dframe.shape[0] * 3
     dtype = f.dtype
 
-    def step(carry, _):
+    def step(carry: tuple, _: None):
         (f_prev, a_prev), (f_here, a_here), c_guess, alive = carry
 
-        def solve(_):
+        def solve(_: None):
             f_next, c, residual, steps, result = node_solve(
                 metric,
                 scheme,
@@ -269,7 +303,7 @@ def _shoot(metric, f, v, a_f, a_v, values, dframe, *, n_times, scheme, tol, max_
             )
             return f_next, c, residual, jnp.asarray(steps, jnp.int32), result
 
-        def skip(_):
+        def skip(_: None):
             nan = jnp.asarray(jnp.nan, dtype)
             zero = jnp.zeros((), jnp.int32)
             return jnp.full_like(f_here, nan), c_guess, nan, zero, RESULTS.successful
@@ -421,14 +455,14 @@ def shoot(
     return result
 
 
-def _checked_frames(frames, f, v):
+def _checked_frames(frames: ArrayLike | None, f: ArrayLike, v: ArrayLike):
     """(f's frame, v's frame), each (a1, a2): ``frames`` checked, or the central
     differences of f and v."""
     frames = checked_frames(frames, jnp.stack([f, v]), "frames")
     return (frames[0, 0], frames[0, 1]), (frames[1, 0], frames[1, 1])
 
 
-def checked_frames(frames, x, name: str):
+def checked_frames(frames: ArrayLike | None, x: ArrayLike, name: str):
     """The differentials of the fields x (``(..., 3, m, n)``) on the interior points as one
     array ``(..., 2, 3, m - 2, n - 1)`` (``[..., j]`` the j-th column): ``frames``
     checked, or x's central differences when it is None."""
@@ -460,7 +494,7 @@ def _failure_message(result: ShootingResult, tol: float, max_newton: int) -> str
     )
 
 
-def as_velocity(v, f: Array, name: str = "v") -> Array:
+def as_velocity(v: ArrayLike, f: Array, name: str = "v") -> Array:
     """v as a finite array of f's dtype and shape (a tangent vector: no immersion check)."""
     v = real_array(v, name)
     check_finite(v, name)

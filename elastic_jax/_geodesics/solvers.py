@@ -8,7 +8,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import optimistix as optx
-from jaxtyping import Array
+from jax.typing import DTypeLike
+from jaxtyping import Array, ArrayLike, PyTree
 
 from .._checks import check_choice
 from .._options import SOLVERS
@@ -49,7 +50,9 @@ class _GradientBFGS(optx.BFGS):
         super().__init__(rtol=rounding, atol=rounding)
         self.gtol = gtol
 
-    def terminate(self, fn, y, args, options, state, tags):
+    def terminate(
+        self, fn: Callable, y: PyTree, args: PyTree, options: dict, state: PyTree, tags: frozenset
+    ):
         # Before the first accepted step f_info holds no gradient yet.
         small = optx.two_norm(state.f_info.grad) <= self.gtol
         return (~state.first_step) & (small | state.terminate), state.result
@@ -66,31 +69,54 @@ class _Capped(optx.AbstractMinimiser):
     atol: float
     norm: Callable
 
-    def __init__(self, inner):
+    def __init__(self, inner: optx.AbstractMinimiser):
         self.inner = inner
         self.rtol, self.atol, self.norm = inner.rtol, inner.atol, inner.norm
 
-    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+    def init(
+        self,
+        fn: Callable,
+        y: PyTree,
+        args: PyTree,
+        options: dict,
+        f_struct: jax.ShapeDtypeStruct,
+        aux_struct: PyTree,
+        tags: frozenset,
+    ):
         state = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
         return state, jnp.zeros((), jnp.int32)
 
-    def step(self, fn, y, args, options, state, tags):
+    def step(
+        self, fn: Callable, y: PyTree, args: PyTree, options: dict, state: tuple, tags: frozenset
+    ):
         y, inner, aux = self.inner.step(fn, y, args, options, state[0], tags)
         return y, (inner, state[1] + 1), aux
 
-    def terminate(self, fn, y, args, options, state, tags):
+    def terminate(
+        self, fn: Callable, y: PyTree, args: PyTree, options: dict, state: tuple, tags: frozenset
+    ):
         done, result = self.inner.terminate(fn, y, args, options, state[0], tags)
         capped = (state[1] >= args) & ~done
         result = optx.RESULTS.where(capped, optx.RESULTS.nonlinear_max_steps_reached, result)
         return done | capped, result
 
-    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+    def postprocess(
+        self,
+        fn: Callable,
+        y: PyTree,
+        aux: PyTree,
+        args: PyTree,
+        options: dict,
+        state: tuple,
+        tags: frozenset,
+        result: optx.RESULTS,
+    ):
         return self.inner.postprocess(fn, y, aux, args, options, state[0], tags, result)
 
 
 def minimize(
     fun: Callable[[Array], Array],
-    x0,
+    x0: PyTree,
     *,
     solver: str,
     max_steps: int | None,
@@ -191,7 +217,7 @@ def lanczos_smallest(
     q0 = start.reshape(n) / jnp.linalg.norm(start)
     eps, tiny = jnp.finfo(dtype).eps, jnp.finfo(dtype).tiny
 
-    def step(j, carry):
+    def step(j: ArrayLike, carry: tuple):
         basis, alpha, beta = carry
         w = matvec(basis[j].reshape(shape)).reshape(n)
         alpha = alpha.at[j].set(basis[j] @ w)
@@ -227,7 +253,7 @@ def lanczos_smallest(
     return theta[0], (vector / jnp.linalg.norm(vector)).reshape(shape)
 
 
-def default_tol(dtype) -> float:
+def default_tol(dtype: DTypeLike) -> float:
     """The inner solves' default tolerance on the scaled gradient's 2-norm: 1e-6 in
     float64; 3e-3 in float32, whose rounding floor there is 7e-4 to 8e-4 (sphere-like pair
     at degree 7, N = 13 on 25 x 49 and 50 x 99; the floor grows like the square root of

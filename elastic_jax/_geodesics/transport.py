@@ -103,17 +103,28 @@ class TransportResult(NamedTuple):
         return unsolved_message(self, "rung", int(self.n_valid), last, words)
 
 
-def _ladder(metric, w, path, values, dframe, *, scheme, midpoint, tol, max_newton):
+def _ladder(
+    metric: SplitMetric,
+    w: ArrayLike,
+    path: ArrayLike,
+    values: ArrayLike,
+    dframe: ArrayLike,
+    *,
+    scheme: str,
+    midpoint: str,
+    tol: ArrayLike,
+    max_newton: int,
+):
     n_times = path.shape[0]
     h = 1.0 / (n_times - 1)
     size = 3 * dframe.shape[0]
     options = {"tol": tol, "max_newton": max_newton}
 
-    def rung(carry, nodes):
+    def rung(carry: tuple, nodes: tuple):
         w_k, c_mid, c_ref, alive = carry
         f_k, f_next = nodes
 
-        def solve(_):
+        def solve(_: None):
             p = f_k + h * w_k
             if midpoint == "exact":
                 m, c_m, r_mid, steps_mid, result_mid = node_solve(
@@ -131,7 +142,7 @@ def _ladder(metric, w, path, values, dframe, *, scheme, midpoint, tol, max_newto
             steps = jnp.asarray(steps_mid + steps_ref, jnp.int32)
             return (q - f_next) / h, c_m, c_r, jnp.stack([r_mid, r_ref]), steps, result
 
-        def skip(_):
+        def skip(_: None):
             nan = jnp.asarray(jnp.nan, w.dtype)
             zero = jnp.zeros((), jnp.int32)
             return (
@@ -164,7 +175,16 @@ def _ladder(metric, w, path, values, dframe, *, scheme, midpoint, tol, max_newto
 _ladder_jit = solver_jit(_ladder, static_argnames=("scheme", "midpoint", "max_newton"))
 
 
-def _galerkin(metric, w, w_frame, path_frames, values, dframe, *, substeps):
+def _galerkin(
+    metric: SplitMetric,
+    w: ArrayLike,
+    w_frame: tuple,
+    path_frames: tuple,
+    values: ArrayLike,
+    dframe: ArrayLike,
+    *,
+    substeps: int,
+):
     """Traceable Galerkin transport in the units of the path (module docstring), on the
     nodes' differentials: the metric sees a surface only through them, so
     ``path_frames`` (a1, a2), each ``(N, 3, m - 2, n - 1)``, is the path and
@@ -180,31 +200,31 @@ def _galerkin(metric, w, w_frame, path_frames, values, dframe, *, substeps):
     size = 1 + 3 * k
     shape = w_frame[0].shape
 
-    def field(x):
+    def field(x: ArrayLike):
         return x[0] * w + (x[1:].reshape(3, k) @ values).reshape(3, m, n)
 
-    def field_frame(x):
+    def field_frame(x: ArrayLike):
         basis = frames_of(x[1:], dframe, shape)
         return tuple(x[0] * a + b for a, b in zip(w_frame, basis, strict=True))
 
-    def inner(f, a, b):
+    def inner(f: tuple, a: tuple, b: tuple):
         return integrate_interior(split_bilinear(metric, *f, *a, *b))
 
-    def half_norm2(f, x):
+    def half_norm2(f: tuple, x: ArrayLike):
         v = field_frame(x)
         return 0.5 * inner(f, v, v)
 
-    def christoffel(f, u, x, y):
+    def christoffel(f: tuple, u: tuple, x: ArrayLike, y: ArrayLike):
         v, h = field_frame(x), field_frame(y)
 
-        def along(a, b, direction):
+        def along(a: tuple, b: tuple, direction: tuple):
             return jax.jvp(lambda g: inner(g, a, b), (f,), (direction,))[1]
 
         return 0.5 * (along(v, h, u) + along(u, h, v) - along(u, v, h))
 
     zero = jnp.zeros(size, w.dtype)
 
-    def generator(f, u):
+    def generator(f: tuple, u: tuple):
         a = jax.hessian(half_norm2, argnums=1)(f, zero)
         c = jax.jacfwd(jax.grad(christoffel, argnums=3), argnums=2)(f, u, zero, zero)
         # The pseudo-inverse: when w_0 lies in the basis' span (a field of degree <= the
@@ -220,11 +240,11 @@ def _galerkin(metric, w, w_frame, path_frames, values, dframe, *, substeps):
         w.dtype,
     )
 
-    def segment(x, ends):
+    def segment(x: ArrayLike, ends: tuple):
         f_a, f_b = ends
         u = tuple(t_steps * (b - a) for a, b in zip(f_a, f_b, strict=True))
 
-        def substep(x, s):
+        def substep(x: ArrayLike, s: ArrayLike):
             # Both Gauss points in one traced generator (vmap), not two copies of it.
             at = tuple(
                 a[None] + s[:, None, None, None] * (b - a)[None]
@@ -250,7 +270,16 @@ def _galerkin(metric, w, w_frame, path_frames, values, dframe, *, substeps):
 _galerkin_jit = solver_jit(_galerkin, static_argnames=("substeps",))
 
 
-def _galerkin_result(metric, w, w_frame, path_frames, values, dframe, substeps, scale):
+def _galerkin_result(
+    metric: SplitMetric,
+    w: ArrayLike,
+    w_frame: tuple,
+    path_frames: tuple,
+    values: ArrayLike,
+    dframe: ArrayLike,
+    substeps: int,
+    scale: ArrayLike,
+):
     vectors, frames, norms = _galerkin_jit(
         metric, w, w_frame, path_frames, values, dframe, substeps=substeps
     )

@@ -4,8 +4,11 @@ statistics all build paths from."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike
 
 from .._runtime.cache import cached
 from .differential import interior_frame
@@ -32,14 +35,14 @@ def basis_np(m: int, n: int, degree: int) -> tuple[np.ndarray, np.ndarray]:
     return y.reshape(k, m * n), np.concatenate([a1.reshape(k, -1), a2.reshape(k, -1)], axis=1)
 
 
-def frames_between(start, end, n_times):
+def frames_between(start: Sequence[ArrayLike], end: Sequence[ArrayLike], n_times: int):
     """Interior frames of the straight line between two surfaces given by their frames."""
     t = jnp.linspace(0.0, 1.0, n_times, dtype=start[0].dtype).reshape(n_times, 1, 1, 1)
     # a + t (b - a): velocities are exactly zero when f1 = f2.
     return [a[None] + t * (b - a)[None] for a, b in zip(start, end, strict=True)]
 
 
-def perturbed_frames(straight, coefficients, dframe):
+def perturbed_frames(straight: Sequence[Array], coefficients: ArrayLike, dframe: ArrayLike):
     """Frames of the straight line plus sum_j C[k, j] S_j on the interior time points."""
     s1, s2 = straight
     n_inner, shape = s1.shape[0] - 2, s1.shape[1:]
@@ -51,7 +54,9 @@ def perturbed_frames(straight, coefficients, dframe):
     return s1.at[1:-1].add(p1), s2.at[1:-1].add(p2)
 
 
-def path_from_coefficients(f1, f2, coefficients, values, n_times):
+def path_from_coefficients(
+    f1: ArrayLike, f2: ArrayLike, coefficients: ArrayLike, values: ArrayLike, n_times: int
+):
     """The path (N, 3, m, n): straight line plus the basis perturbation (paper eq. (4.2))."""
     m, n = f1.shape[-2:]
     k = values.shape[0]

@@ -6,11 +6,15 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array
+from jax.typing import DTypeLike
+from jaxtyping import Array, ArrayLike
 
 from .._geodesics.solvers import minimize
+from .._geometry.metric import SplitMetric
+from .._options import ShapeOptions
 from .problem import (
     MATCH_STEPS,
+    Problem,
     State,
     gamma_source,
     iterate,
@@ -29,7 +33,9 @@ from .problem import (
 )
 
 
-def _straight_round(prob, options, rigid, weight, cap, state: State) -> State:
+def _straight_round(
+    prob: Problem, options: ShapeOptions, rigid: bool, weight: ArrayLike, cap: Array, state: State
+) -> State:
     """One registration round on the matching criterion from f1 o gamma to R f2.
 
     Coarse in time before the rounds with the whole path: the straight line cannot bend
@@ -44,7 +50,7 @@ def _straight_round(prob, options, rigid, weight, cap, state: State) -> State:
     reference = jnp.maximum(state.energy, jnp.finfo(dtype).tiny)
     source = gamma_source(options, state.gamma)
 
-    def objective(y):
+    def objective(y: ArrayLike):
         x, r_step = registration_variables(prob, y, rigid)
         gamma = stepped_gamma(prob, options, source, x)
         return criterion(gamma, r_step @ state.rotation) / reference
@@ -66,14 +72,16 @@ def _straight_round(prob, options, rigid, weight, cap, state: State) -> State:
     return State(gamma, rotation, state.coefficients, energy, steps, shrunk)
 
 
-def _straight_rounds(prob, options, rigid, state: State, weight, cap) -> State:
+def _straight_rounds(
+    prob: Problem, options: ShapeOptions, rigid: bool, state: State, weight: ArrayLike, cap: Array
+) -> State:
     """Rounds on the matching criterion (weight 1: L2, 0: the straight line's energy),
     each round's BFGS cut at ``cap`` steps."""
     criterion = matching_criterion(prob, options, weight)
     current = criterion(state.gamma, state.rotation)
     floor = criterion(prob.e1, jnp.eye(3, dtype=prob.f1.dtype))
 
-    def small(before, after):
+    def small(before: ArrayLike, after: ArrayLike):
         return jnp.abs(before - after) <= options.outer_tol * (after + options.outer_tol * floor)
 
     state, _, _, _ = iterate(
@@ -85,7 +93,9 @@ def _straight_rounds(prob, options, rigid, state: State, weight, cap) -> State:
     return state
 
 
-def _ranked_rounds(prob, options, rigid, state: State, weight, cap):
+def _ranked_rounds(
+    prob: Problem, options: ShapeOptions, rigid: bool, state: State, weight: ArrayLike, cap: Array
+):
     """_straight_rounds from ``state``, and the straight line's energy where they end: a
     matched start is ranked by it."""
     state = _straight_rounds(prob, options, rigid, state, weight, cap)
@@ -105,7 +115,9 @@ def batch_candidates() -> bool:
     return jax.default_backend() != "cpu"
 
 
-def _coarse_registration(prob, options, rigid, starts, batched=None) -> State:
+def _coarse_registration(
+    prob: Problem, options: ShapeOptions, rigid: bool, starts: tuple, batched: bool | None = None
+) -> State:
     """From the starts (_initialize's result) to the registration the rounds with the
     whole path begin from.
 
@@ -158,7 +170,7 @@ def _coarse_registration(prob, options, rigid, starts, batched=None) -> State:
     # Every start's L2 rounds and then the best start's energy rounds are jobs of one
     # scan, and so one compiled copy of the rounds (weight and step limit traced).
 
-    def job(ends, j):
+    def job(ends: State, j: ArrayLike):
         matching = j < n_starts
         best = jnp.argmin(jnp.where(jnp.isfinite(ends.energy), ends.energy, jnp.inf))
         i = jnp.where(matching, j, best.astype(jnp.int32))
@@ -181,12 +193,14 @@ def _coarse_registration(prob, options, rigid, starts, batched=None) -> State:
     return state._replace(steps=state.steps + steps + others)
 
 
-def _batched_candidates(prob, options, rigid, starts: State, steps) -> State:
+def _batched_candidates(
+    prob: Problem, options: ShapeOptions, rigid: bool, starts: State, steps: ArrayLike
+) -> State:
     """_coarse_registration with the searched starts' L2 rounds vmapped (batch_candidates):
     the same rounds, ranking and energy rounds as the scan's jobs."""
     dtype = prob.f1.dtype
 
-    def match(state):
+    def match(state: State):
         weight, cap = jnp.ones((), dtype), jnp.asarray(MATCH_STEPS)
         state, straight = _ranked_rounds(prob, options, rigid, state, weight, cap)
         return state._replace(energy=straight)
@@ -201,7 +215,7 @@ def _batched_candidates(prob, options, rigid, starts: State, steps) -> State:
     return state._replace(steps=state.steps + steps + others)
 
 
-def given_only_starts(m: int, n: int, dtype):
+def given_only_starts(m: int, n: int, dtype: DTypeLike):
     """Starts for a solve whose only candidates are the pair as given (see
     _coarse_registration): no searched start."""
     return (
@@ -211,7 +225,15 @@ def given_only_starts(m: int, n: int, dtype):
     )
 
 
-def coarse_phase(metric, f1, f2, bases, starts, options, rigid) -> tuple[State, Array]:
+def coarse_phase(
+    metric: SplitMetric,
+    f1: ArrayLike,
+    f2: ArrayLike,
+    bases,
+    starts: tuple,
+    options: ShapeOptions,
+    rigid: bool,
+) -> tuple[State, Array]:
     """Phase 2: the coarse registration from the starts, and the energy history with its
     energy at [1] (no rounds with the path yet)."""
     prob = make_problem(metric, f1, f2, bases, rigid, options.interpolation)

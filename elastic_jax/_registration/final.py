@@ -9,13 +9,18 @@ import functools
 import jax
 import jax.numpy as jnp
 import optimistix as optx
+from jaxtyping import ArrayLike
 
 from .._geodesics.geodesic import solve_path, upsample_coefficients
 from .._geometry.bases import frames_between, path_from_coefficients, perturbed_frames
 from .._geometry.energy import frame_energy
+from .._geometry.metric import SplitMetric
 from .._geometry.numerics import safe_sqrt
+from .._geometry.units import Units
+from .._options import ShapeOptions
 from .._results import RESULTS
 from .problem import (
+    Problem,
     State,
     compose,
     frame_of,
@@ -36,7 +41,14 @@ from .records import Refinement, ShapeGeodesicResult
 from .rounds import Rounds
 
 
-def _refinement(prob, options, gamma, rotation, coefficients, energy) -> Refinement:
+def _refinement(
+    prob: Problem,
+    options: ShapeOptions,
+    gamma: ArrayLike,
+    rotation: ArrayLike,
+    coefficients: ArrayLike,
+    energy: ArrayLike,
+) -> Refinement:
     """The result re-evaluated with halved time steps and on the (2m - 1) x (2n - 1) grid."""
     metric, bases, degree = prob.metric, prob.bases, options.degree
     start, end = registered_frame(prob, options, gamma), rotated_end_frame(prob, options, rotation)
@@ -61,7 +73,7 @@ def _refinement(prob, options, gamma, rotation, coefficients, energy) -> Refinem
     return Refinement(d_time, d_grid, change / jnp.maximum(d, jnp.finfo(d.dtype).tiny))
 
 
-def _final_solves(prob, options, state: State):
+def _final_solves(prob: Problem, options: ShapeOptions, state: State):
     """The unregistered and the registered geodesics, saddle-checked.
 
     One traced solve for both (lax.map runs them one after the other): half the
@@ -78,7 +90,7 @@ def _final_solves(prob, options, state: State):
     )
     frames = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), identity, registered)
 
-    def solve(problem):
+    def solve(problem: tuple):
         start, end, init, (start_frame, end_frame) = problem
         return solve_path(
             prob.metric,
@@ -95,13 +107,29 @@ def _final_solves(prob, options, state: State):
     return jax.lax.map(solve, (starts, ends, inits, frames))
 
 
-def geodesics_phase(metric, f1, f2, bases, rounds: Rounds, options, rigid):
+def geodesics_phase(
+    metric: SplitMetric,
+    f1: ArrayLike,
+    f2: ArrayLike,
+    bases,
+    rounds: Rounds,
+    options: ShapeOptions,
+    rigid: bool,
+):
     """Phase 4: the parametrized and the final geodesic (``rounds`` passed on)."""
     prob = make_problem(metric, f1, f2, bases, rigid, options.interpolation)
     return rounds, _final_solves(prob, options, rounds.state)
 
 
-def end_phase(metric, f1, f2, bases, solved, options, rigid) -> ShapeGeodesicResult:
+def end_phase(
+    metric: SplitMetric,
+    f1: ArrayLike,
+    f2: ArrayLike,
+    bases,
+    solved: tuple,
+    options: ShapeOptions,
+    rigid: bool,
+) -> ShapeGeodesicResult:
     """Phase 5: the result from the rounds and the geodesics (status, refinement).
 
     The shape distance is an infimum over reparametrizations (and rotations), so the
@@ -177,7 +205,18 @@ def end_phase(metric, f1, f2, bases, solved, options, rigid) -> ShapeGeodesicRes
 
 
 @functools.partial(jax.jit, static_argnames=("options", "rigid"))
-def _shape_evaluate(metric, f1, f2, bases, gamma, rotation, coefficients, *, options, rigid):
+def _shape_evaluate(
+    metric: SplitMetric,
+    f1: ArrayLike,
+    f2: ArrayLike,
+    bases,
+    gamma: ArrayLike,
+    rotation: ArrayLike,
+    coefficients: ArrayLike,
+    *,
+    options: ShapeOptions,
+    rigid: bool,
+):
     """The path from f1 o gamma to R f2 with the perturbation C, and its energy."""
     prob = make_problem(metric, f1, f2, bases, rigid, options.interpolation)
     start, end = registered_f1(prob, options, gamma), rotate_surface(rotation, prob.f2)
@@ -186,7 +225,17 @@ def _shape_evaluate(metric, f1, f2, bases, gamma, rotation, coefficients, *, opt
 
 
 @functools.partial(jax.jit, static_argnames=("options", "rigid"))
-def shape_finish(metric, g1, g2, bases, solved, units, *, options, rigid) -> ShapeGeodesicResult:
+def shape_finish(
+    metric: SplitMetric,
+    g1: ArrayLike,
+    g2: ArrayLike,
+    bases,
+    solved: ShapeGeodesicResult,
+    units: Units,
+    *,
+    options: ShapeOptions,
+    rigid: bool,
+) -> ShapeGeodesicResult:
     """The result in the user's units from the solve's: the path and its energy evaluated
     again at the solution (differentiably, see shape_geodesic), then the units restored.
     One compiled program: op by op, a first call would compile each operation alone."""
@@ -202,13 +251,15 @@ def shape_finish(metric, g1, g2, bases, solved, units, *, options, rigid) -> Sha
     return _restore_shape_units(unit_result, units, rigid)
 
 
-def _restore_shape_units(result: ShapeGeodesicResult, units, rigid: bool) -> ShapeGeodesicResult:
+def _restore_shape_units(
+    result: ShapeGeodesicResult, units: Units, rigid: bool
+) -> ShapeGeodesicResult:
     """A result solved in ``units`` in the user's units again. Modulo "rigid" the solve
     centres both surfaces, so the path is only scaled back; modulo "diff" it is also
     moved back to the inputs' place."""
     s = units.scale
 
-    def surfaces(x):
+    def surfaces(x: ArrayLike):
         return x * s if rigid else units.restore(x)
 
     return result._replace(

@@ -7,12 +7,14 @@ and evaluate the matching criteria and the path energy (math §4) the phases min
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
+from jax.typing import DTypeLike
+from jaxtyping import Array, ArrayLike
 
 from .._geodesics.geodesic import solve_path, solver_scaling
 from .._geometry.bases import basis_np, frames_between, perturbed_frames
@@ -123,13 +125,13 @@ def _resolution_np(m: int, n: int) -> tuple[float, float]:
     return floor, low
 
 
-def compose(gamma, step, interpolation):
+def compose(gamma: ArrayLike, step: ArrayLike, interpolation: str):
     """gamma o step: read gamma's coordinates at the points of step, back onto the sphere."""
     g = reparametrize_unchecked(gamma, step, method=interpolation)
     return g / jnp.linalg.norm(g, axis=-3, keepdims=True)
 
 
-def _step_field(y, bases, e1):
+def _step_field(y: ArrayLike, bases: _Bases, e1: ArrayLike):
     """Proj(Id + sum_k y_k s_k v_k) (math §6), s_k = 1 / sqrt(l(l+1)).
 
     The sum in the fields' separable form (harmonics.FieldTables): value and gradient of
@@ -144,11 +146,11 @@ def _step_field(y, bases, e1):
     return w / jnp.linalg.norm(w, axis=-3, keepdims=True)
 
 
-def rotate_surface(r, f):
+def rotate_surface(r: ArrayLike, f: ArrayLike):
     return jnp.einsum("ij,j...->i...", r, f)
 
 
-def kabsch(source, target):
+def kabsch(source: ArrayLike, target: ArrayLike):
     """The rotation R minimizing the area-weighted sum |R source - target|^2 (centered)."""
     m, n = target.shape[-2:]
     weights = area_element(*interior_frame(target)) * interior_weights(m, n, target.dtype)
@@ -162,7 +164,7 @@ def kabsch(source, target):
     return vt.T @ jnp.diag(jnp.asarray([1.0, 1.0, 1.0], h.dtype).at[2].set(d)) @ u.T
 
 
-def are_resolved(gammas, floor):
+def are_resolved(gammas: ArrayLike, floor: ArrayLike):
     """Whether each of ``gammas (..., 3, m, n)`` is a diffeomorphism the grid resolves.
 
     J > 0 at every grid point, and the discrete area of the reparametrized unit sphere
@@ -174,7 +176,7 @@ def are_resolved(gammas, floor):
     return (jnp.min(jac, axis=(-2, -1)) > 0) & (area >= floor)
 
 
-def safe_update(prob, options, gamma, y):
+def safe_update(prob: Problem, options: ShapeOptions, gamma: ArrayLike, y: ArrayLike):
     """The largest shrink of the step whose composition with gamma stays resolved, and
     whether the step had to shrink.
 
@@ -186,15 +188,15 @@ def safe_update(prob, options, gamma, y):
     scales = jnp.asarray(_STEP_SCALES, y.dtype)
     last = len(_STEP_SCALES) - 1
 
-    def candidate(i):
+    def candidate(i: ArrayLike):
         step = _step_field(scales[i] * y, bases, prob.e1)
         return compose(gamma, step, options.interpolation)
 
-    def usable(i, g):
+    def usable(i: ArrayLike, g: ArrayLike):
         # The last shrink (scale 0) is gamma itself, which is valid.
         return are_resolved(g, bases.area_floor) | (i == last)
 
-    def next_shrink(carry):
+    def next_shrink(carry: tuple):
         i, _, _ = carry
         g = candidate(i + 1)
         return i + 1, g, usable(i + 1, g)
@@ -240,11 +242,11 @@ def source_method(interpolation: str) -> str:
     return "coefficients" if interpolation == "spline" else interpolation
 
 
-def registered_f1(prob, options, gamma):
+def registered_f1(prob: Problem, options: ShapeOptions, gamma: ArrayLike):
     return reparametrize_unchecked(prob.source1, gamma, method=source_method(options.interpolation))
 
 
-def gamma_source(options, gamma):
+def gamma_source(options: ShapeOptions, gamma: ArrayLike):
     """gamma as a round's objective reads it, for :func:`stepped_gamma`: with spline
     reads its spline's coefficients, computed once per round instead of in each
     evaluation (the same numbers; 25 x 49, degree 7 / 8: the step's value and gradient
@@ -252,7 +254,7 @@ def gamma_source(options, gamma):
     return spline_coefficients(gamma) if options.interpolation == "spline" else gamma
 
 
-def stepped_gamma(prob, options, source, x):
+def stepped_gamma(prob: Problem, options: ShapeOptions, source: ArrayLike, x: ArrayLike):
     """gamma o Proj(Id + sum x_k v_k): the reparametrization after one more Diff step,
     gamma given by ``source = gamma_source(options, gamma)``."""
     step = _step_field(x, prob.bases, prob.e1)
@@ -267,7 +269,7 @@ def _chord_correction_np(m: int, n: int) -> tuple[float, float]:
     return dtheta / np.sin(dtheta), dphi / np.sin(dphi)
 
 
-def _chain_frame(f, gamma, interpolation, read=None):
+def _chain_frame(f: ArrayLike, gamma: ArrayLike, interpolation: str, read: str | None = None):
     """The differential of f o gamma on the interior points by the chain rule (math §2's
     frame): (df at gamma) applied to gamma's frame.
 
@@ -291,13 +293,13 @@ def _chain_frame(f, gamma, interpolation, read=None):
     if read != "bilinear":
         return directional_derivatives(f, points, (g1, g2), read)
 
-    def along(direction):
+    def along(direction: ArrayLike):
         return jax.jvp(lambda p: sample_points(f, p, read), (points,), (direction,))[1]
 
     return along(g1), along(g2)
 
 
-def _spline_frame(gamma):
+def _spline_frame(gamma: ArrayLike):
     """gamma's frame on the interior points from the derivative of its cubic spline,
     projected on the tangent plane at gamma: fourth order, where central differences
     are second order (f o phi_a at abs(a) = 0.5: 0.03 % against 1.2 % at 25 x 49). At
@@ -307,7 +309,7 @@ def _spline_frame(gamma):
     return tuple(v - at * jnp.sum(v * at, axis=0)[None] for v in spline_frame(gamma))
 
 
-def frame_of(f, gamma, options):
+def frame_of(f: ArrayLike, gamma: ArrayLike, options: ShapeOptions):
     """The differential of f o gamma on gamma's interior points (options.differential), for a
     Problem's source f (read by source_method)."""
     read = source_method(options.interpolation)
@@ -316,12 +318,12 @@ def frame_of(f, gamma, options):
     return _chain_frame(f, gamma, options.interpolation, read)
 
 
-def registered_frame(prob, options, gamma):
+def registered_frame(prob: Problem, options: ShapeOptions, gamma: ArrayLike):
     """The differential of f1 o gamma (interior points)."""
     return frame_of(prob.source1, gamma, options)
 
 
-def rotated_end_frame(prob, options, rotation):
+def rotated_end_frame(prob: Problem, options: ShapeOptions, rotation: ArrayLike):
     """The differential of R f2 (interior points), taken as f1 o gamma's at the identity:
     identical inputs then have identical frames."""
     if options.differential == "grid":
@@ -331,7 +333,7 @@ def rotated_end_frame(prob, options, rotation):
     return tuple(rotate_surface(rotation, a) for a in frame)
 
 
-def identity_frames(prob, options):
+def identity_frames(prob: Problem, options: ShapeOptions):
     """(f1's frame, f2's frame): the straight line without registration."""
     if options.differential == "grid":  # the surfaces themselves, not read back at their points
         return interior_frame(prob.f1), interior_frame(prob.f2)
@@ -339,7 +341,7 @@ def identity_frames(prob, options):
     return registered_frame(prob, options, prob.e1), rotated_end_frame(prob, options, eye)
 
 
-def geodesic_options(options):
+def geodesic_options(options: ShapeOptions):
     return {
         "n_times": options.n_times,
         "solver": options.solver,
@@ -349,7 +351,9 @@ def geodesic_options(options):
     }
 
 
-def geodesic_at(prob, options, gamma, rotation, init):
+def geodesic_at(
+    prob: Problem, options: ShapeOptions, gamma: ArrayLike, rotation: ArrayLike, init: ArrayLike
+):
     """The parametrized geodesic from f1 o gamma to R f2, warm-started at ``init``."""
     return solve_path(
         prob.metric,
@@ -363,7 +367,12 @@ def geodesic_at(prob, options, gamma, rotation, init):
     )
 
 
-def straight_line_energy(prob, options, start_frame, end_frame):
+def straight_line_energy(
+    prob: Problem,
+    options: ShapeOptions,
+    start_frame: Sequence[ArrayLike],
+    end_frame: Sequence[ArrayLike],
+):
     """The straight line's energy between two ends given by their frames."""
     # Ranking and refining straight lines needs no time resolution: 3 time points
     # (4.5x cheaper than N = 10) order the candidates the same way.
@@ -371,14 +380,14 @@ def straight_line_energy(prob, options, start_frame, end_frame):
     return frame_energy(prob.metric, *frames, options.scheme)
 
 
-def l2_mismatch(start, end):
+def l2_mismatch(start: ArrayLike, end: ArrayLike):
     """int |start - end|^2 dsigma over the round sphere, for ``(3, m, n)`` surfaces."""
     m, n = start.shape[-2:]
     gap = jnp.sum((start - end)[:, 1:-1, :-1] ** 2, axis=0)
     return jnp.sum(gap * interior_weights(m, n, start.dtype))
 
 
-def registration_variables(prob, y, rigid):
+def registration_variables(prob: Problem, y: ArrayLike, rigid: bool):
     """Split the registration variables into the Diff step's x and R^3's rotation step."""
     n_fields = prob.bases.field_scale.shape[0]
     x = y[:n_fields]
@@ -386,12 +395,19 @@ def registration_variables(prob, y, rigid):
     return x, r_step
 
 
-def joint_objective(prob, options, rigid, gamma, rotation, scaling):
+def joint_objective(
+    prob: Problem,
+    options: ShapeOptions,
+    rigid: bool,
+    gamma: ArrayLike,
+    rotation: ArrayLike,
+    scaling,
+):
     """Energy / scale as a function of (whitened path coefficients z, registration step y)."""
     end_frame = rotated_end_frame(prob, options, rotation)
     source = gamma_source(options, gamma)
 
-    def objective(variables):
+    def objective(variables: tuple):
         z, y = variables
         x, r_step = registration_variables(prob, y, rigid)
         start = registered_frame(prob, options, stepped_gamma(prob, options, source, x))
@@ -403,7 +419,7 @@ def joint_objective(prob, options, rigid, gamma, rotation, scaling):
     return objective
 
 
-def scaling_at(prob, options, gamma, rotation):
+def scaling_at(prob: Problem, options: ShapeOptions, gamma: ArrayLike, rotation: ArrayLike):
     return solver_scaling(
         prob.metric,
         registered_f1(prob, options, gamma),
@@ -415,11 +431,17 @@ def scaling_at(prob, options, gamma, rotation):
     )
 
 
-def zero_registration(prob, rigid, dtype):
+def zero_registration(prob: Problem, rigid: bool, dtype: DTypeLike):
     return jnp.zeros(prob.bases.field_scale.shape[0] + (3 if rigid else 0), dtype)
 
 
-def path_frames_at(prob, options, gamma, rotation, coefficients):
+def path_frames_at(
+    prob: Problem,
+    options: ShapeOptions,
+    gamma: ArrayLike,
+    rotation: ArrayLike,
+    coefficients: ArrayLike,
+):
     """The frames (a1, a2), each ``(N, 3, m - 2, n - 1)``, of the straight line from
     f1 o gamma to R f2 plus the perturbation: the path as the solve sees it."""
     start, end = registered_frame(prob, options, gamma), rotated_end_frame(prob, options, rotation)
@@ -427,13 +449,19 @@ def path_frames_at(prob, options, gamma, rotation, coefficients):
     return perturbed_frames(straight, coefficients, prob.bases.dframe)
 
 
-def path_energy_at(prob, options, gamma, rotation, coefficients):
+def path_energy_at(
+    prob: Problem,
+    options: ShapeOptions,
+    gamma: ArrayLike,
+    rotation: ArrayLike,
+    coefficients: ArrayLike,
+):
     """Energy of the straight line from f1 o gamma to R f2 plus the perturbation."""
     frames = path_frames_at(prob, options, gamma, rotation, coefficients)
     return frame_energy(prob.metric, *frames, options.scheme)
 
 
-def matching_criterion(prob, options, weight):
+def matching_criterion(prob: Problem, options: ShapeOptions, weight: ArrayLike):
     """weight * L2 position mismatch + (1 - weight) * straight-line energy (3 time points).
 
     The L2 mismatch int |f1 o gamma - R f2|^2 dsigma has no derivatives of the surfaces
@@ -443,7 +471,7 @@ def matching_criterion(prob, options, weight):
     map to 0.017 rad). It only initializes: the rounds that follow minimize the energy.
     """
 
-    def criterion(gamma, rotation):
+    def criterion(gamma: ArrayLike, rotation: ArrayLike):
         l2 = l2_mismatch(registered_f1(prob, options, gamma), rotate_surface(rotation, prob.f2))
         frames = registered_frame(prob, options, gamma), rotated_end_frame(prob, options, rotation)
         return weight * l2 + (1.0 - weight) * straight_line_energy(prob, options, *frames)
@@ -451,7 +479,13 @@ def matching_criterion(prob, options, weight):
     return criterion
 
 
-def iterate(round_fn, state: State, max_rounds: int, small_change, history=None):
+def iterate(
+    round_fn: Callable,
+    state: State,
+    max_rounds: int,
+    small_change: Callable,
+    history: Array | None = None,
+):
     """Rounds until one changes the energy little, or max_rounds; never a rising energy.
 
     Returns (state, history, rounds taken, whether the last round met small_change or
@@ -461,11 +495,11 @@ def iterate(round_fn, state: State, max_rounds: int, small_change, history=None)
     if history is None:
         history = jnp.zeros((max_rounds + 2,), state.energy.dtype)
 
-    def keep_going(carry):
+    def keep_going(carry: tuple):
         _, _, k, done = carry
         return (k < max_rounds) & ~done
 
-    def body(carry):
+    def body(carry: tuple):
         state, history, k, _ = carry
         new = round_fn(state)
         # A round whose step had to shrink can end higher: keep the better registration
@@ -482,11 +516,11 @@ def iterate(round_fn, state: State, max_rounds: int, small_change, history=None)
     return jax.lax.while_loop(keep_going, body, start)
 
 
-def zero_coefficients(prob, options):
+def zero_coefficients(prob: Problem, options: ShapeOptions):
     return jnp.zeros((options.n_times - 2, prob.bases.dframe.shape[0] * 3), prob.f1.dtype)
 
 
-def on_grid(f, points, interpolation):
+def on_grid(f: ArrayLike, points: ArrayLike, interpolation: str):
     """f read at a grid's ``points (3, m, n)`` (its interpolant), with the grid's layout
     made exact: one value per pole row, the seam column equal to the first (math §1);
     ``f`` itself when it is on that grid already."""
@@ -497,12 +531,19 @@ def on_grid(f, points, interpolation):
     return g.at[:, :, -1].set(g[:, :, 0])
 
 
-def working_grid(bases) -> tuple[int, int]:
+def working_grid(bases: _Bases) -> tuple[int, int]:
     """The working grid (m, n) of a solve: the grid of its bases."""
     return tuple(bases.field_frames.shape[-2:])
 
 
-def make_problem(metric, f1, f2, bases, rigid, interpolation="bicubic") -> Problem:
+def make_problem(
+    metric: SplitMetric,
+    f1: ArrayLike,
+    f2: ArrayLike,
+    bases: _Bases,
+    rigid: bool,
+    interpolation: str = "bicubic",
+) -> Problem:
     """The problem on the bases' working grid; f1, f2 on their own grids (math §10)."""
     m, n = working_grid(bases)
     if rigid:
@@ -514,7 +555,7 @@ def make_problem(metric, f1, f2, bases, rigid, interpolation="bicubic") -> Probl
     return Problem(metric, w1, w2, e1, bases, f1, f2)
 
 
-def make_bases(m: int, n: int, options: ShapeOptions, dtype) -> _Bases:
+def make_bases(m: int, n: int, options: ShapeOptions, dtype: DTypeLike) -> _Bases:
     values, dframe = basis_np(m, n, options.degree)
     tables = vector_field_tables_np(m, n, options.vf_degree)
     fine = (2 * m - 1, 2 * n - 1)

@@ -7,10 +7,13 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
-from jaxtyping import Array
+from jaxtyping import Array, ArrayLike
 
 from .._geodesics.solvers import minimize
+from .._geometry.metric import SplitMetric
+from .._options import ShapeOptions
 from .problem import (
+    Problem,
     State,
     geodesic_at,
     identity_frames,
@@ -26,7 +29,7 @@ from .problem import (
 )
 
 
-def _round(prob, options, rigid, state: State) -> State:
+def _round(prob: Problem, options: ShapeOptions, rigid: bool, state: State) -> State:
     """One registration round.
 
     joint (Algorithm 2): BFGS over the path coefficients and the next Diff step (and a
@@ -71,12 +74,20 @@ class Rounds(NamedTuple):
     done: Array  # () bool: the last round met outer_tol or was refused
 
 
-def rounds_phase(metric, f1, f2, bases, coarse, options, rigid) -> Rounds:
+def rounds_phase(
+    metric: SplitMetric,
+    f1: ArrayLike,
+    f2: ArrayLike,
+    bases,
+    coarse: tuple,
+    options: ShapeOptions,
+    rigid: bool,
+) -> Rounds:
     """Phase 3: the registration rounds with the whole path."""
     prob = make_problem(metric, f1, f2, bases, rigid, options.interpolation)
     straight0 = straight_line_energy(prob, options, *identity_frames(prob, options))
 
-    def small_change(before, after):
+    def small_change(before: ArrayLike, after: ArrayLike):
         # Relative to the current energy, with a floor at outer_tol times the straight
         # line's: near a perfect match the energy is interpolation noise.
         return jnp.abs(before - after) <= options.outer_tol * (
@@ -95,7 +106,15 @@ def rounds_phase(metric, f1, f2, bases, coarse, options, rigid) -> Rounds:
     )
 
 
-def continuation_phase(metric, f1, f2, bases, carried, options, rigid) -> tuple[State, Array]:
+def continuation_phase(
+    metric: SplitMetric,
+    f1: ArrayLike,
+    f2: ArrayLike,
+    bases,
+    carried: tuple,
+    options: ShapeOptions,
+    rigid: bool,
+) -> tuple[State, Array]:
     """Phase 3's start from a registration carried from a coarser working grid (gamma
     and R read at this grid's points, the path's coefficients as they were): the state
     and the energy history coarse_phase would give, without its rounds.

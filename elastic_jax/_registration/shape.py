@@ -20,12 +20,13 @@ from __future__ import annotations
 import functools
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import ArrayLike, Float
+from jax.typing import DTypeLike
+from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_progress, is_concrete
 from .._errors import ConvergenceWarning, InputError
@@ -86,7 +87,7 @@ _PHASE_JITS = {
 }
 
 
-def _phases(starts, carried) -> tuple[list[tuple], tuple]:
+def _phases(starts: tuple | None, carried: tuple | None) -> tuple[list[tuple], tuple]:
     """The phases a solve runs, each as (name, function, jitted, skeleton), and what the
     first of them is given besides the arguments: all five phases from nothing, the
     coarse rounds on from ``starts``, or the continuation and the last three from
@@ -101,7 +102,12 @@ def _phases(starts, carried) -> tuple[list[tuple], tuple]:
 
 
 def _solve_in_phases(
-    args: tuple, options: ShapeOptions, rigid: bool, starts=None, carried=None, after=None
+    args: tuple,
+    options: ShapeOptions,
+    rigid: bool,
+    starts: tuple | None = None,
+    carried: tuple | None = None,
+    after: Callable | None = None,
 ) -> ShapeGeodesicResult:
     """_shape_solve(*args, options, rigid), one compiled program per phase; ``starts`` (the
     first phase's result, given) skips the start search; ``carried`` (gamma, R and the
@@ -133,7 +139,7 @@ _STAGES = {
 }
 
 
-def _phase_energy(out):
+def _phase_energy(out: object):
     """The path energy a phase's result holds (the solve's units), None for the starts."""
     if isinstance(out, ShapeGeodesicResult):
         return out.energy
@@ -147,7 +153,7 @@ class _Reporter:
     """shape_geodesic's ``progress``: one dict per phase of each solve and per level,
     with the time since the call began."""
 
-    def __init__(self, progress, **fixed):
+    def __init__(self, progress: Callable, **fixed):
         self.progress, self.fixed = progress, fixed
         self.begin = time.perf_counter()
         self.level: dict = {}
@@ -156,10 +162,10 @@ class _Reporter:
         seconds = time.perf_counter() - self.begin
         self.progress({**self.fixed, **self.level, **record, "seconds": seconds})
 
-    def phases(self, grid, scale):
+    def phases(self, grid: tuple[int, int], scale: float):
         """phase_chain's ``after`` for a solve on ``grid`` in units of size ``scale``."""
 
-        def after(name, out):
+        def after(name: str, out: object):
             energy = _phase_energy(out)
             energy = None if energy is None else float(energy) * scale**2
             self.send(stage=_STAGES[name], grid=tuple(grid), energy=energy)
@@ -167,7 +173,14 @@ class _Reporter:
         return after
 
 
-def _shape_solve(metric, f1, f2, bases, options, rigid) -> ShapeGeodesicResult:
+def _shape_solve(
+    metric: SplitMetric,
+    f1: ArrayLike,
+    f2: ArrayLike,
+    bases,
+    options: ShapeOptions,
+    rigid: bool,
+) -> ShapeGeodesicResult:
     """The whole solve (_solve_in_phases); traced inside a jit, one program."""
     return _solve_in_phases((metric, f1, f2, bases), options, rigid)
 
@@ -183,7 +196,7 @@ def resolve_options(
     return options_with(function, options, changes)
 
 
-def working_grid_of(options: ShapeOptions, f1, f2) -> tuple[int, int]:
+def working_grid_of(options: ShapeOptions, f1: ArrayLike, f2: ArrayLike) -> tuple[int, int]:
     """The grid a shape solve discretizes its path on: ``options.grid``, else the inputs'
     grid, else the finer of the two (more points; f1's on a tie)."""
     if options.grid is not None:
@@ -327,7 +340,7 @@ def shape_geodesic(
     return result
 
 
-def _grid_setup(f1, f2, metric, options):
+def _grid_setup(f1: ArrayLike, f2: ArrayLike, metric: SplitMetric, options: ShapeOptions):
     """(options, units, g1, g2, args) of a solve on options's working grid: the static record,
     f1 and f2 in the solve's units, and the phases' arguments (the metric, g1, g2 and the
     bases) as constants: the solve runs on constants and shape_finish differentiates."""
@@ -346,7 +359,14 @@ def _grid_setup(f1, f2, metric, options):
 
 
 def _one_grid_solve(
-    f1, f2, metric, modulo, options, start, carry=None, reporter=None
+    f1: ArrayLike,
+    f2: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    start: object,
+    carry: tuple | None = None,
+    reporter: _Reporter | None = None,
 ) -> ShapeGeodesicResult:
     """shape_geodesic on one working grid; ``carry`` = (gamma, R, coefficients or None)
     continues a registration instead of searching starts (``start`` is then not used):
@@ -375,7 +395,7 @@ def _one_grid_solve(
     if reporter is not None and is_concrete(units.scale):
         after = reporter.phases(options.grid, float(units.scale))
 
-    def solve(starts, carried=None):
+    def solve(starts: tuple | None, carried: tuple | None = None):
         solved = _solve_in_phases(args, options, rigid, starts, carried, after)
         return shape_finish(metric, g1, g2, bases, solved, units, options=options, rigid=rigid)
 
@@ -392,7 +412,16 @@ def _one_grid_solve(
     return result
 
 
-def continued_geodesic(f1, f2, metric, modulo, options, gamma, rotation, coefficients):
+def continued_geodesic(
+    f1: ArrayLike,
+    f2: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    gamma: ArrayLike,
+    rotation: ArrayLike,
+    coefficients: ArrayLike | None,
+):
     """shape_geodesic on ``options``'s one working grid (``options.grid``, else the inputs'),
     continuing a registration and path: the registration rounds with the whole path start
     from gamma ``(3, p, q)`` (read at the working grid's points when on another grid), R
@@ -409,7 +438,15 @@ def continued_geodesic(f1, f2, metric, modulo, options, gamma, rotation, coeffic
     return _one_grid_solve(f1, f2, metric, modulo, options, None, carry=carry)
 
 
-def _levels_solve(f1, f2, metric, modulo, options, start, reporter=None) -> ShapeGeodesicResult:
+def _levels_solve(
+    f1: ArrayLike,
+    f2: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    start: object,
+    reporter: _Reporter | None = None,
+) -> ShapeGeodesicResult:
     """shape_geodesic with ``options.rtol``: the working grids of ``options.levels`` coarse to
     fine, each level continuing the one below (its registration and path: no new start
     search, no coarse rounds; continuation_phase), until two successive distances agree
@@ -492,7 +529,7 @@ def _levels_solve(f1, f2, metric, modulo, options, start, reporter=None) -> Shap
 _NEAR_EQUAL = 0.05
 
 
-def _noise_distance(f1, f2) -> float:
+def _noise_distance(f1: ArrayLike, f2: ArrayLike) -> float:
     """The distance whose energy is the rounding level at which the final phase compares
     the registered and the given pair (sqrt(eps) in the solve's unit-size units): two
     levels' distances that differ by less are the same minimum. Identical inputs end at
@@ -504,7 +541,7 @@ def _noise_distance(f1, f2) -> float:
     return eps**0.25 * float(units.scale)
 
 
-def _change(distances, parametrized=0.0, noise=0.0) -> float:
+def _change(distances: Sequence[float], parametrized: ArrayLike = 0.0, noise: float = 0.0) -> float:
     """The change of the last two levels' distances, less ``noise`` (_noise_distance),
     relative to the last, or to _NEAR_EQUAL times the parametrized distance when that is
     larger (NaN for one level)."""
@@ -515,7 +552,14 @@ def _change(distances, parametrized=0.0, noise=0.0) -> float:
     return max(abs(d - before) - noise, 0.0) / scale
 
 
-def _with_levels(result, grids, distances, seconds, rtol, noise=0.0) -> ShapeGeodesicResult:
+def _with_levels(
+    result: ShapeGeodesicResult,
+    grids: list | Array,
+    distances: Sequence[float],
+    seconds: Sequence[float],
+    rtol: float,
+    noise: float = 0.0,
+) -> ShapeGeodesicResult:
     """``result`` (the finest level's) with its :class:`Levels` record; converged when it
     converged and the last change met rtol, ``RESULTS.not_resolved`` when only the
     tolerance was missed."""
@@ -537,7 +581,7 @@ def _with_levels(result, grids, distances, seconds, rtol, noise=0.0) -> ShapeGeo
     )
 
 
-def registration_at(start, grid, dtype, modulo):
+def registration_at(start: object, grid: tuple[int, int], dtype: DTypeLike, modulo: str):
     """A registration (a result, or gamma and R; or None) read at ``grid``'s points as
     (gamma, R), or None where it is not a diffeomorphism there (given_start's checks)."""
     if start is None:
@@ -549,7 +593,15 @@ def registration_at(start, grid, dtype, modulo):
     return gammas[0], rotations[0]
 
 
-def _symmetric_solve(f1, f2, metric, modulo, resolved, start, progress=None) -> ShapeGeodesicResult:
+def _symmetric_solve(
+    f1: ArrayLike,
+    f2: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    resolved: ShapeOptions,
+    start: object,
+    progress: Callable | None = None,
+) -> ShapeGeodesicResult:
     """shape_geodesic(symmetric=True): the lower of this order's solve and its solve from
     the other order's registration inverted (when that one ends lower)."""
     if not is_concrete(f1, f2, metric):
@@ -560,7 +612,7 @@ def _symmetric_solve(f1, f2, metric, modulo, resolved, start, progress=None) -> 
     solve = functools.partial(shape_geodesic, metric=metric, modulo=modulo, options=resolved)
     begin = time.perf_counter()
 
-    def order(name):  # the order's reports, timed from this call's beginning
+    def order(name: str):  # the order's reports, timed from this call's beginning
         if progress is None:
             return None
         return lambda r: progress({**r, "order": name, "seconds": time.perf_counter() - begin})

@@ -8,19 +8,23 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
+from jax.typing import DTypeLike
+from jaxtyping import Array, ArrayLike
 
 from .._checks import check_finite, check_grid_shape, is_concrete, real_array
 from .._errors import InputError
 from .._geodesics.solvers import minimize
 from .._geometry.grid import sphere_points
+from .._geometry.metric import SplitMetric
 from .._geometry.reparam import (
     jacobian_determinant_unchecked,
     moebius,
     sample_points,
 )
 from .._geometry.so3 import so3_exp_unchecked
+from .._options import ShapeOptions
 from .problem import (
+    Problem,
     are_resolved,
     compose,
     identity_frames,
@@ -44,7 +48,7 @@ _SEARCH_STEPS = 12
 _BOOST_SCALES = (1.0, 0.95, 0.9, 0.85, 0.8, 0.7, 0.6, 0.5, 0.25, 0.0)
 
 
-def _distinct_best(values, points, k, separation):
+def _distinct_best(values: ArrayLike, points: ArrayLike, k: int, separation: float):
     """Indices of k low ``values (S,)`` whose ``points (S, 3, P)`` lie apart.
 
     Greedy: the lowest value first, then the lowest whose mean distance on the sphere to
@@ -53,7 +57,7 @@ def _distinct_best(values, points, k, separation):
     """
     distances = jnp.mean(jnp.linalg.norm(points[:, None] - points[None], axis=-2), axis=-1)
 
-    def pick(carry, _):
+    def pick(carry: tuple, _: None):
         taken, far = carry
         free = jnp.where(taken, jnp.inf, values)
         apart = jnp.argmin(jnp.where(far, free, jnp.inf))
@@ -70,7 +74,7 @@ def _distinct_best(values, points, k, separation):
 _DISTINCT_STARTS = 0.1
 
 
-def _start_map(points, max_boost, q, vb):
+def _start_map(points: ArrayLike, max_boost: ArrayLike, q: ArrayLike, vb: ArrayLike):
     """The start (q, vb) of the search applied to ``points (3, ...)`` of the sphere:
     q exp(hat v) phi_b, vb = (v, b), the boost b bounded to ``max_boost`` (into_ball)."""
     return rotate_surface(
@@ -78,14 +82,14 @@ def _start_map(points, max_boost, q, vb):
     )
 
 
-def _aligned(prob, options, rigid, gamma):
+def _aligned(prob: Problem, options: ShapeOptions, rigid: bool, gamma: ArrayLike):
     """f1 o gamma and R^3's Procrustes rotation of f2 onto it (the identity unless rigid)."""
     start = registered_f1(prob, options, gamma)
     r = kabsch(prob.f2, start) if rigid else jnp.eye(3, dtype=start.dtype)
     return start, r
 
 
-def _start(prob, options, rigid, q, vb):
+def _start(prob: Problem, options: ShapeOptions, rigid: bool, q: ArrayLike, vb: ArrayLike):
     """A searched start as (gamma, R): its boost shrunk until the grid resolves gamma.
 
     The boost is bounded to what the grid resolves for a generic direction; shrink it
@@ -98,7 +102,7 @@ def _start(prob, options, rigid, q, vb):
     return gamma, _aligned(prob, options, rigid, gamma)[1]
 
 
-def _initialize_moebius(prob, options, rigid):
+def _initialize_moebius(prob: Problem, options: ShapeOptions, rigid: bool):
     """The starts of the registration for init="moebius" (docs/guides/registration_notes.md).
 
     Returns (gammas ``(S, 3, m, n)``, rotations ``(S, 3, 3)``, solver steps). Each of the
@@ -123,7 +127,7 @@ def _initialize_moebius(prob, options, rigid):
     reference = l2_mismatch(prob.f1, prob.f2)
     reference = jnp.where(reference > 0, reference, 1.0)
 
-    def objective(q, vb):
+    def objective(q: ArrayLike, vb: ArrayLike):
         start, r = _aligned(prob, options, rigid, _start_map(prob.e1, prob.bases.max_boost, q, vb))
         return l2_mismatch(start, rotate_surface(r, prob.f2)) / reference
 
@@ -137,7 +141,7 @@ def _initialize_moebius(prob, options, rigid):
     # grid's own points are used (every 4th row and column).
     probe = prob.e1[:, ::4, ::4].reshape(3, -1)
 
-    def job(searched, j):
+    def job(searched: tuple, j: ArrayLike):
         values, params = searched
         searching = j < n_ico
         # The distinct best, once the search is done (the rows are then final).
@@ -169,7 +173,7 @@ def _initialize_moebius(prob, options, rigid):
     return gammas, rotations, jnp.sum(job_steps).astype(jnp.int32)
 
 
-def _initialize_energy(prob, options, rigid):
+def _initialize_energy(prob: Problem, options: ShapeOptions, rigid: bool):
     """The starts for init="energy" and "icosahedral": Remark 4, widened to the Moebius group.
 
     Returns (gammas ``(S, 3, m, n)``, rotations ``(S, 3, 3)``, solver steps). The 60
@@ -189,15 +193,15 @@ def _initialize_energy(prob, options, rigid):
     reference = straight_line_energy(prob, options, *identity_frames(prob, options))
     reference = jnp.where(reference > 0, reference, 1.0)
 
-    def objective(q, vb):
+    def objective(q: ArrayLike, vb: ArrayLike):
         gamma = _start_map(prob.e1, prob.bases.max_boost, q, vb)
         _, r = _aligned(prob, options, rigid, gamma)
         start, end = registered_frame(prob, options, gamma), rotated_end_frame(prob, options, r)
         return straight_line_energy(prob, options, start, end) / reference
 
-    def refine(q, vb0, max_steps, free, cap=None):
+    def refine(q: ArrayLike, vb0: ArrayLike, max_steps: int, free: int, cap: Array | None = None):
         # free = 3: rotations only (the boost stays 0); 6: the Moebius group.
-        def restricted(u):
+        def restricted(u: ArrayLike):
             return objective(q, vb0.at[:free].set(u) if free == 3 else u)
 
         found = minimize(
@@ -219,7 +223,7 @@ def _initialize_energy(prob, options, rigid):
     ico, k = prob.bases.ico, options.init_candidates
     n_ico = ico.shape[0]
 
-    def job(searched, j):
+    def job(searched: tuple, j: ArrayLike):
         energies, params = searched
         searching = j < n_ico
         top = jax.lax.top_k(-energies, k)[1].astype(jnp.int32)  # once the search is done
@@ -250,7 +254,7 @@ def _initialize_energy(prob, options, rigid):
     return gammas, rotations, steps.astype(jnp.int32)
 
 
-def _initialize(prob, options, rigid):
+def _initialize(prob: Problem, options: ShapeOptions, rigid: bool):
     """The starts of the registration: (gammas ``(S, 3, m, n)``, rotations ``(S, 3, 3)``,
     solver steps), by ``options.init`` (:class:`ShapeOptions`)."""
     if options.init == "none":
@@ -261,7 +265,14 @@ def _initialize(prob, options, rigid):
     return _initialize_energy(prob, options, rigid)
 
 
-def starts_phase(metric, f1, f2, bases, options, rigid) -> tuple[Array, Array, Array]:
+def starts_phase(
+    metric: SplitMetric,
+    f1: ArrayLike,
+    f2: ArrayLike,
+    bases,
+    options: ShapeOptions,
+    rigid: bool,
+) -> tuple[Array, Array, Array]:
     """Phase 1 of a solve: the starts (_initialize)."""
     return _initialize(
         make_problem(metric, f1, f2, bases, rigid, options.interpolation), options, rigid
@@ -287,12 +298,12 @@ def inverse_gamma(gamma: Array) -> tuple[Array, Array]:
     images = gamma.reshape(3, -1)
     nearest = jax.lax.map(lambda p: jnp.argmax(p @ images), points.T, batch_size=256)
 
-    def read(x):
+    def read(x: ArrayLike):
         y = sample_points(gamma, x[:, None], "bicubic")[:, 0]
         return y / jnp.linalg.norm(y)
 
-    def solve(x, target):
-        def step(x, _):
+    def solve(x: ArrayLike, target: ArrayLike):
+        def step(x: ArrayLike, _: None):
             # A tangent basis at x that stays well conditioned at the poles.
             axis = jnp.where(
                 jnp.abs(x[2]) < 0.9, jnp.eye(3, dtype=x.dtype)[2], jnp.eye(3, dtype=x.dtype)[0]
@@ -313,7 +324,7 @@ def inverse_gamma(gamma: Array) -> tuple[Array, Array]:
     return x.reshape(3, m, n), jnp.max(residual)
 
 
-def given_start(start, m: int, n: int, dtype, rigid: bool):
+def given_start(start: object, m: int, n: int, dtype: DTypeLike, rigid: bool):
     """A caller's registration as the starts of the rounds: (gamma[None], R[None], 0).
 
     gamma on another grid is read at this grid's points (bicubic, back onto the sphere):

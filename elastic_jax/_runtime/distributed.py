@@ -24,12 +24,14 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 
 import jax
 import numpy as np
+from jaxtyping import ArrayLike
 
 from .._errors import InputError
+from .._options import ShapeOptions
 from .precision import chosen
 
 try:
@@ -49,11 +51,11 @@ class CompilationCache(WorkerPlugin):
     def __init__(self, enable: Callable, *args):
         self.enable, self.args = enable, args
 
-    def setup(self, worker) -> None:
+    def setup(self, worker: distributed.Worker) -> None:
         self.enable(*self.args)
 
 
-def connect(client):
+def connect(client: object):
     """``(client, owned)``: a ``distributed.Client`` as given, or a new one for a scheduler
     address (owned: the caller closes it when the job ends)."""
     if isinstance(client, distributed.Client):
@@ -70,26 +72,52 @@ def connect(client):
 
 
 @contextlib.contextmanager
-def _as_caller(modes):
+def _as_caller(modes: tuple):
     """The caller's 64-bit setting and matmul precision (Pool._modes) in a worker."""
     x64, precision = modes
     with jax.enable_x64(x64), jax.default_matmul_precision(precision):
         yield
 
 
-def _pairs_task(chunk, shapes, rows, cols, settings, size, modes):
+def _pairs_task(
+    chunk: Callable,
+    shapes: ArrayLike,
+    rows: ArrayLike,
+    cols: ArrayLike,
+    settings: tuple,
+    size: int,
+    modes: tuple,
+):
     with _as_caller(modes):
         out = chunk(shapes[rows], shapes[cols], *settings, size)
         return tuple(np.asarray(x) for x in out)
 
 
-def _shapes_task(chunk, shapes, index, mean, starts, settings, size, modes):
+def _shapes_task(
+    chunk: Callable,
+    shapes: ArrayLike,
+    index: ArrayLike,
+    mean: ArrayLike,
+    starts: tuple | None,
+    settings: tuple,
+    size: int,
+    modes: tuple,
+):
     with _as_caller(modes):
         out = chunk(mean, shapes[index], *settings, size, starts)
         return tuple(np.asarray(x) for x in out)
 
 
-def _solved_pairs_task(chunk, shapes, rows, cols, starts, settings, size, modes):
+def _solved_pairs_task(
+    chunk: Callable,
+    shapes: ArrayLike,
+    rows: ArrayLike,
+    cols: ArrayLike,
+    starts: tuple | None,
+    settings: tuple,
+    size: int,
+    modes: tuple,
+):
     with _as_caller(modes):
         out = chunk(shapes[rows], shapes[cols], *settings, size, starts)
         return tuple(np.asarray(x) for x in out)
@@ -102,7 +130,15 @@ class Pool:
     collection is released from the workers' memory.
     """
 
-    def __init__(self, client, shapes, metric, modulo, options, strategy):
+    def __init__(
+        self,
+        client: object,
+        shapes: ArrayLike,
+        metric: object,
+        modulo: str,
+        options: ShapeOptions,
+        strategy: str,
+    ):
         self.client, self._owned = connect(client)
         self._modes = (bool(jax.config.read("jax_enable_x64")), chosen())
         self._dtype = np.asarray(shapes).dtype
@@ -135,7 +171,7 @@ class Pool:
             # On an error or Ctrl-C, the tasks not collected are not left running.
             self._cancel(futures)
 
-    def _cancel(self, futures) -> None:
+    def _cancel(self, futures: Iterable) -> None:
         self.client.cancel([f for f in futures if not f.done()])
         self._running.difference_update(futures)
 
@@ -146,7 +182,9 @@ class Pool:
             parts[i] = result
         return parts
 
-    def _submit(self, task, chunk, *args, size: int, settings=None):
+    def _submit(
+        self, task: Callable, chunk: Callable, *args, size: int, settings: tuple | None = None
+    ):
         """One task on the scattered collection with this job's settings (or
         ``settings``); never cached by Dask (pure=False): a rerun after a resume solves
         again."""
@@ -161,7 +199,14 @@ class Pool:
             pure=False,
         )
 
-    def distances(self, chunk, rows, cols, chunks, size: int) -> Iterator:
+    def distances(
+        self,
+        chunk: Callable,
+        rows: ArrayLike,
+        cols: ArrayLike,
+        chunks: Sequence[tuple[int, int]],
+        size: int,
+    ) -> Iterator:
         """Solve the pairs (rows[a:b], cols[a:b]) of every chunk (a, b) with
         ``chunk(first, second, *settings, size)``: ``((a, b), result)`` as each ends
         (all are submitted now, collected as they end)."""
@@ -171,7 +216,16 @@ class Pool:
         }
         return self._as_completed(futures)
 
-    def solved_pairs(self, chunk, rows, cols, chunks, size: int, metric, starts=None) -> list:
+    def solved_pairs(
+        self,
+        chunk: Callable,
+        rows: ArrayLike,
+        cols: ArrayLike,
+        chunks: Sequence[tuple[int, int]],
+        size: int,
+        metric: object,
+        starts: tuple | None = None,
+    ) -> list:
         """The pairs (rows[a:b], cols[a:b]) of every chunk (a, b) solved under ``metric``
         (not the pool's) by ``chunk(first, second, metric, modulo, options, strategy, size,
         starts[a:b])``; each chunk's result, in the chunks' order. ``starts``: None or a
@@ -194,7 +248,15 @@ class Pool:
         }
         return self._in_order(futures)
 
-    def velocities(self, chunk, mean, chunks, size: int, starts=None, options=None) -> tuple:
+    def velocities(
+        self,
+        chunk: Callable,
+        mean: ArrayLike,
+        chunks: Sequence[tuple[int, int]],
+        size: int,
+        starts: tuple | None = None,
+        options: ShapeOptions | None = None,
+    ) -> tuple:
         """The geodesics from every shape to ``mean``, chunk by chunk, each by
         ``chunk(mean, shapes, *settings, size, starts)``: the fields of its result, each
         with the shapes' leading axis concatenated. ``starts``: None or (gammas,
@@ -206,7 +268,7 @@ class Pool:
         mean = np.asarray(mean, self._dtype)
         starts = None if starts is None else tuple(np.asarray(x, self._dtype) for x in starts)
 
-        def chunk_starts(a, b):
+        def chunk_starts(a: int, b: int):
             return None if starts is None else tuple(x[a:b] for x in starts)
 
         futures = {

@@ -19,6 +19,7 @@ from .._errors import ConvergenceWarning, InputError
 from .._geodesics.geodesic import geodesic
 from .._geodesics.solvers import default_tol
 from .._geometry.grid import sphere_points
+from .._geometry.metric import SplitMetric
 from .._geometry.validation import as_surface
 from .._options import ShapeOptions, check_choice, check_int
 from .._registration.records import turned_back
@@ -61,7 +62,14 @@ def initial_velocity(path: Float[ArrayLike, "N 3 m n"]) -> Float[Array, "3 m n"]
     return t * (-3.0 * path[0] + 4.0 * path[1] - path[2]) / 2.0
 
 
-def _one_geodesic(mean, shape, metric, modulo, options, start=None):
+def _one_geodesic(
+    mean: ArrayLike,
+    shape: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    start: tuple | None = None,
+):
     """Distance, registered shape, initial velocity at the mean, status, registration
     (gamma, R), resolution_limited flag and the path's coefficients, for one shape.
 
@@ -114,7 +122,13 @@ def _one_geodesic(mean, shape, metric, modulo, options, start=None):
     )
 
 
-def _one_item(mean, item, metric, modulo, options):
+def _one_item(
+    mean: ArrayLike,
+    item: ArrayLike | tuple,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+):
     """:func:`_one_geodesic` for a batch item: a shape, or (shape, gamma, R) to warm-start,
     or (shape, gamma, R, C) to continue."""
     if isinstance(item, tuple):
@@ -122,7 +136,9 @@ def _one_item(mean, item, metric, modulo, options):
     return _one_geodesic(mean, item, metric, modulo, options)
 
 
-def _pair_distance(a, b, metric, modulo, options):
+def _pair_distance(
+    a: ArrayLike, b: ArrayLike, metric: SplitMetric, modulo: str, options: ShapeOptions
+):
     """Distance, status, refinement change, result code and solver steps of one pair."""
     if modulo == "none":
         res = geodesic(a, b, metric, **options.geodesic_kwargs())
@@ -135,7 +151,14 @@ def _pair_distance(a, b, metric, modulo, options):
     return res.distance, res.converged, change, code, jnp.asarray(res.num_steps, jnp.int32)
 
 
-def _registered_pair(a, b, metric, modulo, options, start=None):
+def _registered_pair(
+    a: ArrayLike,
+    b: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    start: tuple | None = None,
+):
     """One pair's solve, warm-started at ``start`` (gamma, R, C) when given: distance,
     status, result code, solver steps, and the solution (gamma, R, C) that
     :func:`elastic_jax.fit_metric` holds when it differentiates the distance in the metric.
@@ -166,35 +189,49 @@ def _registered_pair(a, b, metric, modulo, options, start=None):
 # Module-level jitted batch solves: the mean and the metric are arguments and the options
 # (a frozen ShapeOptions) a static key, so consecutive Karcher steps reuse one compilation.
 @functools.partial(solver_jit, static_argnames=("modulo", "options", "mode"))
-def _velocities_batch(mean, batch, metric, *, modulo, options, mode):
+def _velocities_batch(
+    mean: ArrayLike,
+    batch: ArrayLike | tuple,
+    metric: SplitMetric,
+    *,
+    modulo: str,
+    options: ShapeOptions,
+    mode: str,
+):
     """batch: shapes ``(b, 3, m, n)``, or (shapes, gammas, rotations) for warm starts, or
     (shapes, gammas, rotations, coefficients) for continuations."""
 
-    def one(item):
+    def one(item: ArrayLike | tuple):
         return _one_item(mean, item, metric, modulo, options)
 
     return jax.lax.map(one, batch) if mode == "map" else jax.vmap(one)(batch)
 
 
 @functools.partial(solver_jit, static_argnames=("modulo", "options", "mode"))
-def _distances_batch(pairs, metric, *, modulo, options, mode):
-    def one(pair):
+def _distances_batch(
+    pairs: tuple, metric: SplitMetric, *, modulo: str, options: ShapeOptions, mode: str
+):
+    def one(pair: tuple):
         return _pair_distance(pair[0], pair[1], metric, modulo, options)
 
     return jax.lax.map(one, pairs) if mode == "map" else jax.vmap(one)(pairs)
 
 
 @functools.partial(solver_jit, static_argnames=("modulo", "options", "mode"))
-def _registered_batch(batch, metric, *, modulo, options, mode):
+def _registered_batch(
+    batch: tuple, metric: SplitMetric, *, modulo: str, options: ShapeOptions, mode: str
+):
     """batch: (firsts, seconds) or (firsts, seconds, gammas, rotations, coefficients)."""
 
-    def one(item):
+    def one(item: tuple):
         return _registered_pair(item[0], item[1], metric, modulo, options, item[2:] or None)
 
     return jax.lax.map(one, batch) if mode == "map" else jax.vmap(one)(batch)
 
 
-def _batched(batch_call: Callable, single_call: Callable, batch, strategy: str) -> tuple:
+def _batched(
+    batch_call: Callable, single_call: Callable, batch: ArrayLike | tuple, strategy: str
+) -> tuple:
     """Run ``single_call`` over the leading axis of ``batch`` (a pytree) by ``strategy``.
 
     ``batch_call(batch, mode)`` is the jitted lax.map / vmap form. With several devices
@@ -215,7 +252,9 @@ def _batched(batch_call: Callable, single_call: Callable, batch, strategy: str) 
     return batch_call(batch, strategy)
 
 
-def _solve_chunk(batch_call: Callable, single_call: Callable, batch, strategy: str, size: int):
+def _solve_chunk(
+    batch_call: Callable, single_call: Callable, batch: ArrayLike | tuple, strategy: str, size: int
+):
     """``_batched`` over a chunk (a pytree, leading axis b) padded to ``size`` items, the
     compiled batch shape (the padding is dropped): every chunk of a job runs one compiled
     program, here or on a Dask worker. The loop strategy solves one item at a time and is
@@ -228,7 +267,16 @@ def _solve_chunk(batch_call: Callable, single_call: Callable, batch, strategy: s
         return tuple(out[:b] for out in _batched(batch_call, single_call, padded, strategy))
 
 
-def velocity_chunk(mean, chunk, metric, modulo, options, strategy, size, starts=None) -> tuple:
+def velocity_chunk(
+    mean: ArrayLike,
+    chunk: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    strategy: str,
+    size: int,
+    starts: tuple | None = None,
+) -> tuple:
     """The geodesics from ``chunk`` (b, 3, m, n) to ``mean``: the _Solved fields.
 
     starts: None, or (gammas (b, 3, m, n), rotations (b, 3, 3)), each shape's registration
@@ -237,29 +285,46 @@ def velocity_chunk(mean, chunk, metric, modulo, options, strategy, size, starts=
     registration and path at the previous mean (:func:`_one_geodesic`)."""
     batch = chunk if starts is None or modulo == "none" else (chunk, *starts)
 
-    def batch_call(batch, mode):
+    def batch_call(batch: ArrayLike | tuple, mode: str):
         return _velocities_batch(mean, batch, metric, modulo=modulo, options=options, mode=mode)
 
-    def single_call(item):
+    def single_call(item: ArrayLike | tuple):
         return _one_item(mean, item, metric, modulo, options)
 
     return _solve_chunk(batch_call, single_call, batch, strategy, size)
 
 
-def distance_chunk(first, second, metric, modulo, options, strategy, size) -> tuple:
+def distance_chunk(
+    first: ArrayLike,
+    second: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    strategy: str,
+    size: int,
+) -> tuple:
     """Distance, status, refinement change, result code and solver steps of the pairs
     (first[i], second[i])."""
 
-    def batch_call(batch, mode):
+    def batch_call(batch: tuple, mode: str):
         return _distances_batch(batch, metric, modulo=modulo, options=options, mode=mode)
 
-    def single_call(pair):
+    def single_call(pair: tuple):
         return _pair_distance(pair[0], pair[1], metric, modulo, options)
 
     return _solve_chunk(batch_call, single_call, (first, second), strategy, size)
 
 
-def registered_chunk(first, second, metric, modulo, options, strategy, size, starts=None):
+def registered_chunk(
+    first: ArrayLike,
+    second: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    strategy: str,
+    size: int,
+    starts: tuple | None = None,
+):
     """The pairs (first[i], second[i]) solved with their solutions: distance, status, result
     code, solver steps, gamma, R and the path coefficients C (:func:`_registered_pair`).
 
@@ -268,10 +333,10 @@ def registered_chunk(first, second, metric, modulo, options, strategy, size, sta
     """
     batch = (first, second) if starts is None else (first, second, *starts)
 
-    def batch_call(batch, mode):
+    def batch_call(batch: tuple, mode: str):
         return _registered_batch(batch, metric, modulo=modulo, options=options, mode=mode)
 
-    def single_call(item):
+    def single_call(item: tuple):
         return _registered_pair(item[0], item[1], metric, modulo, options, item[2:] or None)
 
     return _solve_chunk(batch_call, single_call, batch, strategy, size)
@@ -288,19 +353,19 @@ def default_chunk(strategy: str) -> int | None:
     return {"loop": 1, "map": 8}.get(strategy)
 
 
-def _padded(batch, size: int):
+def _padded(batch: ArrayLike | tuple, size: int):
     """``batch`` (a pytree, leading axis b <= size) padded to ``size`` by repeating its last
     item, so that every chunk has the compiled batch shape (a smaller last chunk would
     compile the whole solve again)."""
 
-    def pad(x):
+    def pad(x: ArrayLike):
         extra = max(size - x.shape[0], 0)
         return jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)]) if extra else x
 
     return jax.tree_util.tree_map(pad, batch)
 
 
-def check_batch(modulo: str, strategy: str, batch_size) -> str:
+def check_batch(modulo: str, strategy: str, batch_size: object) -> str:
     """Validate modulo, strategy and batch_size; resolve "auto" to this backend's strategy."""
     check_choice("modulo", modulo, MODULI)
     check_choice("strategy", strategy, STRATEGIES)
@@ -309,7 +374,9 @@ def check_batch(modulo: str, strategy: str, batch_size) -> str:
     return default_strategy() if strategy == "auto" else strategy
 
 
-def check_collection(shapes, options: ShapeOptions | None, name="shapes", levels=False):
+def check_collection(
+    shapes: ArrayLike, options: ShapeOptions | None, name: str = "shapes", levels: bool = False
+):
     """The collection ``(K, 3, m, n)`` and its options, checked on its grid, tol resolved.
 
     ``levels``: keep ``options.rtol`` (a caller that resolves its working grid by levels,
@@ -340,7 +407,7 @@ def check_collection(shapes, options: ShapeOptions | None, name="shapes", levels
     return shapes, options
 
 
-def job_settings(metric, modulo, options: ShapeOptions, **more) -> dict:
+def job_settings(metric: SplitMetric, modulo: str, options: ShapeOptions, **more) -> dict:
     return {
         "metric": [float(x) for x in jax.tree_util.tree_leaves(metric)],
         "modulo": modulo,

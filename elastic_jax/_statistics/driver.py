@@ -21,7 +21,7 @@ import pathlib
 import time
 import warnings
 from collections.abc import Callable
-from typing import Any, NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 from .._checks import check_bool, check_choice, check_int, check_progress
 from .._errors import ConvergenceWarning, InputError
@@ -113,6 +113,7 @@ class Sink(NamedTuple):
     report: Callable[[dict], None] | None
 
 
+@runtime_checkable
 class Job(Protocol):
     """The iteration a collection job is (a NamedTuple with a ``pool`` field, which
     :func:`run` sets). States are the job's own records."""
