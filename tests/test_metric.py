@@ -11,7 +11,13 @@ from elastic_jax import shapes
 
 from .conftest import relerr
 
-entries = st.floats(-2.0, 2.0, allow_nan=False, allow_subnormal=False)
+# Zero or at least 1e-100 in magnitude: XLA flushes subnormal results to zero on CPU, so an
+# input near the smallest normal (hypothesis found xi = 2.2e-308) has parts whose products
+# vanish, and no relative bound can hold there; the identities are tested at every scale
+# that float64 arithmetic keeps.
+entries = st.floats(-2.0, 2.0, allow_nan=False, allow_subnormal=False).filter(
+    lambda x: x == 0.0 or abs(x) >= 1e-100
+)
 matrices = arrays(np.float64, (3, 2), elements=entries)
 
 
