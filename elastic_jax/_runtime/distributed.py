@@ -232,17 +232,14 @@ class Pool:
         tuple of arrays with the pairs' leading axis (each pair's warm start)."""
         settings = (metric, *self._settings[1:])
         futures = {
-            self.client.submit(
+            self._submit(
                 _solved_pairs_task,
                 chunk,
-                self._shapes,
                 rows[a:b],
                 cols[a:b],
                 None if starts is None else tuple(np.asarray(x[a:b]) for x in starts),
-                settings,
-                size,
-                self._modes,
-                pure=False,
+                size=size,
+                settings=settings,
             ): i
             for i, (a, b) in enumerate(chunks)
         }

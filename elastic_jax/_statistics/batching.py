@@ -21,7 +21,7 @@ from .._geodesics.solvers import default_tol
 from .._geometry.grid import sphere_points
 from .._geometry.metric import SplitMetric
 from .._geometry.validation import as_surface
-from .._options import ShapeOptions, check_choice, check_int
+from .._options import ShapeOptions, check_choice
 from .._registration.records import turned_back
 from .._registration.shape import (
     check_grid_options,
@@ -365,24 +365,21 @@ def _padded(batch: ArrayLike | tuple, size: int):
     return jax.tree_util.tree_map(pad, batch)
 
 
-def check_batch(modulo: str, strategy: str, batch_size: object) -> str:
-    """Validate modulo, strategy and batch_size; resolve "auto" to this backend's strategy."""
-    check_choice("modulo", modulo, MODULI)
-    check_choice("strategy", strategy, STRATEGIES)
-    if batch_size is not None:
-        check_int("batch_size", batch_size, 1)
-    return default_strategy() if strategy == "auto" else strategy
-
-
 def check_collection(
-    shapes: ArrayLike, options: ShapeOptions | None, name: str = "shapes", levels: bool = False
+    shapes: ArrayLike,
+    options: ShapeOptions | None,
+    modulo: str,
+    name: str = "shapes",
+    levels: bool = False,
 ):
-    """The collection ``(K, 3, m, n)`` and its options, checked on its grid, tol resolved.
+    """The collection ``(K, 3, m, n)`` and its options, checked on its grid, tol resolved;
+    ``modulo`` checked first (one of MODULI).
 
     ``levels``: keep ``options.rtol`` (a caller that resolves its working grid by levels,
     :func:`elastic_jax.karcher_mean`); otherwise rtol is dropped: the collection is
     solved on its own grid.
     """
+    check_choice("modulo", modulo, MODULI)
     shapes = as_surface(shapes, name)
     if shapes.ndim != 4 or shapes.shape[0] < 2:
         raise InputError(f"{name} must have shape (K, 3, m, n) with K >= 2; got {shapes.shape}")

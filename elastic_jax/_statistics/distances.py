@@ -11,13 +11,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._checks import check_choice
 from .._errors import InputError
 from .._geometry.metric import SplitMetric
 from .._options import ShapeOptions
 from .._results import RESULTS, status_record
 from .batching import (
-    MODULI,
     check_collection,
     chunk_bounds,
     default_chunk,
@@ -235,8 +233,7 @@ def distance_matrix(
         (:class:`ConvergenceWarning`) once, naming the pairs.
     """
     job = check_job(job)
-    check_choice("modulo", modulo, MODULI)
-    shapes, options = check_collection(shapes, options)
+    shapes, options = check_collection(shapes, options, modulo)
     strategy = job.resolved_strategy
     settings = job_settings(metric, modulo, options, batch_size=job.batch_size)
     pairs = _PairsJob(

@@ -35,7 +35,6 @@ from .._options import ShapeOptions
 from .._registration.problem import make_bases, make_problem, path_energy_at
 from .._results import RESULTS, status_record
 from .batching import (
-    MODULI,
     check_collection,
     chunk_bounds,
     default_chunk,
@@ -310,8 +309,7 @@ def fit_metric(
             symmetric, finite and non-negative, ``learn`` not two or more of "abcd".
     """
     job = check_job(job)
-    check_choice("modulo", modulo, MODULI)
-    shapes, options = check_collection(shapes, options)
+    shapes, options = check_collection(shapes, options, modulo)
     k = shapes.shape[0]
     if k < 3:
         raise InputError(f"fit_metric needs at least 3 shapes; got {k}")

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import check_bool, check_choice
+from .._checks import check_bool
 from .._errors import ConvergenceWarning, InputError
 from .._geometry.grid import sphere_points
 from .._geometry.harmonics import vector_fields_np
@@ -32,7 +32,6 @@ from .._registration.problem import on_grid
 from .._registration.shape import registration_at, shape_geodesic
 from .._results import RESULTS, status_record
 from .batching import (
-    MODULI,
     check_collection,
     chunk_bounds,
     default_chunk,
@@ -599,8 +598,7 @@ def karcher_mean(
         (True, 1.5)
     """
     job = check_job(job)
-    check_choice("modulo", modulo, MODULI)
-    shapes, options = check_collection(shapes, options, levels=True)
+    shapes, options = check_collection(shapes, options, modulo, levels=True)
     max_steps = check_int("max_steps", max_steps, 0)
     tol = check_positive("tol", tol)
     step_size = check_positive("step_size", step_size)
