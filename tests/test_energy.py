@@ -206,3 +206,29 @@ def test_the_energy_derivatives_from_the_integrands_partials_are_autodiffs(schem
     old = jax.jit(lambda: quantities(energy.frame_energy))()
     for a, b in zip(new, old, strict=True):
         assert float(jnp.max(jnp.abs(a - b))) <= 1e-12 * float(jnp.max(jnp.abs(b)))
+
+
+def _area_density(f):
+    """|f_theta x f_phi| / sin(phi) on the grid (math §2's frame), zero on the pole rows."""
+    df = ej.differential(f)
+    return jnp.linalg.norm(jnp.cross(df[:, 0], df[:, 1], axis=0), axis=0)
+
+
+@pytest.mark.parametrize("abcd", [(1.0, 1.0, 0.1, 0.0), (0.0, 0.5, 1.0, 0.0), (2.0, 0.3, 0.0, 1.0)])
+def test_the_volume_term_bounds_a_path_by_its_pointwise_change_of_area(abcd):
+    """<xi_vol, xi_vol> = 2 (d_t sqrt(rho))^2 pointwise, so by Cauchy-Schwarz in time every
+    path through a fixed correspondence costs at least 2 b int (sqrt(rho_1) - sqrt(rho_0))^2
+    (the pointwise form of math §9's area bound). A scaled copy attains it exactly: along
+    (1 - t + t s) f the change is all volume and its density is constant in time."""
+    metric = ej.SplitMetric(*abcd)
+    f = shapes.sample(shapes.bumpy, 13, 25)
+    for s in (0.5, 1.7):
+        energy = ej.path_energy(metric, ej.straight_path(f, s * f, 5))
+        closed = 2.0 * metric.b * (s - 1.0) ** 2 * ej.integrate(_area_density(f))
+        assert float(energy) == pytest.approx(float(closed), rel=1e-12)
+    f1, f2 = shapes.sample(shapes.ellipsoid, 13, 25), f
+    rho1, rho2 = _area_density(f1), _area_density(f2)
+    bound = 2.0 * metric.b * ej.integrate((jnp.sqrt(rho2) - jnp.sqrt(rho1)) ** 2)
+    straight = ej.path_energy(metric, ej.straight_path(f1, f2, 17))
+    solved = ej.geodesic(f1, f2, metric, degree=4, n_times=9).energy
+    assert 0.0 < float(bound) < float(solved) <= float(straight)
