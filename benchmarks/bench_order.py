@@ -57,6 +57,7 @@ import importlib.util
 import pathlib
 import time
 import warnings
+from typing import NamedTuple
 
 import jax
 
@@ -138,38 +139,36 @@ def levels_of(f1, f2, options: ej.ShapeOptions):
     results, result = [], None
     for grid in options.levels:
         begin = time.perf_counter()
-        carried = _shape.registration_at(result, grid, f1.dtype, "rigid")
-        level = options.replace(rtol=None, grid=grid)
-        if result is not None and carried is not None:
-            carry = (*carried, result.coefficients)
-            result = _shape._one_grid_solve(f1, f2, METRIC, "rigid", level, None, carry=carry)
-        else:
-            result = _shape._one_grid_solve(f1, f2, METRIC, "rigid", level, carried)
+        result = _shape.level_solve(f1, f2, METRIC, "rigid", options, grid, result)
         results.append((grid, result, time.perf_counter() - begin))
     return results
 
 
-def evaluation_problem(f1, f2, grid, options):
-    opts = options.replace(grid=grid, rtol=None, refinement=False)
-    opts = opts.replace(tol=default_tol(f1.dtype))
+class Evaluation(NamedTuple):
+    """A level's registration on another grid: the problem there and gamma read at its
+    points through gamma's interpolant."""
+
+    prob: _problem.Problem
+    options: ej.ShapeOptions
+    gamma: jax.Array
+
+
+def evaluation(f1, f2, result, grid, options) -> Evaluation:
+    opts = options.replace(grid=grid, rtol=None, refinement=False, tol=default_tol(f1.dtype))
     bases = _problem.make_bases(*grid, opts, f1.dtype)
     prob = _problem.make_problem(
         METRIC, jnp.asarray(f1), jnp.asarray(f2), bases, True, opts.interpolation
     )
-    return prob, opts
+    gamma = jnp.asarray(result.gamma)
+    if gamma.shape[-2:] != tuple(grid):
+        gamma = _problem.compose(gamma, sphere_points(*grid, gamma.dtype), opts.interpolation)
+    return Evaluation(prob, opts, gamma)
 
 
-def read_gamma(gamma, grid, interpolation):
-    gamma = jnp.asarray(gamma)
-    if gamma.shape[-2:] == tuple(grid):
-        return gamma
-    return _problem.compose(gamma, sphere_points(*grid, gamma.dtype), interpolation)
-
-
-def quadrature_record(f1, f2, result, grid, options) -> dict:
-    """The level's gamma, R and path integrated on ``grid``, split by region."""
-    prob, opts = evaluation_problem(f1, f2, grid, options)
-    gamma = read_gamma(result.gamma, grid, opts.interpolation)
+def quadrature_record(at: Evaluation, result) -> dict:
+    """The level's gamma, R and path integrated on ``at``'s grid, split by region."""
+    prob, opts, gamma = at
+    grid = opts.grid
     a1, a2 = _problem.path_frames_at(prob, opts, gamma, result.rotation, result.coefficients)
     t = a1.shape[0] - 1
     speed = speed_density(
@@ -201,10 +200,10 @@ def quadrature_record(f1, f2, result, grid, options) -> dict:
     }
 
 
-def correspondence_record(f1, f2, result, grid, options) -> dict:
-    """How far the registration is from matching areas point for point, on ``grid``."""
-    prob, opts = evaluation_problem(f1, f2, grid, options)
-    gamma = read_gamma(result.gamma, grid, opts.interpolation)
+def correspondence_record(at: Evaluation, result) -> dict:
+    """How far the registration is from matching areas point for point, on ``at``'s grid."""
+    prob, opts, gamma = at
+    grid = opts.grid
     rho1 = np.asarray(area_element(*_problem.registered_frame(prob, opts, gamma)))
     rho2 = np.asarray(area_element(*_problem.rotated_end_frame(prob, opts, result.rotation)))
     w = interior_weights_np(*grid)
@@ -216,10 +215,10 @@ def correspondence_record(f1, f2, result, grid, options) -> dict:
     }
 
 
-def path_only(f1, f2, result, grid, options) -> dict:
-    """Only the path re-solved on ``grid``, gamma and R held."""
-    prob, opts = evaluation_problem(f1, f2, grid, options)
-    gamma = read_gamma(result.gamma, grid, opts.interpolation)
+def path_only(at: Evaluation, result) -> dict:
+    """Only the path re-solved on ``at``'s grid, gamma and R held."""
+    prob, opts, gamma = at
+    grid = opts.grid
     begin = time.perf_counter()
     held = _problem.path_energy_at(prob, opts, gamma, result.rotation, result.coefficients)
     res = _problem.geodesic_at(prob, opts, gamma, result.rotation, result.coefficients)
@@ -284,16 +283,15 @@ def main() -> None:
                     "converged": bool(result.converged),
                     "result": ej.RESULTS.name(result.result),
                     "seconds": seconds,
-                    "quadrature": [],
                 }
-                for k in factors:
+                at = {}  # one problem and one read of gamma per grid
+                for k in sorted({*factors, 2}):
                     grid = (k * (m - 1) + 1, k * (n - 1) + 1)
-                    record["quadrature"].append(quadrature_record(f1, f2, result, grid, options))
-                fine = (2 * m - 1, 2 * n - 1)
-                record["correspondence"] = correspondence_record(f1, f2, result, fine, options)
+                    at[k] = evaluation(f1, f2, result, grid, options)
+                record["quadrature"] = [quadrature_record(at[k], result) for k in factors]
+                record["correspondence"] = correspondence_record(at[2], result)
                 if args.path_only and m * n <= path_only_up_to[0] * path_only_up_to[1]:
-                    grid = (2 * m - 1, 2 * n - 1)
-                    record["path_only"] = path_only(f1, f2, result, grid, options)
+                    record["path_only"] = path_only(at[2], result)
                 emit(record)
         changes = np.abs(np.diff(distances))
         orders = [

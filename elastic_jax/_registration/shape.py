@@ -438,6 +438,33 @@ def continued_geodesic(
     return _one_grid_solve(f1, f2, metric, modulo, options, None, carry=carry)
 
 
+def level_solve(
+    f1: ArrayLike,
+    f2: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    grid: tuple[int, int],
+    below: ShapeGeodesicResult | None,
+    start: object = None,
+    reporter: _Reporter | None = None,
+) -> ShapeGeodesicResult:
+    """One level of a resolved distance: the solve on ``grid`` continuing the level
+    ``below`` (its registration and path, without a new start search or coarse rounds:
+    continuation_phase), or, for the first level, from ``start`` or a search of its own.
+
+    The coarser gamma's interpolant can fold between its points (the cats at 13 x 25 read
+    at 25 x 49, chain rule), and so can a fine start read on a coarse level: that level
+    then searches its own start.
+    """
+    carried = registration_at(start if below is None else below, grid, f1.dtype, modulo)
+    level = options.replace(rtol=None, grid=grid)
+    if below is not None and carried is not None:
+        carry = (*carried, below.coefficients)
+        return _one_grid_solve(f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter)
+    return _one_grid_solve(f1, f2, metric, modulo, level, carried, reporter=reporter)
+
+
 def _levels_solve(
     f1: ArrayLike,
     f2: ArrayLike,
@@ -485,20 +512,7 @@ def _levels_solve(
             begin = time.perf_counter()
             if reporter is not None:
                 reporter.level = {"level": index, "levels": len(options.levels)}
-            # A level above the first continues the one below (continuation_phase): its
-            # registration and path, without a new start search or coarse rounds. The
-            # coarser gamma's interpolant can fold between its points (the cats at
-            # 13 x 25 read at 25 x 49, chain rule), and so can a fine start read on a
-            # coarse level: that level searches its own start.
-            carried = registration_at(start if result is None else result, grid, f1.dtype, modulo)
-            level = options.replace(rtol=None, grid=grid)
-            if result is not None and carried is not None:
-                carry = (*carried, result.coefficients)
-                result = _one_grid_solve(
-                    f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter
-                )
-            else:
-                result = _one_grid_solve(f1, f2, metric, modulo, level, carried, reporter=reporter)
+            result = level_solve(f1, f2, metric, modulo, options, grid, result, start, reporter)
             distances.append(float(jax.block_until_ready(result.distance)))
             seconds.append(time.perf_counter() - begin)
             grids.append(grid)
