@@ -32,6 +32,15 @@ quantiles 0.18-4.4 of its mean on the data, 0.51-2.1 balanced).
 (that many degrees about (1, 2, 3) / sqrt(14)) by the spline at 99 x 197, so that the
 data's poles land away from the working grid's.
 
+``--stretch FRACTION``: solve with ``ShapeOptions(stretch_quadrature=FRACTION)`` (that
+fraction of the cells, where gamma stretches most, integrated 4 x 4 finer).
+
+``--down``: after the levels, each coarser level solved again from the finest level's
+registration and path (``continued_geodesic``): the coarser grids' values in the finest
+level's basin, with their 2x-grid evaluations. The levels' own changes mix the
+discretization's error with changes of basin (each level continues the one below and
+may leave its basin); the values in one basin show the discretization's order alone.
+
 One JSON record per level and per pair, then a summary per pair (the level changes and
 the observed orders log2(change_(L-1) / change_L)). ``--interpolation`` is passed to
 ShapeOptions, and ``--floor`` changes the registration's resolution floor (the module
@@ -47,7 +56,7 @@ parametrization, area 4 pi).
 Run: python benchmarks/bench_order.py [--pairs cats,cat-horse,horse-hand,pial]
      [--levels 13x25,25x49,49x97,97x193] [--factors 1,2,4] [--path-only]
      [--path-only-up-to 49x97] [--interpolation spline] [--floor 5] [--balanced]
-     [--turn 0]
+     [--turn 0] [--stretch 0] [--down]
 """
 
 from __future__ import annotations
@@ -231,6 +240,54 @@ def path_only(at: Evaluation, result) -> dict:
     }
 
 
+def observed_orders(distances) -> list[float]:
+    """log2(change_(L-1) / change_L) of successive levels' distances."""
+    changes = np.abs(np.diff(distances))
+    return [
+        float(np.log2(a / b)) if b > 0 else float("inf")
+        for a, b in zip(changes[:-1], changes[1:], strict=False)
+    ]
+
+
+def basin_record(f1, f2, solved, options) -> dict:
+    """The coarser levels solved again from the finest level's registration and path:
+    distances (coarse to fine, the finest level's own last), their 2x-grid evaluations,
+    the observed orders of those distances, and seconds."""
+    (*coarser, (grid, finest, _)) = solved
+    distances, on_2x, seconds = [], [], []
+    for (m, n), _, _ in coarser:
+        begin = time.perf_counter()
+        if _shape.registration_at(finest, (m, n), finest.gamma.dtype, "rigid") is None:
+            # The finest gamma folds between this grid's points: no start there.
+            distances.append(float("nan"))
+            on_2x.append(float("nan"))
+            seconds.append(0.0)
+            continue
+        again = _shape.continued_geodesic(
+            f1,
+            f2,
+            METRIC,
+            "rigid",
+            options.replace(grid=(m, n), rtol=None),
+            finest.gamma,
+            finest.rotation,
+            finest.coefficients,
+        )
+        distances.append(float(again.distance))
+        on_2x.append(float(again.refinement.distance_grid))
+        seconds.append(time.perf_counter() - begin)
+    distances.append(float(finest.distance))
+    on_2x.append(float(finest.refinement.distance_grid))
+    return {
+        "grids": [list(g) for g, _, _ in solved],
+        "distances": distances,
+        "distances_2x_grid": on_2x,
+        "observed_orders": observed_orders(distances),
+        "observed_orders_2x_grid": observed_orders(on_2x),
+        "seconds": seconds,
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", default="cats,cat-horse,horse-hand,pial")
@@ -242,12 +299,16 @@ def main() -> None:
     parser.add_argument("--floor", type=float, default=None)
     parser.add_argument("--balanced", action="store_true")
     parser.add_argument("--turn", type=float, default=0.0)
+    parser.add_argument("--stretch", type=float, default=0.0)
+    parser.add_argument("--down", action="store_true")
     args = parser.parse_args()
     if args.floor is not None:
         _problem._RESOLUTION_FACTOR = args.floor
     levels = tuple(tuple(int(v) for v in g.split("x")) for g in args.levels.split(","))
     factors = [int(k) for k in args.factors.split(",")]
-    options = ej.ShapeOptions(levels=levels, interpolation=args.interpolation)
+    options = ej.ShapeOptions(
+        levels=levels, interpolation=args.interpolation, stretch_quadrature=args.stretch
+    )
     path_only_up_to = tuple(int(v) for v in args.path_only_up_to.split("x"))
     settings = {
         "metric": [1.0, 1.0, 0.1, 0.0],
@@ -258,6 +319,7 @@ def main() -> None:
         "balanced": args.balanced,
         "turn_degrees": args.turn,
         "floor": args.floor if args.floor is not None else _problem._RESOLUTION_FACTOR,
+        "stretch_quadrature": args.stretch,
     }
     for pair in args.pairs.split(","):
         names = PAIRS[pair]
@@ -293,18 +355,16 @@ def main() -> None:
                 if args.path_only and m * n <= path_only_up_to[0] * path_only_up_to[1]:
                     record["path_only"] = path_only(at[2], result)
                 emit(record)
+            basin = basin_record(f1, f2, solved, options) if args.down else None
         changes = np.abs(np.diff(distances))
-        orders = [
-            float(np.log2(a / b)) if b > 0 else float("inf")
-            for a, b in zip(changes[:-1], changes[1:], strict=False)
-        ]
         emit(
             {
                 "benchmark": "order_summary",
                 "pair": pair,
                 "distances": distances,
                 "changes": changes.tolist(),
-                "observed_orders": orders,
+                "observed_orders": observed_orders(distances),
+                "basin": basin,
                 "density_quantiles": {
                     name: density_quantiles(f) for name, f in zip(names, (f1, f2), strict=True)
                 },

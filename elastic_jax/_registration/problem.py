@@ -40,6 +40,7 @@ from .._geometry.so3 import icosahedral_np, so3_exp_unchecked
 from .._geometry.srnf import center_unchecked
 from .._options import ShapeOptions
 from .._runtime.cache import cached
+from .stretch import stretch_correction, stretched_cells
 
 # Shrink factors tried for a reparametrization step, largest first; 0 keeps gamma.
 _STEP_SCALES = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.0)
@@ -406,17 +407,58 @@ def joint_objective(
     """Energy / scale as a function of (whitened path coefficients z, registration step y)."""
     end_frame = rotated_end_frame(prob, options, rotation)
     source = gamma_source(options, gamma)
+    # The cells integrated finer are those of the round's gamma: fixed within a round,
+    # as a quadrature's nodes are.
+    cells = stretched_cells(gamma, options.stretch_quadrature) if _stretched(options) else None
 
     def objective(variables: tuple):
         z, y = variables
         x, r_step = registration_variables(prob, y, rigid)
-        start = registered_frame(prob, options, stepped_gamma(prob, options, source, x))
+        stepped = stepped_gamma(prob, options, source, x)
+        start = registered_frame(prob, options, stepped)
         end = [rotate_surface(r_step, a) for a in end_frame]
         straight = frames_between(start, end, options.n_times)
-        frames = perturbed_frames(straight, scaling.coefficients(z), prob.bases.dframe)
-        return frame_energy(prob.metric, *frames, options.scheme) / scaling.energy_scale
+        coefficients = scaling.coefficients(z)
+        frames = perturbed_frames(straight, coefficients, prob.bases.dframe)
+        energy = frame_energy(prob.metric, *frames, options.scheme)
+        if cells is not None:
+            turned = r_step @ rotation
+            energy = energy + _stretch_term(
+                prob, options, stepped, turned, coefficients, frames, cells
+            )
+        return energy / scaling.energy_scale
 
     return objective
+
+
+def _stretched(options: ShapeOptions) -> bool:
+    return options.stretch_quadrature > 0.0
+
+
+def _stretch_term(
+    prob: Problem,
+    options: ShapeOptions,
+    gamma: ArrayLike,
+    rotation: ArrayLike,
+    coefficients: ArrayLike,
+    frames: tuple,
+    cells: tuple,
+):
+    """The stretched cells' finer quadrature less their node-rule share (stretch.py)."""
+    return stretch_correction(
+        prob.metric,
+        prob.source1,
+        prob.source2,
+        source_method(options.interpolation),
+        options.interpolation,
+        prob.bases.dframe,
+        gamma,
+        rotation,
+        coefficients,
+        frames,
+        cells,
+        options.stretch_subdivision,
+    )
 
 
 def scaling_at(prob: Problem, options: ShapeOptions, gamma: ArrayLike, rotation: ArrayLike):
@@ -456,9 +498,15 @@ def path_energy_at(
     rotation: ArrayLike,
     coefficients: ArrayLike,
 ):
-    """Energy of the straight line from f1 o gamma to R f2 plus the perturbation."""
+    """Energy of the straight line from f1 o gamma to R f2 plus the perturbation; with
+    ``options.stretch_quadrature``, the cells where gamma stretches most integrated
+    ``options.stretch_subdivision`` times finer (stretch.py)."""
     frames = path_frames_at(prob, options, gamma, rotation, coefficients)
-    return frame_energy(prob.metric, *frames, options.scheme)
+    energy = frame_energy(prob.metric, *frames, options.scheme)
+    if _stretched(options):
+        cells = stretched_cells(gamma, options.stretch_quadrature)
+        energy = energy + _stretch_term(prob, options, gamma, rotation, coefficients, frames, cells)
+    return energy
 
 
 def matching_criterion(prob: Problem, options: ShapeOptions, weight: ArrayLike):
