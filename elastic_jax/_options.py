@@ -303,8 +303,8 @@ def settings_from(function: str, options: ShapeOptions | None, **keywords) -> di
 
     One record holds every path and solver setting, so that a limit has one name and one
     default wherever it is used (``geodesic``, ``shoot``, ``parallel_transport`` and the
-    solves between shapes). The one rule for a keyword that names a field of the record
-    (issue 53), here and in :func:`options_with`: left out (``FROM_OPTIONS``), it is the
+    solves between shapes). The one rule for a keyword that names a field of the record,
+    here and in :func:`options_with`: left out (``FROM_OPTIONS``), it is the
     record's; given while ``options`` is None, it sets that field of the default record;
     given beside a record, it must equal the record's field (an equal value is accepted),
     and one that says otherwise is refused: which of the two was meant cannot be known.

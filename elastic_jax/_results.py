@@ -169,7 +169,7 @@ def unsolved_message(record, kind: str, k: int, last: int, words: str) -> str:
     return f"{kind} {k} of {last} did not solve: {words}"
 
 
-# How a result record prints (issue 48): Equinox's short form, arrays as dtype[shape].
+# How a result record prints: Equinox's short form, arrays as dtype[shape].
 _WIDTH = 100  # one line when it fits, else one field per line
 _MAX_CHARS = 2000  # the most any record prints
 _MAX_ITEMS = 6  # items shown of a tuple, list or dict field

@@ -83,7 +83,16 @@ def _is_symbolic(x) -> bool:
 
 
 def frame_speeds2(metric: SplitMetric, a1: Array, a2: Array, scheme: str) -> tuple[Array, Array]:
-    """Squared speeds and time-quadrature weights of a path given by its interior frames.
+    """Squared speeds and time-quadrature weights of a path given by its interior frames
+    (:func:`pointwise_speeds2` integrated over the grid's interior points)."""
+    density, weights = pointwise_speeds2(metric, a1, a2, scheme)
+    return integrate_interior(density), weights
+
+
+def pointwise_speeds2(
+    metric: SplitMetric, a1: Array, a2: Array, scheme: str
+) -> tuple[Array, Array]:
+    """G_b(v, v) of each step at each point, ``(..., T', p, q)``, and the time weights.
 
     ``a1, a2 (..., N, 3, m-2, n-1)`` are the columns of df_k (see ``interior_frame``);
     the differential is linear, so d(f_{k+1} - f_k) = df_{k+1} - df_k.
@@ -115,8 +124,7 @@ def frame_speeds2(metric: SplitMetric, a1: Array, a2: Array, scheme: str) -> tup
         base1, base2, v1, v2 = a1, a2, central(a1), central(a2)
         weights = jnp.full((n_times,), 1.0 / t, dtype=a1.dtype)
         weights = weights.at[0].mul(0.5).at[-1].mul(0.5)
-    speeds2 = integrate_interior(speed_density(metric, base1, base2, v1, v2))
-    return speeds2, weights
+    return speed_density(metric, base1, base2, v1, v2), weights
 
 
 def frame_energy(metric: SplitMetric, a1: Array, a2: Array, scheme: str) -> Array:

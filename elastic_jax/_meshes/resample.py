@@ -278,7 +278,7 @@ def spherical_parametrization(
         FrameWarning: the principal frame is undetermined (a symmetric mesh).
     """
     if max_iter is not None:
-        # Every step limit of the package is called max_steps (issue 31).
+        # Every step limit of the package is called max_steps.
         warnings.warn(
             "spherical_parametrization: max_iter is now called max_steps",
             DeprecationWarning,

@@ -420,12 +420,8 @@ def joint_objective(
         straight = frames_between(start, end, options.n_times)
         coefficients = scaling.coefficients(z)
         frames = perturbed_frames(straight, coefficients, prob.bases.dframe)
-        energy = frame_energy(prob.metric, *frames, options.scheme)
-        if cells is not None:
-            turned = r_step @ rotation
-            energy = energy + _stretch_term(
-                prob, options, stepped, turned, coefficients, frames, cells
-            )
+        turned = r_step @ rotation
+        energy = _frames_energy(prob, options, frames, stepped, turned, coefficients, cells)
         return energy / scaling.energy_scale
 
     return objective
@@ -435,17 +431,21 @@ def _stretched(options: ShapeOptions) -> bool:
     return options.stretch_quadrature > 0.0
 
 
-def _stretch_term(
+def _frames_energy(
     prob: Problem,
     options: ShapeOptions,
+    frames: tuple,
     gamma: ArrayLike,
     rotation: ArrayLike,
     coefficients: ArrayLike,
-    frames: tuple,
-    cells: tuple,
+    cells: tuple | None,
 ):
-    """The stretched cells' finer quadrature less their node-rule share (stretch.py)."""
-    return stretch_correction(
+    """The energy of the path with these frames: the node rule, plus the stretched
+    cells' finer quadrature less their node-rule share when ``cells`` (stretch.py)."""
+    energy = frame_energy(prob.metric, *frames, options.scheme)
+    if cells is None:
+        return energy
+    return energy + stretch_correction(
         prob.metric,
         prob.source1,
         prob.source2,
@@ -502,11 +502,8 @@ def path_energy_at(
     ``options.stretch_quadrature``, the cells where gamma stretches most integrated
     ``options.stretch_subdivision`` times finer (stretch.py)."""
     frames = path_frames_at(prob, options, gamma, rotation, coefficients)
-    energy = frame_energy(prob.metric, *frames, options.scheme)
-    if _stretched(options):
-        cells = stretched_cells(gamma, options.stretch_quadrature)
-        energy = energy + _stretch_term(prob, options, gamma, rotation, coefficients, frames, cells)
-    return energy
+    cells = stretched_cells(gamma, options.stretch_quadrature) if _stretched(options) else None
+    return _frames_energy(prob, options, frames, gamma, rotation, coefficients, cells)
 
 
 def matching_criterion(prob: Problem, options: ShapeOptions, weight: ArrayLike):

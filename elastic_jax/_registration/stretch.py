@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from .._geometry.energy import speed_density
+from .._geometry.energy import pointwise_speeds2
 from .._geometry.reparam import jacobian_determinant_unchecked, sample_points, spline_coefficients
 
 
@@ -50,14 +50,6 @@ def _sub_offsets(subdivision: int) -> tuple[np.ndarray, np.ndarray]:
     u = (np.arange(subdivision) + 0.5) / subdivision
     uu, vv = np.meshgrid(u, u, indexing="ij")
     return uu.reshape(-1), vv.reshape(-1)
-
-
-def _midpoint_density(metric, a1: Array, a2: Array) -> Array:
-    """The midpoint scheme's integrand per step, (N - 1, ...), each step weighted 1 / T."""
-    t = a1.shape[0] - 1
-    b1, b2 = 0.5 * (a1[1:] + a1[:-1]), 0.5 * (a2[1:] + a2[:-1])
-    v1, v2 = t * (a1[1:] - a1[:-1]), t * (a2[1:] - a2[:-1])
-    return speed_density(metric, b1, b2, v1, v2) / t
 
 
 def stretch_correction(
@@ -125,10 +117,12 @@ def stretch_correction(
         )
         sub[axis] = sub[axis].at[1:-1].add(inside)
     sub_weights = sp * dphi * dtheta / subdivision**2
-    fine = jnp.sum(_midpoint_density(metric, *sub) * sub_weights[None])
+    density, weights = pointwise_speeds2(metric, *sub, "midpoint")
+    fine = jnp.einsum("tks,ks,t->", density, sub_weights, weights)
 
     at_corners = [jnp.stack([a[:, :, r, c] for r, c in corners], axis=-1) for a in frames]
     corner_rows = jnp.stack([rows, rows + 1, rows, rows + 1], axis=-1)
     corner_weights = jnp.sin((corner_rows + 1).astype(dtype) * dphi) * dphi * dtheta / 4.0
-    coarse = jnp.sum(_midpoint_density(metric, *at_corners) * corner_weights[None])
+    density, weights = pointwise_speeds2(metric, *at_corners, "midpoint")
+    coarse = jnp.einsum("tks,ks,t->", density, corner_weights, weights)
     return fine - coarse

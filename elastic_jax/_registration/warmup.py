@@ -1,4 +1,4 @@
-"""Compiling a batch job's shape solves ahead of it (issue 51): ``warmup``.
+"""Compiling a batch job's shape solves ahead of it : ``warmup``.
 
 A shape solve's programs depend on the static options, the working grids, the inputs'
 grid, the dtype and modulo, not on the surfaces' values or the metric's coefficients
@@ -80,7 +80,7 @@ def warmup(
     dtype="float64",
     **changes,
 ) -> WarmupReport:
-    """Compile the shape solves of a batch job before it runs (issue 51).
+    """Compile the shape solves of a batch job before it runs.
 
     Solves a built-in pair (a sphere and a turned ellipsoid) on ``input_grid`` with the
     job's options: with ``options.rtol`` (the default) on every working grid of
