@@ -81,8 +81,9 @@ from elastic_jax._geometry.differential import area_element, interior_frame  # n
 from elastic_jax._geometry.energy import speed_density  # noqa: E402
 from elastic_jax._geometry.grid import interior_weights_np, sphere_points  # noqa: E402
 from elastic_jax._geometry.reparam import jacobian_determinant_unchecked  # noqa: E402
+from elastic_jax._registration import levels as _levels  # noqa: E402
+from elastic_jax._registration import one_grid as _one_grid  # noqa: E402
 from elastic_jax._registration import problem as _problem  # noqa: E402
-from elastic_jax._registration import shape as _shape  # noqa: E402
 
 from _common import emit, environment  # noqa: E402
 
@@ -148,7 +149,7 @@ def levels_of(f1, f2, options: ej.ShapeOptions):
     results, result = [], None
     for grid in options.levels:
         begin = time.perf_counter()
-        result = _shape.level_solve(f1, f2, METRIC, "rigid", options, grid, result)
+        result = _levels.level_solve(f1, f2, METRIC, "rigid", options, grid, result)
         results.append((grid, result, time.perf_counter() - begin))
     return results
 
@@ -257,13 +258,13 @@ def basin_record(f1, f2, solved, options) -> dict:
     distances, on_2x, seconds = [], [], []
     for (m, n), _, _ in coarser:
         begin = time.perf_counter()
-        if _shape.registration_at(finest, (m, n), finest.gamma.dtype, "rigid") is None:
+        if _levels.registration_at(finest, (m, n), finest.gamma.dtype, "rigid") is None:
             # The finest gamma folds between this grid's points: no start there.
             distances.append(float("nan"))
             on_2x.append(float("nan"))
             seconds.append(0.0)
             continue
-        again = _shape.continued_geodesic(
+        again = _one_grid.continued_geodesic(
             f1,
             f2,
             METRIC,

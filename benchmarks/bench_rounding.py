@@ -65,7 +65,11 @@ import numpy as np  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import shapes  # noqa: E402
-from elastic_jax._registration import shape as _shape  # noqa: E402
+from elastic_jax._geodesics.solvers import default_tol  # noqa: E402
+from elastic_jax._geometry.numerics import constant  # noqa: E402
+from elastic_jax._geometry.units import in_units  # noqa: E402
+from elastic_jax._registration import phases as _phases  # noqa: E402
+from elastic_jax._registration.problem import make_bases  # noqa: E402
 
 from _common import DATA, emit, environment  # noqa: E402
 
@@ -131,15 +135,15 @@ def spread(distances: list) -> dict:
 
 def variants(f1, f2, other, cfg) -> dict:
     """Each variant's summary ({"error": ...} for a compilation option this jaxlib lacks)."""
-    units, (g1, g2) = _shape.in_units(f1, f2)
+    units, (g1, g2) = in_units(f1, f2)
     scale = float(units.scale)
     m, n = f1.shape[-2:]
-    bases = _shape.make_bases(m, n, cfg, np.float64)
-    args = (_shape.constant(METRIC), g1, g2, bases)
+    bases = make_bases(m, n, cfg, np.float64)
+    args = (constant(METRIC), g1, g2, bases)
     out = {}
     for label, options in COMPILATIONS.items():
         solve = jax.jit(
-            _shape._shape_solve, static_argnames=("options", "rigid"), compiler_options=options
+            _phases.shape_solve, static_argnames=("options", "rigid"), compiler_options=options
         )
         try:
             result = jax.block_until_ready(solve(*args, options=cfg, rigid=False))
@@ -181,7 +185,7 @@ def main() -> None:
             n_times=settings["n_times"],
             rtol=None,
         )
-        cfg = cfg.replace(tol=_shape.default_tol(np.float64))
+        cfg = cfg.replace(tol=default_tol(np.float64))
         for name in pairs:
             data = surfaces(name, m, n)
             if data is None:

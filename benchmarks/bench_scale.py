@@ -247,22 +247,26 @@ print(json.dumps({{"distance": d, "rss_mb": rss_mb()}}))
 
 COMPILE = r"""
 import re
-from elastic_jax._registration import shape as _shape
+from elastic_jax._geodesics.solvers import default_tol
+from elastic_jax._geometry.numerics import constant
+from elastic_jax._geometry.units import in_units
+from elastic_jax._registration import phases as _phases
+from elastic_jax._registration.problem import make_bases
 m, n = {grid}
 f1, f2 = cats(m, n)
 cfg = ej.ShapeOptions(degree={degree}, vf_degree={vf_degree}, n_times={n_times})
-cfg = cfg.replace(tol=_shape.default_tol(np.float64))
-bases = _shape.make_bases(m, n, cfg, np.float64)
+cfg = cfg.replace(tol=default_tol(np.float64))
+bases = make_bases(m, n, cfg, np.float64)
 # The arguments shape_geodesic gives its solve (the surfaces in units of their size).
-_, (g1, g2) = _shape.in_units(f1, f2)
-args = (_shape.constant(metric), g1, g2, bases)
+_, (g1, g2) = in_units(f1, f2)
+args = (constant(metric), g1, g2, bases)
 # The solve's phases, one program each as shape_geodesic compiles them: traced, lowered,
 # compiled and run one after the other (each takes the one before's result).
 record = {{"trace_s": 0.0, "lower_s": 0.0, "compile_s": 0.0, "run_s": 0.0,
           "stablehlo_chars": 0, "hlo_instructions": 0, "fusions": 0, "phases": {{}}}}
 carried = ()
-for name, _, _ in _shape._PHASES:
-    jitted = _shape._PHASE_JITS[name].jitted()
+for name, _, _ in _phases.PHASES:
+    jitted = _phases.PHASE_JITS[name].jitted()
     t0 = time.perf_counter()
     traced = jitted.trace(*args, *carried, options=cfg, rigid=False)
     t1 = time.perf_counter()

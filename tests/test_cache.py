@@ -264,15 +264,16 @@ def test_the_shape_solve_phases_are_rebuilt_with_their_own_structures():
     """The skeletons that rebuild an exported phase's result have the structure the phase
     returns (leaf count and node types: a mismatch would scramble the fields)."""
     import elastic_jax as ej
-    from elastic_jax._registration import shape as _shape
+    from elastic_jax._registration import phases as _phases
+    from elastic_jax._registration.problem import make_bases
 
     f1 = ej.sphere_points(7, 13)
     cfg = ej.ShapeOptions(degree=2, vf_degree=2, n_times=3, tol=1e-6, outer_steps=1, rtol=None)
-    bases = _shape.make_bases(7, 13, cfg, f1.dtype)
+    bases = make_bases(7, 13, cfg, f1.dtype)
     metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
     for rigid in (False, True):
         carried = ()
-        for _, function, skeleton in _shape._PHASES:
+        for _, function, skeleton in _phases.PHASES:
             out = jax.eval_shape(
                 lambda a, b, c, function=function, rigid=rigid: function(
                     metric, a, b, bases, *c, cfg, rigid
@@ -298,7 +299,8 @@ def test_the_solve_in_phases_is_the_solve_in_one_program():
 
     import elastic_jax as ej
     from elastic_jax import shapes
-    from elastic_jax._registration import shape as _shape
+    from elastic_jax._registration import phases as _phases
+    from elastic_jax._registration.problem import make_bases
     from elastic_jax._runtime import cache as _cache
 
     m, n = 9, 17
@@ -313,10 +315,10 @@ def test_the_solve_in_phases_is_the_solve_in_one_program():
         differential="grid",
         interpolation="bicubic",
     )
-    bases = _shape.make_bases(m, n, cfg, f1.dtype)
+    bases = make_bases(m, n, cfg, f1.dtype)
     args = (ej.SplitMetric(1.0, 1.0, 0.1, 0.0), f1, f2, bases)
-    phased = _shape._solve_in_phases(args, cfg, False)
-    whole = _cache.solver_jit(_shape._shape_solve, static_argnames=("options", "rigid"))(
+    phased = _phases.solve_in_phases(args, cfg, False)
+    whole = _cache.solver_jit(_phases.shape_solve, static_argnames=("options", "rigid"))(
         *args, options=cfg, rigid=False
     )
     assert int(phased.rounds) >= 1
@@ -341,7 +343,9 @@ def test_around_the_solve_a_first_call_compiles_one_program_on_each_side(monkeyp
 
     import elastic_jax as ej
     from elastic_jax import shapes
-    from elastic_jax._registration import shape as _shape
+    from elastic_jax._registration import one_grid as _one_grid
+    from elastic_jax._registration import phases as _phases
+    from elastic_jax._registration.problem import make_bases
 
     m, n = 9, 15  # a grid no other test uses: nothing is compiled for it yet
     f1 = np.asarray(shapes.sample(shapes.bumpy, m, n))
@@ -356,15 +360,15 @@ def test_around_the_solve_a_first_call_compiles_one_program_on_each_side(monkeyp
         differential="grid",
         rtol=None,
     )
-    bases = _shape.make_bases(m, n, cfg, f1.dtype)
+    bases = make_bases(m, n, cfg, f1.dtype)
     metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
     layout = jax.eval_shape(
-        lambda a, b: _shape._shape_solve(metric, a, b, bases, cfg, False), f1, f2
+        lambda a, b: _phases.shape_solve(metric, a, b, bases, cfg, False), f1, f2
     )
     solved = jax.tree_util.tree_map(lambda s: np.zeros(s.shape, s.dtype), layout)._replace(
         gamma=np.asarray(ej.sphere_points(m, n)), rotation=np.eye(3), converged=np.True_
     )
-    monkeypatch.setattr(_shape, "_solve_in_phases", lambda *args: solved)
+    monkeypatch.setattr(_one_grid, "solve_in_phases", lambda *args: solved)
     result, names = traced_functions(
         lambda: ej.shape_geodesic(f1, f2, metric, options=cfg).distance.block_until_ready()
     )
@@ -480,23 +484,24 @@ def test_the_phases_compiled_concurrently_are_the_jitted_phases():
 
     import elastic_jax as ej
     from elastic_jax import shapes
-    from elastic_jax._registration import shape as _shape
+    from elastic_jax._registration import phases as _phases
+    from elastic_jax._registration.problem import make_bases
     from elastic_jax._runtime.cache import CompileCounter
 
     # The first level of the warmup test's solves (its programs, when that ran first).
     cfg = _tiny_levels().replace(grid=(7, 13), rtol=None)
-    bases = _shape.make_bases(7, 13, cfg, jnp.float64)
+    bases = make_bases(7, 13, cfg, jnp.float64)
     f1 = shapes.sample(shapes.bumpy, 9, 17)
     f2 = 1.2 * shapes.sample(shapes.bumpy, 9, 17, rotation=shapes.random_rotation(5))
     args = (ej.SplitMetric(1.0, 1.0, 0.1, 0.0), f1, f2, bases)
-    chained = _shape._solve_in_phases(args, cfg, False)
+    chained = _phases.solve_in_phases(args, cfg, False)
     carried = ()
-    for name, _, _ in _shape._PHASES:
-        carried = (_shape._PHASE_JITS[name](*args, *carried, options=cfg, rigid=False),)
+    for name, _, _ in _phases.PHASES:
+        carried = (_phases.PHASE_JITS[name](*args, *carried, options=cfg, rigid=False),)
     leaves = jax.tree_util.tree_leaves(chained), jax.tree_util.tree_leaves(carried[0])
     for a, b in zip(*leaves, strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert int(chained.rounds) >= 1 and float(chained.energy) > 0
     with CompileCounter() as counter:
-        again = _shape._solve_in_phases(args, cfg, False)
+        again = _phases.solve_in_phases(args, cfg, False)
     assert counter.count == 0 and float(again.energy) == float(chained.energy)

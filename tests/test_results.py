@@ -363,6 +363,8 @@ def _records():
                 _f64(30, 30),
                 jnp.ones((30, 30), bool),
                 _f64(30, 30),
+                _f64(30, 30),
+                jnp.zeros((30, 30, 2), jnp.int32),
                 ok,
                 successful,
                 _scalar(9000),

@@ -695,9 +695,9 @@ def test_symmetric_finds_the_lower_basin_from_either_order():
         # The change less the rounding level's distance, relative to the distance (or to
         # 5 % of the parametrized distance where that is larger): with a change of 3.9e-3
         # the noise (4.9e-4 for this pair) is 13 % of it.
-        from elastic_jax._registration import shape as _shape
+        from elastic_jax._registration.levels import noise_distance
 
-        change = max(abs(d[-1] - d[-2]) - _shape._noise_distance(a, b), 0.0)
+        change = max(abs(d[-1] - d[-2]) - noise_distance(a, b), 0.0)
         scale = max(d[-1], 0.05 * float(res.parametrized_distance))
         np.testing.assert_allclose(res.levels.estimate, change / scale, rtol=1e-12)
     assert abs(resolved["12"] - resolved["21"]) / min(resolved.values()) < 0.01

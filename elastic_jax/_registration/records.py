@@ -4,12 +4,15 @@ path turned back onto the caller's second surface.
 
 from __future__ import annotations
 
+import warnings
 from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from .._checks import is_concrete
+from .._errors import ConvergenceWarning
 from .._results import RESULTS, record_repr, status_record
 
 MODULI = ("diff", "rigid")
@@ -144,3 +147,32 @@ def turned_back(res, end):
     ends at ``end`` (its f2) as parametrized and placed (modulo "rigid" centres both)."""
     back = jnp.einsum("ji,tj...->ti...", res.rotation, res.path)
     return back + (end - back[-1]).mean(axis=(-2, -1), keepdims=True)[None]
+
+
+def warn_unless_converged(result: ShapeGeodesicResult, stacklevel: int = 3) -> None:
+    """ConvergenceWarning for a concrete result that did not converge."""
+    if is_concrete(result.converged, result.energy_history, result.rounds) and not bool(
+        result.converged
+    ):
+        history = np.asarray(result.energy_history)
+        # Every other ending's words (stalled, saddle, resolution-limited) say what to
+        # change; running out of steps is the one that does not.
+        ran_out = RESULTS.name(result.result) == "nonlinear_max_steps_reached"
+        advice = "; raise outer_steps or max_steps" if ran_out else ""
+        if result.levels is not None:
+            steps = ", ".join(
+                f"{m} x {n}: {d:.6g}"
+                for (m, n), d in zip(
+                    np.asarray(result.levels.grids).tolist(),
+                    np.asarray(result.levels.distances).tolist(),
+                    strict=True,
+                )
+            )
+            advice += f"; levels {steps} (estimate {float(result.levels.estimate):.3g})"
+        warnings.warn(
+            f"shape_geodesic: not converged after {int(result.rounds)} registration rounds "
+            f"({result.message}; energies {history[np.isfinite(history)].round(6).tolist()})"
+            f"{advice}",
+            ConvergenceWarning,
+            stacklevel=stacklevel,
+        )

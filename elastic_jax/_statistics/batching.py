@@ -8,6 +8,7 @@ from __future__ import annotations
 import functools
 import warnings
 from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -22,13 +23,9 @@ from .._geometry.grid import sphere_points
 from .._geometry.metric import SplitMetric
 from .._geometry.validation import as_surface
 from .._options import ShapeOptions, check_choice
+from .._registration.one_grid import check_grid_options, continued_geodesic
 from .._registration.records import turned_back
-from .._registration.shape import (
-    check_grid_options,
-    continued_geodesic,
-    resolve_options,
-    shape_geodesic,
-)
+from .._registration.shape import resolve_options, shape_geodesic
 from .._results import RESULTS
 from .._runtime.cache import solver_jit
 
@@ -303,8 +300,15 @@ def distance_chunk(
     strategy: str,
     size: int,
 ) -> tuple:
-    """Distance, status, refinement change, result code and solver steps of the pairs
-    (first[i], second[i])."""
+    """Distance, status, refinement change, result code, solver steps, levels estimate
+    and finest grid of the pairs (first[i], second[i]): by levels (:func:`levelled_chunk`)
+    when ``options.resolves`` and modulo is not "none", else on ``options.grid`` or the
+    pairs' own grid (estimate NaN)."""
+    if options.resolves and modulo != "none":
+        return levelled_chunk(first, second, metric, modulo, options, strategy, size)[:7]
+    b = np.shape(first)[0]
+    grid = options.grid or tuple(np.shape(first)[-2:])
+    extra = (np.full(b, np.nan), np.tile(np.asarray(grid, np.int32), (b, 1)))
 
     def batch_call(batch: tuple, mode: str):
         return _distances_batch(batch, metric, modulo=modulo, options=options, mode=mode)
@@ -312,7 +316,7 @@ def distance_chunk(
     def single_call(pair: tuple):
         return _pair_distance(pair[0], pair[1], metric, modulo, options)
 
-    return _solve_chunk(batch_call, single_call, (first, second), strategy, size)
+    return (*_solve_chunk(batch_call, single_call, (first, second), strategy, size), *extra)
 
 
 def registered_chunk(
@@ -340,6 +344,196 @@ def registered_chunk(
         return _registered_pair(item[0], item[1], metric, modulo, options, item[2:] or None)
 
     return _solve_chunk(batch_call, single_call, batch, strategy, size)
+
+
+def _level_pair(
+    a: ArrayLike,
+    b: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    start: tuple | None = None,
+):
+    """One pair's solve on one level (``options.grid``): :func:`_registered_pair`'s
+    outputs, then the parametrized distance and the refinement change, which the levels'
+    estimate and the matrix's record need."""
+    if start is None:
+        res = shape_geodesic(a, b, metric, modulo=modulo, options=options)
+    else:
+        res = continued_geodesic(a, b, metric, modulo, options, *start)
+    code = jnp.asarray(res.result._value, jnp.int32)
+    steps = jnp.asarray(res.num_steps, jnp.int32)
+    return (
+        res.distance,
+        res.converged,
+        code,
+        steps,
+        res.gamma,
+        res.rotation,
+        res.coefficients,
+        res.parametrized_distance,
+        res.refinement.relative_change,
+    )
+
+
+@functools.partial(solver_jit, static_argnames=("modulo", "options", "mode"))
+def _level_batch(
+    batch: tuple, metric: SplitMetric, *, modulo: str, options: ShapeOptions, mode: str
+):
+    """batch: (firsts, seconds) or (firsts, seconds, gammas, rotations, coefficients)."""
+
+    def one(item: tuple):
+        return _level_pair(item[0], item[1], metric, modulo, options, item[2:] or None)
+
+    return jax.lax.map(one, batch) if mode == "map" else jax.vmap(one)(batch)
+
+
+class LevelledPairs(NamedTuple):
+    """What :func:`levelled_chunk` returns for b pairs solved by levels (math §10).
+
+    ``distance``, ``converged``, ``refinement_change``, ``result`` (int codes) and
+    ``num_steps`` (over all levels) are ``(b,)``, the first five of a distance chunk;
+    ``estimate`` ``(b,)`` the last two levels' relative change (NaN after one level);
+    ``grid`` ``(b, 2)`` the finest grid each pair reached; ``level_distances`` ``(b, L)``
+    each level's distance (NaN past the level where a pair resolved); ``gamma``
+    ``(b, 3, m, n)`` on that finest grid when every pair reached the same one, else a
+    list; ``rotation`` ``(b, 3, 3)``, ``coefficients`` ``(b, N - 2, L')``.
+    """
+
+    distance: np.ndarray
+    converged: np.ndarray
+    refinement_change: np.ndarray
+    result: np.ndarray
+    num_steps: np.ndarray
+    estimate: np.ndarray
+    grid: np.ndarray
+    level_distances: np.ndarray
+    gamma: list
+    rotation: np.ndarray
+    coefficients: np.ndarray
+
+
+def levelled_chunk(
+    first: ArrayLike,
+    second: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    strategy: str,
+    size: int,
+) -> LevelledPairs:
+    """The pairs (first[i], second[i]) by levels of working grids, all at once: the
+    first level of ``options.levels`` searches each pair's start, every later level
+    continues the pairs still going from their registration and path on the level
+    below (:func:`continued_geodesic`), and a pair leaves the batch once two successive
+    distances agree within ``options.rtol`` (as :func:`shape_geodesic` decides for one
+    pair; its result code ``not_resolved`` when the last level converged but missed rtol).
+
+    A carried registration whose interpolant folds between the next grid's points (the
+    check of ``shape_geodesic(start=...)``) searches a start of its own on that level.
+    "vmap" solves each level's pairs side by side, padded to ``size``; "map" and "loop"
+    one after another through the same compiled phases (a vmapped step costs the
+    batch's size on a CPU, and a padded lax.map solves its padding).
+    """
+    # Imported here: levels.py imports nothing from the statistics floor, and this is
+    # the only caller that needs its rules from below.
+    from .._registration.levels import level_change, noise_distance, registration_at
+
+    first, second = jnp.asarray(first), jnp.asarray(second)
+    count = first.shape[0]
+    levels = options.levels
+    for m, n in levels:
+        try:
+            check_grid_options(options, m, n)
+        except InputError as error:
+            raise InputError(f"levels: the {m} x {n} level: {error}") from None
+    dtype = first.dtype
+    nan = np.full(count, np.nan)
+    out = {
+        "distance": nan.copy(),
+        "converged": np.zeros(count, bool),
+        "refinement_change": nan.copy(),
+        "result": np.zeros(count, np.int32),
+        "num_steps": np.zeros(count, np.int64),
+        "estimate": nan.copy(),
+        "grid": np.zeros((count, 2), np.int32),
+        "level_distances": np.full((count, len(levels)), np.nan),
+    }
+    gammas: list = [None] * count
+    rotations = np.zeros((count, 3, 3))
+    coefficients: list = [None] * count
+    parametrized = np.zeros(count)
+    noise = [noise_distance(first[i], second[i]) for i in range(count)]
+    going = list(range(count))
+    mode = "loop" if strategy == "map" else strategy
+
+    def solve(indices: list, level: ShapeOptions, starts: tuple | None):
+        def batch_call(batch: tuple, mode: str):
+            return _level_batch(batch, metric, modulo=modulo, options=level, mode=mode)
+
+        def single_call(item: tuple):
+            return _level_pair(item[0], item[1], metric, modulo, level, item[2:] or None)
+
+        batch = (first[jnp.asarray(indices)], second[jnp.asarray(indices)])
+        if starts is not None:
+            batch = (*batch, *starts)
+        return _solve_chunk(batch_call, single_call, batch, mode, size)
+
+    for index, grid in enumerate(levels):
+        if not going:
+            break
+        level = options.replace(grid=grid, rtol=None)
+        carried, searched = [], []
+        for i in going:
+            read = (
+                None
+                if gammas[i] is None
+                else registration_at((gammas[i], rotations[i]), grid, dtype, modulo)
+            )
+            (searched if read is None else carried).append((i, read))
+        groups = []
+        if searched:
+            groups.append(([i for i, _ in searched], None))
+        if carried:
+            indices = [i for i, _ in carried]
+            starts = (
+                jnp.stack([r[0] for _, r in carried]),
+                jnp.stack([r[1] for _, r in carried]),
+                jnp.stack([jnp.asarray(coefficients[i]) for i in indices]),
+            )
+            groups.append((indices, starts))
+        for indices, starts in groups:
+            solved = solve(indices, level, starts)
+            d, ok, code, steps, g, r, c, par, change = (np.asarray(x) for x in solved)
+            for k, i in enumerate(indices):
+                out["level_distances"][i, index] = d[k]
+                out["distance"][i], out["converged"][i] = d[k], ok[k]
+                out["result"][i], out["refinement_change"][i] = code[k], change[k]
+                out["num_steps"][i] += steps[k]
+                out["grid"][i] = grid
+                gammas[i], rotations[i], coefficients[i] = g[k], r[k], c[k]
+                parametrized[i] = par[k]
+        still = []
+        for i in going:
+            distances = out["level_distances"][i, : index + 1]
+            change = level_change(distances, parametrized[i], noise[i])
+            out["estimate"][i] = change
+            if np.isfinite(out["distance"][i]) and not (
+                change <= options.rtol and out["converged"][i]
+            ):
+                still.append(i)
+        going = still
+    met = out["estimate"] <= options.rtol
+    unresolved = out["converged"] & ~met
+    out["result"][unresolved] = RESULTS.not_resolved._value
+    out["converged"] &= met
+    same = len({g.shape for g in gammas}) == 1
+    return LevelledPairs(
+        **out,
+        gamma=np.stack(gammas) if same else gammas,
+        rotation=rotations,
+        coefficients=np.stack(coefficients),
+    )
 
 
 def chunk_bounds(n: int, size: int | None):

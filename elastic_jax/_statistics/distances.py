@@ -38,7 +38,13 @@ class DistanceMatrixResult(NamedTuple):
             ``ShapeGeodesicResult.refinement.relative_change`` (how far the distance moves
             with halved time steps or on the finer grid); 0 on the diagonal, NaN for
             modulo="none" or ``options.refinement=False``.
-        converged: ``()`` every pair converged.
+        estimate: ``(K, K)`` each pair's levels estimate (``ShapeGeodesicResult.levels``:
+            the relative change of its last two levels; NaN on the diagonal, after one
+            level, and on one working grid).
+        grids: ``(K, K, 2)`` the finest working grid each pair was solved on (its last
+            level; the collection's grid without levels); 0 on the diagonal.
+        converged: ``()`` every pair converged (resolved: the last level converged and
+            its estimate met ``rtol``).
         result: ``successful``, or the result code of the first pair (in row-major order
             of the upper triangle) that did not converge (``elastic_jax.RESULTS``).
         num_steps: ``()`` solver steps over all pairs.
@@ -47,6 +53,8 @@ class DistanceMatrixResult(NamedTuple):
     distances: Float[Array, "K K"]
     pairs_converged: Bool[Array, "K K"]
     refinement_change: Float[Array, "K K"]
+    estimate: Float[Array, "K K"]
+    grids: Int[Array, "K K 2"]
     converged: Bool[Array, ""]
     result: RESULTS
     num_steps: Int[Array, ""]
@@ -72,12 +80,14 @@ class _PairsState(NamedTuple):
     refinement_change: np.ndarray
     result_codes: np.ndarray
     num_steps: np.ndarray
+    estimate: np.ndarray
+    grids: np.ndarray
     done: np.ndarray
     done_before: int = 0
     pending: Iterator | None = None
 
 
-_SAVED = _PairsState._fields[:6]
+_SAVED = _PairsState._fields[:8]
 
 
 class _PairsJob(NamedTuple):
@@ -124,7 +134,14 @@ class _PairsJob(NamedTuple):
         nan = np.full(p, np.nan)
         zeros = np.zeros(p, bool)
         state = _PairsState(
-            nan, zeros, nan.copy(), np.zeros(p, np.int32), np.zeros(p, np.int64), zeros.copy()
+            nan,
+            zeros,
+            nan.copy(),
+            np.zeros(p, np.int32),
+            np.zeros(p, np.int64),
+            nan.copy(),
+            np.zeros((p, 2), np.int32),
+            zeros.copy(),
         )
         return self._started(state)
 
@@ -144,7 +161,7 @@ class _PairsJob(NamedTuple):
         if finished is None:  # a failed chunk raises in next(): this is a bug if reached
             raise RuntimeError("distance_matrix: some chunks of pairs were never solved")
         (a, b), out = finished
-        for field, part in zip(state[:5], out, strict=True):
+        for field, part in zip(state[:7], out, strict=True):
             field[a:b] = np.asarray(part)[: b - a]
         state.done[a:b] = True
         return state, True
@@ -171,10 +188,10 @@ class _PairsJob(NamedTuple):
         k = self.count
 
         def symmetric(upper, diagonal, kind):
-            matrix = np.zeros((k, k), kind)
+            matrix = np.zeros((k, k, *np.shape(upper)[1:]), kind)
             matrix[rows, cols] = upper
-            matrix = matrix + matrix.T if kind is not bool else matrix | matrix.T
-            np.fill_diagonal(matrix, diagonal)
+            matrix[cols, rows] = upper
+            matrix[np.arange(k), np.arange(k)] = diagonal
             return matrix
 
         unconverged = np.flatnonzero(~state.converged)
@@ -186,6 +203,8 @@ class _PairsJob(NamedTuple):
             refinement_change=jnp.asarray(
                 symmetric(state.refinement_change, 0.0, np.float64), dtype=dtype
             ),
+            estimate=jnp.asarray(symmetric(state.estimate, np.nan, np.float64), dtype=dtype),
+            grids=jnp.asarray(symmetric(state.grids, 0, np.int32)),
             converged=jnp.asarray(state.converged.all()),
             result=RESULTS.successful if first is None else RESULTS.from_code(first),
             num_steps=jnp.asarray(state.num_steps.sum()),
@@ -207,13 +226,14 @@ def distance_matrix(
 ) -> DistanceMatrixResult:
     """Pairwise shape distances: K(K-1)/2 geodesics, batched (:ref:`math §7 <math-7>`).
 
-    Pair (i, j), i < j, uses shape_geodesic(shapes[i], shapes[j]) (or geodesic for
-    modulo="none") on the collection's own grid: ``options.rtol`` and ``levels`` are not
-    used here (rtol is set to None), so these distances are not resolved by levels as
-    shape_geodesic's and a resolved karcher_mean's are (:ref:`math §10 <math-10>`). For
-    resolved distances, resample the shapes to the grid their levels resolve at (a
-    resolved mean's ``level_distances`` tells which) or solve the pairs with
-    shape_geodesic. The record is symmetrized from the upper triangle. With
+    Pair (i, j), i < j, is shape_geodesic(shapes[i], shapes[j]) at ``options``: by
+    default resolved by levels (``options.rtol`` with ``grid=None``; :ref:`math §10
+    <math-10>`): a chunk's pairs go through the levels of working grids together, each
+    level continuing every pair still going from its registration and path on the level
+    below, and a pair leaves once two successive levels agree within rtol (``estimate``,
+    ``grids``). ``rtol=None`` (or ``grid`` equal to the collection's grid) solves every
+    pair on the collection's grid; modulo="none" is the parametrized geodesic on that
+    grid. The record is symmetrized from the upper triangle. With
     ``job.checkpoint`` every finished chunk of pairs is saved atomically; ``job.resume``
     skips the chunks already done.
 
@@ -233,7 +253,9 @@ def distance_matrix(
         (:class:`ConvergenceWarning`) once, naming the pairs.
     """
     job = check_job(job)
-    shapes, options = check_collection(shapes, options, modulo)
+    shapes, options = check_collection(shapes, options, modulo, levels=modulo != "none")
+    if modulo == "none":
+        options = options.replace(rtol=None)
     strategy = job.resolved_strategy
     settings = job_settings(metric, modulo, options, batch_size=job.batch_size)
     pairs = _PairsJob(

@@ -28,8 +28,9 @@ from .._geometry.reparam import reparametrize_unchecked
 from .._geometry.srnf import center_unchecked
 from .._geometry.validation import as_surface
 from .._options import ShapeOptions, check_int, check_positive
+from .._registration.levels import registration_at
 from .._registration.problem import on_grid
-from .._registration.shape import registration_at, shape_geodesic
+from .._registration.shape import shape_geodesic
 from .._results import RESULTS, status_record
 from .batching import (
     check_collection,

@@ -37,8 +37,11 @@ def run_distances(args, progress: Progress) -> dict:
             f"pairs done {info['pairs_done']}/{info['pairs']}{eta} (checkpoint {checkpoint.name})"
         )
 
+    where = f"on {m} x {n}"
+    if options.resolves and args.modulo != "none":
+        where = f"by levels until two agree within {options.rtol:g}"
     progress(
-        f"{k * (k - 1) // 2} shape geodesics modulo {args.modulo} on {m} x {n} (the first compiles)"
+        f"{k * (k - 1) // 2} shape geodesics modulo {args.modulo} {where} (the first compiles)"
     )
     start = time.perf_counter()
     res = distance_matrix(
@@ -61,6 +64,8 @@ def run_distances(args, progress: Progress) -> dict:
                 distances=matrix,
                 converged=converged,
                 refinement_change=np.asarray(res.refinement_change),
+                estimate=np.asarray(res.estimate),
+                grids=np.asarray(res.grids),
                 files=np.asarray(args.files),
                 settings=json.dumps(settings),
             )
@@ -88,6 +93,9 @@ def run_distances(args, progress: Progress) -> dict:
         "pairs_converged": converged.tolist(),
         # Each pair's relative change under refinement (null: not computed).
         "refinement_change": json_floats(res.refinement_change),
+        # Each pair's levels estimate and finest grid (null: one working grid).
+        "estimate": json_floats(res.estimate),
+        "grids": np.asarray(res.grids).tolist(),
         "seconds": seconds,
         "files": files,
         "environment": environment_record(),

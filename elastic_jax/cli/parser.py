@@ -348,6 +348,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("files", nargs="+", help=SURFACE_FILES)
     _shape_options(p, modulo="rigid")
     _input_options(p)
+    _rtol_option(p, "each pair's resolved distance")
     _batch_options(p)
 
     p = command(

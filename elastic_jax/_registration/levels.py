@@ -1,0 +1,197 @@
+"""Resolved distances: levels of working grids, coarse to fine, each continuing the one
+below, until two successive distances agree within rtol (math §10).
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.typing import DTypeLike
+from jaxtyping import Array, ArrayLike
+
+from .._checks import is_concrete
+from .._errors import ConvergenceWarning, InputError
+from .._geometry.metric import SplitMetric
+from .._geometry.units import in_units
+from .._options import ShapeOptions
+from .._results import RESULTS
+from .one_grid import check_grid_options, one_grid_solve
+from .phases import Reporter
+from .records import Levels, ShapeGeodesicResult, warn_unless_converged
+from .starts import given_start
+
+
+def level_solve(
+    f1: ArrayLike,
+    f2: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    grid: tuple[int, int],
+    below: ShapeGeodesicResult | None,
+    start: object = None,
+    reporter: Reporter | None = None,
+) -> ShapeGeodesicResult:
+    """One level of a resolved distance: the solve on ``grid`` continuing the level
+    ``below`` (its registration and path, without a new start search or coarse rounds:
+    continuation_phase), or, for the first level, from ``start`` or a search of its own.
+
+    The coarser gamma's interpolant can fold between its points (the cats at 13 x 25 read
+    at 25 x 49, chain rule), and so can a fine start read on a coarse level: that level
+    then searches its own start.
+    """
+    carried = registration_at(start if below is None else below, grid, f1.dtype, modulo)
+    level = options.replace(rtol=None, grid=grid)
+    if below is not None and carried is not None:
+        carry = (*carried, below.coefficients)
+        return one_grid_solve(f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter)
+    return one_grid_solve(f1, f2, metric, modulo, level, carried, reporter=reporter)
+
+
+def levels_solve(
+    f1: ArrayLike,
+    f2: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    start: object,
+    reporter: Reporter | None = None,
+) -> ShapeGeodesicResult:
+    """shape_geodesic with ``options.rtol``: the working grids of ``options.levels`` coarse to
+    fine, each level continuing the one below (its registration and path: no new start
+    search, no coarse rounds; continuation_phase), until two successive distances agree
+    within rtol (math §10). The first level starts from ``start`` or searches its own.
+
+    The finest level's result, with ``levels`` recording every level; converged when
+    that level converged and the tolerance was met, else ``RESULTS.not_resolved`` when
+    only the tolerance was missed.
+    """
+    if not is_concrete(f1, f2, metric):
+        raise InputError(
+            "rtol (the default) refines the working grid until two levels agree: it needs "
+            "concrete inputs, not tracers; under jax.jit or jax.vmap give one working grid "
+            "(options grid=(m, n), or rtol=None for the inputs' grid)"
+        )
+    if start is not None:  # a start must be a registration on its own grid
+        try:
+            gamma = start.gamma if isinstance(start, ShapeGeodesicResult) else start[0]
+            own = tuple(np.shape(gamma)[-2:])
+        except (TypeError, IndexError, KeyError):
+            own = ()
+        if len(own) != 2:
+            own = options.levels[0]  # malformed: given_start names the problem
+        given_start(start, *own, f1.dtype, modulo == "rigid")
+    for m, n in options.levels:
+        try:
+            check_grid_options(options, m, n)
+        except InputError as error:
+            raise InputError(f"levels: the {m} x {n} level: {error}") from None
+    grids, distances, seconds = [], [], []
+    result = None
+    noise = noise_distance(f1, f2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        for index, grid in enumerate(options.levels, 1):
+            begin = time.perf_counter()
+            if reporter is not None:
+                reporter.level = {"level": index, "levels": len(options.levels)}
+            result = level_solve(f1, f2, metric, modulo, options, grid, result, start, reporter)
+            distances.append(float(jax.block_until_ready(result.distance)))
+            seconds.append(time.perf_counter() - begin)
+            grids.append(grid)
+            if reporter is not None:
+                reporter.send(
+                    stage="level",
+                    grid=tuple(grid),
+                    energy=float(result.energy),
+                    distance=distances[-1],
+                    converged=bool(result.converged),
+                )
+            change = level_change(distances, result.parametrized_distance, noise)
+            if not np.isfinite(distances[-1]) or (
+                change <= options.rtol and bool(result.converged)
+            ):
+                break  # a non-finite level (RESULTS.nonfinite) ends the levels too
+    if reporter is not None:
+        reporter.level = {}
+    result = with_levels(result, grids, distances, seconds, options.rtol, noise)
+    warn_unless_converged(result, stacklevel=4)
+    return result
+
+
+# A pair of near-equal shapes (a distance below this fraction of the pair's parametrized
+# distance) is resolved to that absolute size, not relative to its own distance: d(f, R f)
+# is zero in the continuum, and levels of a small number differ by more than 3 % of it
+# however well each is solved: such a pair is resolved to 0.05 d, absolute.
+_NEAR_EQUAL = 0.05
+
+
+def noise_distance(f1: ArrayLike, f2: ArrayLike) -> float:
+    """The distance whose energy is the rounding level at which the final phase compares
+    the registered and the given pair (sqrt(eps) in the solve's unit-size units): two
+    levels' distances that differ by less are the same minimum. Identical inputs end at
+    0 on one level and at up to this on the next, from the carried identity's
+    interpolation (a sphere of radius 2 at 13 x 25: 1e-14, 8e-15, 3.4e-5, 3.1e-4 up to
+    97 x 193, all within 4.9e-4)."""
+    units, _ = in_units(f1, f2)
+    eps = float(np.finfo(np.dtype(f1.dtype)).eps)
+    return eps**0.25 * float(units.scale)
+
+
+def level_change(
+    distances: Sequence[float], parametrized: ArrayLike = 0.0, noise: float = 0.0
+) -> float:
+    """The change of the last two levels' distances, less ``noise`` (noise_distance),
+    relative to the last, or to _NEAR_EQUAL times the parametrized distance when that is
+    larger (NaN for one level)."""
+    if len(distances) < 2:
+        return np.nan
+    d, before = float(distances[-1]), float(distances[-2])
+    scale = max(d, _NEAR_EQUAL * float(parametrized), np.finfo(np.float64).tiny)
+    return max(abs(d - before) - noise, 0.0) / scale
+
+
+def with_levels(
+    result: ShapeGeodesicResult,
+    grids: list | Array,
+    distances: Sequence[float],
+    seconds: Sequence[float],
+    rtol: float,
+    noise: float = 0.0,
+) -> ShapeGeodesicResult:
+    """``result`` (the finest level's) with its :class:`Levels` record; converged when it
+    converged and the last change met rtol, ``RESULTS.not_resolved`` when only the
+    tolerance was missed."""
+    dtype = result.distance.dtype
+    estimate = level_change(distances, result.parametrized_distance, noise)
+    met = bool(estimate <= rtol)
+    levels = Levels(
+        grids=jnp.asarray(grids, jnp.int32),
+        distances=jnp.asarray(distances, dtype),
+        seconds=jnp.asarray(seconds, dtype),
+        estimate=jnp.asarray(estimate, dtype),
+        rtol=jnp.asarray(rtol, dtype),
+    )
+    code = result.result
+    if not met and bool(result.converged):
+        code = RESULTS.not_resolved
+    return result._replace(
+        converged=jnp.asarray(bool(result.converged) and met), result=code, levels=levels
+    )
+
+
+def registration_at(start: object, grid: tuple[int, int], dtype: DTypeLike, modulo: str):
+    """A registration (a result, or gamma and R; or None) read at ``grid``'s points as
+    (gamma, R), or None where it is not a diffeomorphism there (given_start's checks)."""
+    if start is None:
+        return None
+    try:
+        gammas, rotations, _ = given_start(start, *grid, dtype, modulo == "rigid")
+    except InputError:
+        return None
+    return gammas[0], rotations[0]
