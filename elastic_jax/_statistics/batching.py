@@ -23,6 +23,7 @@ from .._geometry.grid import sphere_points
 from .._geometry.metric import SplitMetric
 from .._geometry.validation import as_surface
 from .._options import ShapeOptions, check_choice
+from .._registration.levels import level_change, noise_distance, registration_at
 from .._registration.one_grid import check_grid_options, continued_geodesic
 from .._registration.records import turned_back
 from .._registration.shape import resolve_options, shape_geodesic
@@ -431,14 +432,12 @@ def levelled_chunk(
 
     A carried registration whose interpolant folds between the next grid's points (the
     check of ``shape_geodesic(start=...)``) searches a start of its own on that level.
-    "vmap" solves each level's pairs side by side, padded to ``size``; "map" and "loop"
-    one after another through the same compiled phases (a vmapped step costs the
-    batch's size on a CPU, and a padded lax.map solves its padding).
+    "vmap" solves each level's pairs side by side, padded to ``size`` (traced: a pair
+    whose rounds end above the pair as given is not solved again from it, as a concrete
+    shape_geodesic would); "map" and "loop" one after another through shape_geodesic's
+    own compiled phases (a vmapped step costs the batch's size on a CPU, and a padded
+    lax.map solves its padding).
     """
-    # Imported here: levels.py imports nothing from the statistics floor, and this is
-    # the only caller that needs its rules from below.
-    from .._registration.levels import level_change, noise_distance, registration_at
-
     first, second = jnp.asarray(first), jnp.asarray(second)
     count = first.shape[0]
     levels = options.levels
