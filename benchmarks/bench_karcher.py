@@ -228,7 +228,9 @@ def _statistics_at(res, metric, options, coll) -> dict:
     member = ej.reparametrize(coll[1], ej.sphere_points(*grid), method="spline")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
-        lg = ej.log(mean, member, metric, modulo="rigid", options=options)
+        # On the mean's grid (rtol=None), where the mean's tangent space is.
+        at_mean = options.replace(rtol=None)
+        lg = ej.log(mean, member, metric, modulo="rigid", options=at_mean)
         shot = ej.shoot(mean, lg.velocity, metric, options=options, frames=lg.frames)
         gap = float("nan")
         if bool(shot.converged):

@@ -5,8 +5,9 @@ Rows (paper, Table 3, laptop without GPU): low 12 x 25, degree 5 / vf degree 5, 
 (505-842 s); plus the package's defaults (ShapeOptions()) at 25 x 49. Metric
 (1, 1, 0.1, 0), modulo="diff". Pairs: a synthetic one (a bumpy surface against a stretched
 copy under a random rotation of the parameter sphere, sampled exactly at every grid, so
-every row sees the same continuous surfaces) and the cats (../shared/data, 50 x 99,
-interpolated bicubically to the lower rows' grids; skipped when absent).
+every row sees the same continuous surfaces) and every pair of the four shared animals
+(cat1, cat2, horse0, hand4; ../shared/data, 50 x 99, interpolated bicubically to the
+lower rows' grids; skipped when absent), so that a slowdown on one pair shows.
 
 One JSON record per solve: compile time (first call minus a repeat), solve time, the
 distance, its refinement (halved time steps, the finer grid), converged, rounds, steps,
@@ -14,8 +15,12 @@ peak RSS. Then one record per pair: the accuracy-versus-time table, each row's d
 error against a fine reference solve (50 x 99, degree 12, vf degree 12, N = 21). The
 target: every row at least 20 x faster than the paper's fastest time for it.
 
-Run: python benchmarks/bench_shape.py [--rows low,middle,high,defaults] [--pairs synthetic,cats]
-     [--no-reference] [--dtype float64|float32]
+Run: python benchmarks/bench_shape.py [--rows low,middle,high,defaults]
+     [--pairs synthetic,animals | synthetic,cat1-horse0,...] [--no-reference]
+     [--dtype float64|float32]
+
+``--pairs``: ``synthetic``, ``animals`` (the six pairs of the four animals), ``cats``
+(cat1-cat2) or any ``a-b`` of two animals' names.
 """
 
 from __future__ import annotations
@@ -46,6 +51,20 @@ ROWS = {
     "defaults": {"grid": (25, 49), "paper_s": None},
 }
 REFERENCE = {"grid": (50, 99), "degree": 12, "vf_degree": 12, "n_times": 21}
+ANIMALS = ("cat1", "cat2", "horse0", "hand4")
+
+
+def pair_names(text: str) -> list[str]:
+    """--pairs expanded: "animals" is every pair of ANIMALS (cat1-cat2 under its
+    records' name, "cats")."""
+    names = []
+    for name in text.split(","):
+        if name == "animals":
+            every = [f"{a}-{b}" for i, a in enumerate(ANIMALS) for b in ANIMALS[i + 1 :]]
+            names += ["cats" if pair == "cat1-cat2" else pair for pair in every]
+        else:
+            names.append(name)
+    return names
 
 
 def pair(name: str, m: int, n: int):
@@ -55,14 +74,15 @@ def pair(name: str, m: int, n: int):
         h = shapes.random_rotation(11)
         moved = shapes.sample(shapes.bumpy, m, n, rotation=h)
         return shapes.sample(shapes.bumpy, m, n), jnp.einsum("i,imn->imn", stretch, moved)
-    paths = [DATA / f"cat{i}_50x99.npz" for i in (1, 2)]
+    first, second = ("cat1", "cat2") if name == "cats" else name.split("-")
+    paths = [DATA / f"{animal}_50x99.npz" for animal in (first, second)]
     if not all(p.exists() for p in paths):
         return None
     points = ej.sphere_points(m, n)
-    cats = [np.load(p)["f"] for p in paths]
+    animals = [np.load(p)["f"] for p in paths]
     if (m, n) == (50, 99):
-        return tuple(jnp.asarray(f) for f in cats)
-    return tuple(_grid(ej.reparametrize(f, points, "bicubic")) for f in cats)
+        return tuple(jnp.asarray(f) for f in animals)
+    return tuple(_grid(ej.reparametrize(f, points, "bicubic")) for f in animals)
 
 
 def _grid(f):
@@ -136,14 +156,14 @@ def solve(
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rows", default="low,middle,high,defaults")
-    parser.add_argument("--pairs", default="synthetic,cats")
+    parser.add_argument("--pairs", default="synthetic,animals")
     parser.add_argument("--no-reference", action="store_true")
     parser.add_argument("--dtype", default="float64", choices=("float64", "float32"))
     args = parser.parse_args()
     env = environment()
     emit({"benchmark": "environment", "environment": env})
     metric = ej.SplitMetric(*METRIC)
-    for name in args.pairs.split(","):
+    for name in pair_names(args.pairs):
         records = {
             row: solve(name, ROWS[row], metric, row, args.dtype) for row in args.rows.split(",")
         }

@@ -157,8 +157,8 @@ class ShapeOptions:
             distance and time and the estimate, and ``converged`` means the tolerance
             was met at a minimum. Levels compare concrete distances: under jax.jit or
             jax.vmap give ``grid`` (or rtol=None). None: one working grid.
-            karcher_mean's first solves and distance_matrix resolve by levels too;
-            fit_metric and log solve on the collection's grid and do not use rtol.
+            karcher_mean's first solves, distance_matrix, fit_metric and log (modulo
+            "diff" / "rigid") resolve by levels too.
         levels: the working grids for ``rtol``, coarse to fine (default 13 x 25,
             25 x 49, 49 x 97, 97 x 193).
 

@@ -24,6 +24,8 @@ M, N = 13, 25
 DEFAULT = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 FAST = ej.ShapeOptions(degree=3, n_times=5)
 SHAPE = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+# Resolved (rtol 0.03) on levels up to the collections' 13 x 25.
+LEVELLED = SHAPE.replace(levels=((9, 17), (13, 25)))
 
 
 def capsules(seed: int, count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -132,14 +134,15 @@ def test_bad_options_name_the_problem():
 @pytest.mark.parametrize("modulo", ["none", "rigid", "rigid-spline"])
 def test_the_fits_distances_are_the_solves(modulo):
     """The held paths' energies, combined linearly with the coefficients, are the solves'
-    own distances: the fit's distance matrix at the start equals distance_matrix's. With
+    own distances: the fit's distance matrix at the start equals distance_matrix's (modulo
+    "rigid" both resolved by levels, each pair held at its finest level). With
     spline reads the held energies must read the spline's coefficients as the solves do
     (they read the values as bicubic samples until 2026-11-27: 10.5 % off)."""
     f, labels = capsules(5, 4)
-    options = FAST if modulo == "none" else SHAPE
+    options = FAST if modulo == "none" else LEVELLED
     if modulo == "rigid-spline":
         modulo = "rigid"
-        options = SHAPE.replace(differential="chain", interpolation="spline")
+        options = LEVELLED.replace(differential="chain", interpolation="spline")
     fit = _quiet(
         lambda: ej.fit_metric(
             f,
@@ -165,6 +168,8 @@ def test_the_fits_distances_are_the_solves(modulo):
         rtol=1e-8,
         atol=1e-12,
     )
+    # Modulo "rigid" both resolve each pair by levels and hold it on the same grid.
+    np.testing.assert_array_equal(np.asarray(fit.grids), np.asarray(d.grids))
 
 
 @pytest.mark.parametrize(
@@ -190,7 +195,9 @@ def test_the_gradient_agrees_with_central_differences_of_whole_solves(modulo):
     (docs/guides/limitations.md), not the envelope derivative's error.
     """
     f, labels = (capsules if modulo == "none" else elongated)(7, 4)
-    options = FAST if modulo == "none" else SHAPE
+    # Modulo "diff" / "rigid" resolved by levels: the derivative of the resolved
+    # distances, each pair's at its finest level, against whole resolved re-solves.
+    options = FAST if modulo == "none" else LEVELLED
     options = options.replace(differential="grid", interpolation="bicubic")
     coefficients = range(4) if modulo == "none" else (1, 2)
     _assert_gradient_matches(f, labels, modulo, options, [0.3, 0.25, 0.4, 0.05], coefficients)
@@ -388,7 +395,11 @@ def test_the_animals_fit_ends_converged():
             labels.append(label)
     fit = _quiet(
         lambda: ej.fit_metric(
-            np.stack(f), labels, modulo="rigid", options=SHAPE, job=ej.JobOptions(strategy="loop")
+            np.stack(f),
+            labels,
+            modulo="rigid",
+            options=SHAPE.replace(rtol=None),  # on the collection's 13 x 25
+            job=ej.JobOptions(strategy="loop"),
         )
     )
     assert fit.converged and fit.result == ej.RESULTS.successful, ej.RESULTS.name(fit.result)

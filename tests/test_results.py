@@ -233,6 +233,7 @@ def _metric_fit():
         _f64(k, k),
         _f64(k, k),
         jnp.ones((k, k), bool),
+        jnp.full((k, k, 2), 13, jnp.int32),
         _scalar(True),
         ej.RESULTS.successful,
         _scalar(9),
@@ -307,8 +308,9 @@ def _records():
                 _scalar(30),
                 _f64(2, 2, 3, 11, 24),
                 _f64(5, 2, 3, 11, 24),
+                surface,
             ),
-            ["path=f64[5,3,13,25]", "distance=0.5123", "frames=f64[2,2,3,11,24]"],
+            ["path=f64[5,3,13,25]", "distance=0.5123", "frames=f64[2,2,3,11,24]", "levels=None"],
         ),
         "SrnfInversion": (
             ej.SrnfInversion(

@@ -121,13 +121,16 @@ def test_a_chain_rule_log_shoots_back_from_its_own_frames():
     f1 = shapes.sample(shapes.ellipsoid, M, N_GRID)
     f2 = shapes.sample(shapes.bumpy, M, N_GRID, rotation=shapes.random_rotation(4))
     # tests/test_levels.py's options: the solve's compiled phases are shared.
+    # On one grid (rtol=None): the log lives at f1 itself.
     options = ej.ShapeOptions(
-        degree=4, vf_degree=4, n_times=5, differential="chain", interpolation="spline"
+        degree=4, vf_degree=4, n_times=5, differential="chain", interpolation="spline", rtol=None
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)  # the registration rounds
         lg = log(f1, f2, METRIC, modulo="rigid", options=options)
     assert float(jnp.max(jnp.abs(lg.path[0] - f1))) == 0.0
+    assert float(jnp.max(jnp.abs(lg.base - f1))) == 0.0
+    assert lg.levels is None
     shot = shoot(f1, lg.velocity, METRIC, frames=lg.frames, options=options)
     errors = [relative(a, b) for a, b in zip(shot.path, lg.path, strict=True)]
     print("node errors", np.array(errors), float(lg.distance))
@@ -137,6 +140,57 @@ def test_a_chain_rule_log_shoots_back_from_its_own_frames():
     assert abs(float(jnp.mean(shot.speeds)) - float(lg.distance)) <= 1e-2 * float(lg.distance)
     plain = shoot(f1, lg.velocity, METRIC, options=options)
     assert relative(plain.endpoint, lg.target) >= 1e-4
+
+
+@pytest.mark.slow  # about 150 s on 2 cores: two levels' programs compile
+def test_a_resolved_log_lives_on_its_finest_grid_and_shoots_back():
+    """At rtol the log's registration is shape_geodesic's resolved one (same levels,
+    same distance) and the log lives on the finest level's grid: at ``base``, f1 read
+    there. Spheres of radii 1 (given at 25 x 49) and 2 (13 x 25, turned), levels 9 x 17
+    and 13 x 25: shot from ``base`` with the log's frames, the path comes back node by
+    node, and the distance is within 3 % of the closed form sqrt(8 pi)."""
+    f1 = shapes.sample(shapes.sphere, 25, 49, radius=1.0)
+    f2 = shapes.sample(shapes.sphere, 13, 25, radius=2.0, rotation=shapes.random_rotation(3))
+    options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5, levels=((9, 17), (13, 25)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ej.ConvergenceWarning)
+        lg = log(f1, f2, METRIC, modulo="rigid", options=options)
+        res = ej.shape_geodesic(f2, f1, METRIC, modulo="rigid", options=options)
+    assert np.asarray(lg.levels.grids).tolist() == np.asarray(res.levels.grids).tolist()
+    assert np.asarray(lg.levels.grids)[-1].tolist() == [13, 25]
+    assert float(lg.distance) == pytest.approx(float(res.distance), rel=1e-10)
+    assert float(lg.levels.estimate) <= 0.03 and bool(lg.converged)
+    assert lg.base.shape == lg.velocity.shape == lg.target.shape == (3, 13, 25)
+    assert float(jnp.max(jnp.abs(lg.path[0] - lg.base))) == 0.0
+    # The base is f1's interpolant read at 13 x 25: the sphere there, to the read's error.
+    assert relative(lg.base, shapes.sample(shapes.sphere, 13, 25, radius=1.0)) <= 1e-3
+    closed = float(np.sqrt(8 * np.pi))
+    assert abs(float(lg.distance) - closed) <= 0.03 * closed
+    shot = shoot(lg.base, lg.velocity, METRIC, frames=lg.frames, options=options)
+    errors = [relative(a, b) for a, b in zip(shot.path, lg.path, strict=True)]
+    print("resolved log: node errors", np.array(errors), float(lg.distance), closed)
+    assert max(errors) <= 1e-6
+
+
+@pytest.mark.slow
+def test_a_resolved_log_of_the_shared_cats_shoots_back_to_its_target():
+    """cat1 -> cat2 as given (50 x 99), modulo rigid, resolved by levels up to 49 x 97:
+    the log, shot from its base with its frames, reaches its target within 1 % of the
+    distance (the distance between the shot's endpoint and the target, a parametrized
+    geodesic on the finest grid)."""
+    from .conftest import load_shape
+
+    cat1, cat2 = load_shape("cat1"), load_shape("cat2")
+    options = ej.ShapeOptions(levels=((13, 25), (25, 49), (49, 97)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        lg = log(cat1, cat2, METRIC, modulo="rigid", options=options)
+        shot = shoot(lg.base, lg.velocity, METRIC, options=options, frames=lg.frames)
+        gap = ej.geodesic(shot.endpoint, lg.target, METRIC, options=options).distance
+    grid = tuple(np.asarray(lg.levels.grids)[-1])
+    print("levels", np.asarray(lg.levels.distances), "gap / distance", float(gap / lg.distance))
+    assert lg.base.shape[-2:] == grid and grid != cat1.shape[-2:]
+    assert bool(shot.converged) and float(gap) <= 0.01 * float(lg.distance)
 
 
 @pytest.mark.slow
@@ -170,7 +224,13 @@ def test_log_modulo_diff_lives_at_f1_and_shoots_back():
     # The bumpy shape seen through a rotation of the parameter sphere: a reparametrization.
     f2 = shapes.sample(shapes.bumpy, M, N_GRID, rotation=shapes.random_rotation(4))
     options = ej.ShapeOptions(
-        degree=DEGREE, vf_degree=3, n_times=N_TIMES, tol=1e-7, refinement=False, outer_steps=3
+        degree=DEGREE,
+        vf_degree=3,
+        n_times=N_TIMES,
+        tol=1e-7,
+        refinement=False,
+        outer_steps=3,
+        rtol=None,
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)  # the registration rounds
@@ -210,7 +270,7 @@ def test_exp_of_log_and_transport_on_the_shared_animals():
     cat1, cat2, horse0 = (
         ej.reparametrize(load_shape(k), grid, method="spline") for k in ("cat1", "cat2", "horse0")
     )
-    options = ej.ShapeOptions()
+    options = ej.ShapeOptions(rtol=None)  # on the inputs' grid: both logs at cat1 itself
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
         logs = [log(cat1, f2, METRIC, modulo="rigid", options=options) for f2 in (cat2, horse0)]

@@ -356,7 +356,9 @@ def parallel_transport(
 
     Transfer (a deformation f0 -> f1 carried to g0 and shot; docs/guides/shooting.md)::
 
-        a, b = log(f0, f1, metric, modulo=m), log(f0, g0, metric, modulo=m)
+        # Both on f0's grid (rtol=None): a resolved log lives on its finest level's.
+        a = log(f0, f1, metric, modulo=m, rtol=None)
+        b = log(f0, g0, metric, modulo=m, rtol=None)
         tr = parallel_transport(a.velocity, b.path, metric, path_frames=b.path_frames,
                                 w_frame=a.frames[1])
         g1 = shoot(b.target, tr.vector, metric,

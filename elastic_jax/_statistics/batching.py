@@ -335,7 +335,20 @@ def registered_chunk(
 
     starts: None (the start search, or the straight line for modulo="none"), or
     (gammas (b, 3, m, n), rotations (b, 3, 3), coefficients (b, N - 2, L)) to start from.
+
+    Without starts and with ``options.resolves`` (modulo "diff" / "rigid") the pairs are
+    resolved by levels (:func:`levelled_chunk`): gamma is then a list, each pair's on the
+    finest grid it reached. With starts the pairs continue on the starts' grid (a
+    resolved pair's finest level's, or the pairs' own).
     """
+    if modulo != "none" and starts is None and options.resolves:
+        out = levelled_chunk(first, second, metric, modulo, options, strategy, size)
+        fields = (out.distance, out.converged, out.result, out.num_steps)
+        return (*fields, list(out.gamma), out.rotation, out.coefficients)
+    if modulo != "none" and starts is not None:
+        grid = tuple(np.shape(starts[0])[-2:])
+        if options.resolves or grid != tuple(np.shape(first)[-2:]):
+            options = options.replace(grid=grid, rtol=None)
     batch = (first, second) if starts is None else (first, second, *starts)
 
     def batch_call(batch: tuple, mode: str):
@@ -422,6 +435,7 @@ def levelled_chunk(
     options: ShapeOptions,
     strategy: str,
     size: int,
+    report: Callable[[int, dict], None] | None = None,
 ) -> LevelledPairs:
     """The pairs (first[i], second[i]) by levels of working grids, all at once: the
     first level of ``options.levels`` searches each pair's start, every later level
@@ -437,6 +451,10 @@ def levelled_chunk(
     shape_geodesic would); "map" and "loop" one after another through shape_geodesic's
     own compiled phases (a vmapped step costs the batch's size on a CPU, and a padded
     lax.map solves its padding).
+
+    ``report(i, info)``: after each level, for each pair i solved on it, as
+    shape_geodesic's progress reports a level (``stage`` "level", ``level`` and
+    ``levels`` counted from 1, ``grid``, ``distance``, ``converged``).
     """
     first, second = jnp.asarray(first), jnp.asarray(second)
     count = first.shape[0]
@@ -512,6 +530,17 @@ def levelled_chunk(
                 out["grid"][i] = grid
                 gammas[i], rotations[i], coefficients[i] = g[k], r[k], c[k]
                 parametrized[i] = par[k]
+                if report is not None:
+                    info = {"level": index + 1, "levels": len(levels), "grid": tuple(grid)}
+                    report(
+                        i,
+                        {
+                            "stage": "level",
+                            **info,
+                            "distance": float(d[k]),
+                            "converged": bool(ok[k]),
+                        },
+                    )
         still = []
         for i in going:
             distances = out["level_distances"][i, : index + 1]

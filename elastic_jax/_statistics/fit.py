@@ -11,6 +11,11 @@ coefficients (the held paths' energies, cheap to evaluate for any w). The fit is
 region method on that model: minimize the model within a box around the coefficients,
 solve the pairs again there (warm-started from the held solutions), accept the step if the
 objective went down, and adjust the box by how well the model predicted it.
+
+Resolved distances (the solves' ``rtol``, math §10): the first solve resolves each pair by
+levels of working grids; the held registration and path of a pair are those of its finest
+level, and every later solve continues them on that grid. So the gradient is the envelope
+derivative of the resolved distances, each at its own finest level.
 """
 
 from __future__ import annotations
@@ -77,6 +82,8 @@ class MetricFit(NamedTuple):
         distances: ``(K, K)`` the distance matrix at ``metric``.
         distances_before: ``(K, K)`` the distance matrix at ``initial_metric``.
         pairs_converged: ``(K, K)`` bool, each pair's solve at ``metric`` (diagonal True).
+        grids: ``(K, K, 2)`` the working grid each pair is solved on (its finest level's
+            when resolved, else the collection's; 0 on the diagonal).
         converged: ``()`` grad_norm <= tol.
         result: ``successful``, ``nonlinear_max_steps_reached`` (max_steps ran out) or
             ``stalled`` (the trust region shrank below 1e-3 without a lower objective).
@@ -94,6 +101,7 @@ class MetricFit(NamedTuple):
     distances: Float[Array, "K K"]
     distances_before: Float[Array, "K K"]
     pairs_converged: Bool[Array, "K K"]
+    grids: Int[Array, "K K 2"]
     converged: Bool[Array, ""]
     result: RESULTS
     num_steps: Int[Array, ""]
@@ -222,15 +230,13 @@ def energy_parts(first, second, gammas, rotations, coefficients, bases, *, optio
     return jax.vmap(one)(first, second, gammas, rotations, coefficients)
 
 
-# The held solutions' names in a checkpoint.
-_STARTS = ("gammas", "rotations", "coefficients")
-
-
 class _Held(NamedTuple):
     """One batched solve of all pairs at a metric: what the model holds."""
 
     parts: np.ndarray  # (P, 4)
-    starts: tuple  # (gammas, rotations, coefficients), each with leading axis P
+    # (gammas, rotations, coefficients), each a list of P arrays: a resolved pair's
+    # gamma is on the grid of its finest level, which differs between pairs.
+    starts: tuple
     converged: np.ndarray  # (P,)
 
 
@@ -280,9 +286,11 @@ def fit_metric(
         labels: ``(K,)`` class ids (at least two classes, two shapes in each); or
         targets: ``(K, K)`` symmetric, non-negative dissimilarities (diagonal unused).
         modulo: ``"rigid"``, ``"diff"`` or ``"none"`` (parametrized geodesics).
-        options: the solves' :class:`ShapeOptions` (its defaults when None). The pairs
-            are solved on the collection's own grid, as in :func:`distance_matrix`: the
-            record's ``rtol`` and ``levels`` are not used (rtol is set to None).
+        options: the solves' :class:`ShapeOptions` (its defaults when None). As in
+            :func:`distance_matrix`: modulo "diff" / "rigid" with ``rtol`` (the default)
+            resolves each pair by levels at the first solve, and the steps continue each
+            pair on its finest level's grid; ``rtol=None`` (or ``grid`` the collection's)
+            solves on the collection's grid, as modulo "none" always does.
         init: the metric to start from (default ``SplitMetric(1, 1, 0.1, 0)``).
         objective: ``"nca"`` or ``"stress"``; default: the one the data given calls for.
         learn: which coefficients move, a string of at least two of ``"abcd"``.
@@ -309,7 +317,9 @@ def fit_metric(
             symmetric, finite and non-negative, ``learn`` not two or more of "abcd".
     """
     job = check_job(job)
-    shapes, options = check_collection(shapes, options, modulo)
+    shapes, options = check_collection(shapes, options, modulo, levels=modulo != "none")
+    if modulo == "none":
+        options = options.replace(rtol=None)
     k = shapes.shape[0]
     if k < 3:
         raise InputError(f"fit_metric needs at least 3 shapes; got {k}")
@@ -362,7 +372,7 @@ def fit_metric(
         strategy,
         chunk,
         min(chunk or rows.size, rows.size),
-        _evaluation_bases(shapes.shape[-2:], options, modulo, dtype),
+        {},
     )
     fit = _FitJob(
         data,
@@ -390,7 +400,13 @@ class _Solves(NamedTuple):
     strategy: str
     chunk: int | None
     size: int
-    bases: object
+    bases: dict  # energy_parts' bases by working grid, filled as grids come
+
+    def bases_at(self, grid: tuple[int, int]):
+        if grid not in self.bases:
+            dtype = self.shapes.dtype
+            self.bases[grid] = _evaluation_bases(grid, self.options, self.modulo, dtype)
+        return self.bases[grid]
 
 
 class _FitState(NamedTuple):
@@ -448,11 +464,7 @@ class _FitJob(NamedTuple):
 
     def restore(self, saved: dict) -> _FitState:
         dtype = self.theta0.dtype
-        held = _Held(
-            saved["parts"],
-            tuple(jnp.asarray(saved[k], dtype) for k in _STARTS),
-            saved["converged"],
-        )
+        held = _Held(saved["parts"], _restored_starts(saved, dtype), saved["converged"])
         before = _Held(saved["before_parts"], (), saved["before_converged"])
         return _FitState(
             jnp.asarray(saved["theta"], dtype),
@@ -542,7 +554,7 @@ class _FitJob(NamedTuple):
             "converged": state.held.converged,
             "before_parts": state.before.parts,
             "before_converged": state.before.converged,
-            **{k: np.asarray(x) for k, x in zip(_STARTS, state.held.starts, strict=True)},
+            **_saved_starts(state.held.starts),
         }
 
     def result(self, state: _FitState, code: str) -> MetricFit:
@@ -557,6 +569,8 @@ class _FitJob(NamedTuple):
 
         pairs_ok = np.ones((self.k, self.k), bool)
         pairs_ok[rows, cols] = pairs_ok[cols, rows] = state.held.converged
+        grids = np.zeros((self.k, self.k, 2), np.int32)
+        grids[rows, cols] = grids[cols, rows] = [g.shape[-2:] for g in state.held.starts[0]]
         history = np.full(max(max_steps, state.steps) + 1, np.nan)
         history[: len(state.history)] = state.history
         return MetricFit(
@@ -576,6 +590,7 @@ class _FitJob(NamedTuple):
             distances=matrix(state.held, state.theta),
             distances_before=matrix(state.before, theta0),
             pairs_converged=jnp.asarray(pairs_ok),
+            grids=jnp.asarray(grids),
             converged=jnp.asarray(result == RESULTS.successful),
             result=result,
             num_steps=jnp.asarray(state.steps),
@@ -622,34 +637,90 @@ def _evaluation_bases(grid, options: ShapeOptions, modulo: str, dtype):
     return make_bases(m, n, options, dtype)
 
 
+def _saved_starts(starts: tuple) -> dict:
+    """The held solutions as a checkpoint's arrays: the gammas (each on its pair's grid)
+    raveled into one, with their grids beside them."""
+    gammas, rotations, coefficients = starts
+    return {
+        "gammas": np.concatenate([np.asarray(g).ravel() for g in gammas]),
+        "gamma_grids": np.asarray([g.shape[-2:] for g in gammas], np.int64),
+        "rotations": np.stack([np.asarray(r) for r in rotations]),
+        "coefficients": np.stack([np.asarray(c) for c in coefficients]),
+    }
+
+
+def _restored_starts(saved: dict, dtype) -> tuple:
+    """:func:`_saved_starts` read back: three lists of per-pair arrays."""
+    flat = np.asarray(saved["gammas"])
+    if "gamma_grids" not in saved:  # written before resolved fits: all on one grid
+        grids = np.tile(flat.shape[-2:], (flat.shape[0], 1))
+    else:
+        grids = np.asarray(saved["gamma_grids"])
+    flat = flat.ravel()
+    ends = np.cumsum([3 * m * n for m, n in grids])
+    pieces = np.split(flat, ends[:-1])
+    gammas = [
+        jnp.asarray(x.reshape(3, m, n), dtype) for x, (m, n) in zip(pieces, grids, strict=True)
+    ]
+    return (
+        gammas,
+        [jnp.asarray(r, dtype) for r in saved["rotations"]],
+        [jnp.asarray(c, dtype) for c in saved["coefficients"]],
+    )
+
+
+def _by_grid(gammas: list) -> list[np.ndarray]:
+    """The pairs' indices grouped by the grid their gamma is on (coarse to fine)."""
+    grids = [tuple(g.shape[-2:]) for g in gammas]
+    return [np.flatnonzero([g == grid for g in grids]) for grid in sorted(set(grids))]
+
+
 def _solve_pairs(metric, starts, solves: _Solves, pool=None) -> _Held:
     """All pairs solved at ``metric`` (from ``starts`` when given) and their energy parts;
-    on the pool's workers when there is one (the parts are computed here)."""
+    on the pool's workers when there is one (the parts are computed here).
+
+    Without starts a resolved solve (``options.rtol``) takes each pair through the levels;
+    with starts the pairs continue on their starts' grids, one group per grid."""
     shapes, modulo, options = solves.shapes, solves.modulo, solves.options
     rows, cols = np.triu_indices(shapes.shape[0], 1)
-    chunks = chunk_bounds(rows.size, solves.chunk)
+    count = rows.size
+    groups = [np.arange(count)] if starts is None else _by_grid(starts[0])
     settings = (metric, modulo, options, solves.strategy, solves.size)
-    if pool is not None:
-        outs = pool.solved_pairs(registered_chunk, rows, cols, chunks, solves.size, metric, starts)
-    else:
-        outs = [
-            registered_chunk(
-                shapes[rows[a:b]],
-                shapes[cols[a:b]],
-                *settings,
-                None if starts is None else tuple(x[a:b] for x in starts),
+    gammas, rotations, coefficients = [None] * count, [None] * count, [None] * count
+    converged = np.zeros(count, bool)
+    for group in groups:
+        given = None if starts is None else tuple(jnp.stack([x[i] for i in group]) for x in starts)
+        chunks = chunk_bounds(group.size, solves.chunk)
+        if pool is not None:
+            outs = pool.solved_pairs(
+                registered_chunk, rows[group], cols[group], chunks, solves.size, metric, given
             )
-            for a, b in chunks
-        ]
-    parts, solutions, converged = [], [], []
-    for (a, b), out in zip(chunks, outs, strict=True):
-        _, ok, _, _, gamma, rotation, c = (jnp.asarray(x) for x in out)
-        # Every chunk padded to the solves' batch size: one compiled energy_parts.
-        pad = np.minimum(np.arange(solves.size), b - a - 1)
-        held = (shapes[rows[a:b][pad]], shapes[cols[a:b][pad]], gamma[pad], rotation[pad], c[pad])
-        energies = energy_parts(*held, solves.bases, options=options, modulo=modulo)
-        parts.append(np.asarray(energies)[: b - a])
-        solutions.append((gamma, rotation, c))
-        converged.append(np.asarray(ok))
-    starts = tuple(jnp.concatenate(x) for x in zip(*solutions, strict=True))
-    return _Held(np.concatenate(parts), starts, np.concatenate(converged))
+        else:
+            outs = [
+                registered_chunk(
+                    shapes[rows[group[a:b]]],
+                    shapes[cols[group[a:b]]],
+                    *settings,
+                    None if given is None else tuple(x[a:b] for x in given),
+                )
+                for a, b in chunks
+            ]
+        for (a, b), out in zip(chunks, outs, strict=True):
+            _, ok, _, _, gamma, rotation, c = out
+            for k, i in enumerate(group[a:b]):
+                gammas[i], rotations[i] = jnp.asarray(gamma[k]), jnp.asarray(rotation[k])
+                coefficients[i], converged[i] = jnp.asarray(c[k]), bool(ok[k])
+    parts = np.zeros((count, 4))
+    for group in _by_grid(gammas):
+        bases = solves.bases_at(tuple(gammas[group[0]].shape[-2:]))
+        for a, b in chunk_bounds(group.size, solves.size):
+            # Every chunk padded to the solves' batch size: one compiled energy_parts a grid.
+            chosen = group[a:b][np.minimum(np.arange(solves.size), b - a - 1)]
+            held = (
+                shapes[rows[chosen]],
+                shapes[cols[chosen]],
+                *(jnp.stack([x[i] for i in chosen]) for x in (gammas, rotations, coefficients)),
+            )
+            energies = energy_parts(*held, bases, options=options, modulo=modulo)
+            parts[group[a:b]] = np.asarray(energies)[: b - a]
+    return _Held(parts, (gammas, rotations, coefficients), converged)

@@ -37,6 +37,7 @@ from .batching import (
     chunk_bounds,
     default_chunk,
     job_settings,
+    levelled_chunk,
     velocity_chunk,
 )
 from .checkpoints import fingerprint_of
@@ -282,7 +283,16 @@ class _KarcherJob(NamedTuple):
                     sink.report({**info, "step": 0, "shape": k, "shapes": self.count})
 
             mean, working, starts, levels = _resolved_start(
-                self.shapes, mean, self.metric, self.modulo, self.options, saved, sink.save, report
+                self.shapes,
+                mean,
+                self.metric,
+                self.modulo,
+                self.options,
+                saved,
+                sink.save,
+                report,
+                self.strategy,
+                self.chunks,
             )
         elif self.warm_start:  # the identity registration
             m, n = self.shapes.shape[-2:]
@@ -422,43 +432,61 @@ class _KarcherJob(NamedTuple):
 
 
 def _resolved_start(
-    shapes, mean, metric, modulo, options: ShapeOptions, saved=None, keep=None, report=None
+    shapes,
+    mean,
+    metric,
+    modulo,
+    options: ShapeOptions,
+    saved=None,
+    keep=None,
+    report=None,
+    strategy: str = "loop",
+    chunks: tuple = (),
 ):
     """Step 0 of a resolved mean: every shape's distance to the starting mean by levels
-    (shape_geodesic with ``options.rtol``, math §10), and the working grid the mean is
-    then solved on, the finest grid any shape needed.
+    (math §10: :func:`levelled_chunk`, chunk by chunk, the distances shape_geodesic with
+    ``options.rtol`` gives), and the working grid the mean is then solved on, the finest
+    grid any shape needed.
 
     Returns the starting mean read there (its interpolant at that grid's points, as the
     solves read it), the options of that one grid, each shape's registration and path
     there (gamma, R, C: the first continuations' starts) and the ``(K, L)`` level
     distances. A registration from a coarser level whose interpolant folds at that grid
     is replaced by a search there. ``saved``: the shapes finished before (a checkpoint's
-    ``first_*`` arrays); ``keep(arrays)`` is called after each new one with all so far;
-    ``report(k, info)`` with shape k's ``shape_geodesic`` progress dicts.
+    ``first_*`` arrays); ``keep(arrays)`` is called after each chunk with all so far;
+    ``report(k, info)`` after each level of shape k (shape_geodesic's level report).
+    ``chunks``: (a, b) bounds of the shapes' chunks (default: all at once).
     """
     finished = {} if saved is None else {k: v for k, v in saved.items() if k.startswith("first_")}
-    for k, shape in enumerate(shapes):
-        if f"first_levels_{k}" in finished:
+    count = len(shapes)
+    for a, b in chunks or ((0, count),):
+        todo = [k for k in range(a, b) if f"first_levels_{k}" not in finished]
+        if not todo:
             continue
+        told = None if report is None else (lambda i, info, todo=todo: report(todo[i], info))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
-            told = None if report is None else functools.partial(report, k)
-            r = shape_geodesic(shape, mean, metric, modulo=modulo, options=options, progress=told)
-        row = np.full(len(options.levels), np.nan)
-        grids = np.asarray(r.levels.grids).tolist()
-        for g, d in zip(grids, np.asarray(r.levels.distances).tolist(), strict=True):
-            row[options.levels.index(tuple(g))] = d
-        finished.update(
-            {
-                f"first_gamma_{k}": np.asarray(r.gamma),
-                f"first_rotation_{k}": np.asarray(r.rotation),
-                f"first_coefficients_{k}": np.asarray(r.coefficients),
-                f"first_levels_{k}": row,
-            }
-        )
+            out = levelled_chunk(
+                shapes[np.asarray(todo)],
+                jnp.broadcast_to(mean, (len(todo), *mean.shape)),
+                metric,
+                modulo,
+                options,
+                strategy,
+                b - a,
+                report=told,
+            )
+        for i, k in enumerate(todo):
+            finished.update(
+                {
+                    f"first_gamma_{k}": np.asarray(out.gamma[i]),
+                    f"first_rotation_{k}": np.asarray(out.rotation[i]),
+                    f"first_coefficients_{k}": np.asarray(out.coefficients[i]),
+                    f"first_levels_{k}": np.asarray(out.level_distances[i]),
+                }
+            )
         if keep is not None:
             keep(finished)
-    count = len(shapes)
     grid = max(
         (finished[f"first_gamma_{k}"].shape[-2:] for k in range(count)),
         key=lambda g: g[0] * g[1],
@@ -573,13 +601,13 @@ def karcher_mean(
             (default all in process; on a cluster one for "loop", all for "vmap", 8 for
             "map"). The checkpoint is written after the first solves and after every
             accepted step (the mean and its geodesics), for a resolved mean also after
-            each shape's first, levelled solve; a resume is refused if it belongs to
-            other inputs. ``progress`` hears after the first solves (step 0) and after
-            each accepted step: step, sum_sq_distances, mean_velocity_norm, step_size,
-            num_solves, seconds; a resolved mean's first, levelled solves also report as
-            they go: :func:`shape_geodesic`'s dicts (stage, level, levels, grid, energy;
-            distance and converged when a level ends) with step 0, shape (its index),
-            shapes (K) and seconds. On a cluster each step's chunks run as tasks on its
+            each chunk of first, levelled solves (a chunk's shapes go through the levels
+            together); a resume is refused if it belongs to other inputs. ``progress``
+            hears after the first solves (step 0) and after each accepted step: step,
+            sum_sq_distances, mean_velocity_norm, step_size, num_solves, seconds; a
+            resolved mean's first, levelled solves also report each shape's levels as
+            they end (stage "level", level, levels, grid, distance, converged) with
+            step 0, shape (its index), shapes (K) and seconds. On a cluster each step's chunks run as tasks on its
             workers (a resolved mean's first, levelled solves run in this process); the
             numbers equal the in-process ones.
 

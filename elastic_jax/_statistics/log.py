@@ -18,11 +18,18 @@ from .._errors import InputError
 from .._geodesics.geodesic import GeodesicResult, geodesic
 from .._geodesics.shooting import check_scheme
 from .._geometry.differential import interior_frame
+from .._geometry.grid import sphere_points
 from .._geometry.metric import SplitMetric
 from .._geometry.validation import check_pair
 from .._options import ShapeOptions
-from .._registration.problem import make_bases, make_problem, path_frames_at, rotate_surface
-from .._registration.records import turned_back
+from .._registration.problem import (
+    make_bases,
+    make_problem,
+    on_grid,
+    path_frames_at,
+    rotate_surface,
+)
+from .._registration.records import Levels, turned_back
 from .._registration.shape import resolve_options, shape_geodesic
 from .._results import RESULTS, status_record
 
@@ -31,13 +38,16 @@ from .._results import RESULTS, status_record
 class LogResult(NamedTuple):
     """The initial velocity of the geodesic from f1 to (the registered) f2.
 
+    Every surface of the record is on the solve's working grid (m, n): f1's own grid
+    on one grid, the finest level's grid when the registration was resolved by levels.
+
     Attributes:
-        velocity: ``(3, m, n)`` T (f_1 - f_0) of the geodesic's path: shooting it from f1
-            with the same degree, N and scheme gives that path back.
+        velocity: ``(3, m, n)`` T (f_1 - f_0) of the geodesic's path: shooting it from
+            ``base`` with the same degree, N and scheme gives that path back.
         target: ``(3, m, n)`` the surface the velocity reaches: f2 for modulo="none",
             R^T (f2 o gamma) otherwise: f2 reparametrized and turned onto f1.
         distance: ``()`` the geodesic distance.
-        path: ``(N, 3, m, n)`` the geodesic from f1 to ``target``.
+        path: ``(N, 3, m, n)`` the geodesic from ``base`` to ``target``.
         converged: ``()`` the geodesic solve's own convergence.
         result: that solve's result code (``elastic_jax.RESULTS``).
         num_steps: ``()`` that solve's steps.
@@ -51,6 +61,10 @@ class LogResult(NamedTuple):
             interior points as the solve took them (``path_frames[0]`` is
             ``frames[0]``): the path as the solve saw it, for
             :func:`parallel_transport`'s ``path_frames``.
+        base: ``(3, m, n)`` the point the velocity is tangent at: f1 itself on f1's
+            grid, else f1's interpolant read at the working grid's points (math §10).
+        levels: the registration's :class:`Levels` when it was resolved by levels
+            (modulo "diff" / "rigid" with ``rtol``), else None.
     """
 
     velocity: Float[Array, "3 m n"]
@@ -62,6 +76,8 @@ class LogResult(NamedTuple):
     num_steps: Int[Array, ""]
     frames: Float[Array, "2 2 3 m-2 n-1"]
     path_frames: Float[Array, "N 2 3 m-2 n-1"]
+    base: Float[Array, "3 m n"]
+    levels: Levels | None = None
 
 
 def log(
@@ -80,14 +96,21 @@ def log(
     modulo="diff" / "rigid": :func:`shape_geodesic` from f2 to f1 (it reparametrizes its
     first surface and turns its second), the path reversed and turned back by R^T so that
     it starts at f1 as given: v is a tangent vector at f1 itself (as for a Karcher mean's
-    tangent space) and ``target`` the registered f2. The midpoint energy is symmetric
-    under reversal, so the reversed path is again a discrete geodesic. Under
+    tangent space) and ``target`` the registered f2. With ``options.rtol`` (the default)
+    the registration is resolved by levels of working grids, as :func:`shape_geodesic`
+    resolves it (math §10), and the log lives on the finest level's grid: at ``base``,
+    f1 read at that grid (``levels`` records the levels). ``grid=(m, n)`` or
+    ``rtol=None`` (the inputs' grid, the finer of two) solve on one grid; logs that are to
+    share a grid (a transfer, a tangent space's statistics) are asked for on one. The
+    midpoint energy is symmetric under reversal, so the reversed path is again a discrete
+    geodesic. Under
     ``differential="chain"`` the solve's path is given by its nodes' differentials, of
     which the ends' are not the grid differences of the ends: shoot with
     ``frames=result.frames`` to follow it.
 
     Args:
-        f1, f2: ``(3, m, n)`` immersions on one grid.
+        f1, f2: ``(3, m, n)`` immersions on one grid; modulo "diff" / "rigid" each on a
+            grid of its own, as in :func:`shape_geodesic`.
         metric: the split metric coefficients.
         modulo: ``"none"``, ``"diff"`` or ``"rigid"``.
         options: :class:`ShapeOptions` (degree, n_times, scheme, ... and the registration;
@@ -104,11 +127,11 @@ def log(
     """
 
     check_choice("modulo", modulo, ("none", "diff", "rigid"))
-    # On the inputs' grid, not by levels: the log's velocity and frames live there.
-    options = resolve_options(options, changes, "log").replace(rtol=None)
+    options = resolve_options(options, changes, "log")
     check_scheme(options.scheme)
-    f1, f2 = check_pair(f1, f2)
-    solve_frames = None
+    # A registered log reads each input through its interpolant: any two grids.
+    f1, f2 = check_pair(f1, f2, same_grid=modulo == "none")
+    solve_frames, base, levels = None, f1, None
     if modulo == "none":
         res: GeodesicResult = geodesic(f1, f2, metric, **options.geodesic_kwargs())
         path = res.path
@@ -119,7 +142,12 @@ def log(
                 "from f2 to f1 and is reversed, and only the midpoint energy is symmetric"
             )
         res = shape_geodesic(f2, f1, metric, modulo=modulo, options=options)
-        path = turned_back(res, f1)[::-1].at[0].set(f1)
+        levels = res.levels
+        m, n = res.path.shape[-2:]
+        base = on_grid(f1, sphere_points(m, n, f1.dtype), options.interpolation)
+        # The solve's last node is R (f1 read at the working grid, centred modulo
+        # "rigid"): turned back and moved onto ``base`` it is ``base`` but for rounding.
+        path = turned_back(res, base)[::-1].at[0].set(base)
         if options.differential == "chain":
             # The bases without the finer grid's (refinement): a static resolved.
             resolved = options.replace(refinement=False, rtol=None, grid=None)
@@ -138,6 +166,8 @@ def log(
         num_steps=res.num_steps,
         frames=jnp.stack([solve_frames[0], t * (solve_frames[1] - solve_frames[0])]),
         path_frames=solve_frames,
+        base=base,
+        levels=levels,
     )
 
 

@@ -224,8 +224,8 @@ def shape_options_from(args) -> ShapeOptions:
     A bad value is BadInput naming the flag, e.g. ``--times 2: n_times must be ...``.
     """
     values = {field: getattr(args, dest) for field, (dest, _) in SHAPE_FLAGS.items()}
-    # --rtol is shape-geodesic's, karcher's and distances': the other collections are
-    # solved on their own grid (rtol None, which is what they use).
+    # --rtol is the commands' that resolve by levels; the others solve on one grid
+    # (rtol None, which is what they use).
     values["rtol"] = getattr(args, "rtol", None)
     try:
         return ShapeOptions(**values)

@@ -373,6 +373,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _shape_options(p, modulo="rigid", moduli=("rigid", "diff", "none"))
     _input_options(p)
+    _rtol_option(p, "each pair's resolved distance at the first solve (the steps continue it)")
     _batch_options(p)
     p.add_argument("--learn", default="abc", help="the coefficients that move (of abcd)")
     p.add_argument(
