@@ -18,13 +18,16 @@ from .._results import RESULTS
 
 class Minimum(NamedTuple):
     """What a solve returns: the minimizer, its result code, step count, and the gradient
-    norm and value there (the solver's own evaluations)."""
+    norm and value there (the solver's own evaluations); for bfgs also its inverse
+    Hessian approximation at the end (a lineax operator; None for lbfgs), which a later
+    solve of a nearby problem may start from (``inverse0``)."""
 
     x: Array
     result: RESULTS
     num_steps: Array
     grad_norm: Array
     value: Array
+    inverse: object = None
 
 
 def _jaxopt():
@@ -45,10 +48,20 @@ class _GradientBFGS(optx.BFGS):
     level, rtol = atol = 100 eps, so that a solve that cannot move stops there)."""
 
     gtol: float | Array  # traced when one compiled solve serves several tolerances
+    # The inverse Hessian approximation to start from (another solve's ``Minimum.inverse``
+    # on variables of the same structure); None: optimistix's identity.
+    inverse0: object
 
-    def __init__(self, gtol: float | Array, rounding: float):
+    def __init__(self, gtol: float | Array, rounding: float, inverse0: object = None):
         super().__init__(rtol=rounding, atol=rounding)
         self.gtol = gtol
+        self.inverse0 = inverse0
+
+    def init_hessian(self, y: PyTree, f: Array, grad: PyTree):
+        f_info, update_state = super().init_hessian(y, f, grad)
+        if self.inverse0 is None:
+            return f_info, update_state
+        return optx.FunctionInfo.EvalGradHessianInv(f, grad, self.inverse0), update_state
 
     def terminate(
         self, fn: Callable, y: PyTree, args: PyTree, options: dict, state: PyTree, tags: frozenset
@@ -122,6 +135,8 @@ def minimize(
     max_steps: int | None,
     tol: float | Array,
     step_cap: Array | None = None,
+    inverse0: object = None,
+    keep_inverse: bool = False,
 ) -> Minimum:
     """Minimize a smooth scalar function of one array (traceable, vmappable).
 
@@ -145,6 +160,13 @@ def minimize(
 
     ``tol`` may be traced too (a scalar array): it is a threshold the loop compares with,
     never a shape, so one compiled solve serves every tolerance.
+
+    ``inverse0`` (bfgs only): the inverse Hessian approximation to start from, the
+    ``inverse`` of an earlier solve over variables of the same shapes (a quasi-Newton
+    warm start: a sequence of nearby problems, as the registration rounds are, need not
+    learn the curvature again each time); None: the identity. ``keep_inverse``: return
+    the solve's own at its end in ``Minimum.inverse`` (bfgs; else None: a dense n x n
+    operator that a caller's program would otherwise carry out for nothing).
     """
     check_solver(solver)
     if step_cap is not None:
@@ -153,7 +175,7 @@ def minimize(
         raise ValueError("minimize: max_steps=None needs a step_cap")
     if solver == "bfgs":
         rounding = 100 * float(jnp.finfo(jax.tree_util.tree_leaves(x0)[0].dtype).eps)
-        bfgs = _GradientBFGS(gtol=tol, rounding=rounding)
+        bfgs = _GradientBFGS(gtol=tol, rounding=rounding, inverse0=inverse0)
         sol = optx.minimise(
             lambda x, _: fun(x),
             bfgs if step_cap is None else _Capped(bfgs),
@@ -167,7 +189,7 @@ def minimize(
         # evaluated them: evaluating them again would put another copy of the objective
         # and its gradient into the compiled program at every call site.
         info = (sol.state if step_cap is None else sol.state[0]).f_info
-        value, gradient = info.f, info.grad
+        value, gradient, inverse = info.f, info.grad, info.hessian_inv
     else:
         # jaxopt's loop bound may be traced (its while loop compares with it), so the cap,
         # at most max_steps, is the bound itself: no subclass of the solver.
@@ -177,14 +199,23 @@ def minimize(
         # jaxopt stops silently at maxiter; its other stops are judged below.
         result = RESULTS.where(cut, RESULTS.nonlinear_max_steps_reached, RESULTS.successful)
         steps = state.iter_num
-        value, gradient = state.value, state.grad
+        value, gradient, inverse = state.value, state.grad, None
     grad_norm = optx.two_norm(gradient)
     ok = (grad_norm <= tol) & jnp.isfinite(value)
     # A solver that stopped on its own before meeting tol stalled (the step limit and
     # other failures keep their own codes).
     failed = RESULTS.where(result == RESULTS.successful, RESULTS.stalled, result)
     result = RESULTS.where(ok, RESULTS.successful, failed)
-    return Minimum(x, result, jnp.asarray(steps, jnp.int32), grad_norm, value)
+    inverse = inverse if keep_inverse else None
+    return Minimum(x, result, jnp.asarray(steps, jnp.int32), grad_norm, value, inverse)
+
+
+def identity_inverse(x0: PyTree) -> object:
+    """The inverse Hessian approximation bfgs starts from (the identity on variables
+    shaped like ``x0``), as a value for :func:`minimize`'s ``inverse0``: a loop that
+    carries one solve's ``Minimum.inverse`` to the next starts from this."""
+    zero = jnp.zeros((), jax.tree_util.tree_leaves(x0)[0].dtype)
+    return _GradientBFGS(gtol=1.0, rounding=0.0).init_hessian(x0, zero, x0)[0].hessian_inv
 
 
 def lanczos_smallest(

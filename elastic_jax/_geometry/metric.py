@@ -112,36 +112,48 @@ def split_bilinear(
 ) -> Array:
     """G_alpha(xi, eta) for alpha = [a1 a2], xi = [x1 x2], eta = [y1 y2] (vector axis -3).
 
-    The 2 x 2 algebra is written out (measured 10x faster than batched inv/det). With
-    A = alpha^T xi, S = sym A, w = skew part of A, M = adj(g) S (so g^-1 S = M / det g):
-      shear  = tr(M°_xi M°_eta) / det^(3/2)      (M° the trace-free part)
-      volume = tr M_xi tr M_eta / (2 det^(3/2))
-      perp   = (N^T xi) adj(g) (N^T eta)^T / det^(3/2),   N = a1 x a2, |N|^2 = det g
-      rot    = 2 w_xi w_eta / det^(1/2)
+    Written in an orthonormal frame of the tangent plane, so that every term is a product
+    of two factors of one size and G_alpha(xi, xi) a weighted sum of squares. alpha = Q R
+    (Q = [e1 e2] orthonormal, e1 = a1 / |a1|, e2 = n x e1 with n the unit normal; R upper
+    triangular with r11 = |a1|, r12 = e1 . a2, r22 = sqrt(det g) / r11), and for each
+    tangent vector B = Q^T xi R^-1 (2 x 2) and p = n^T xi R^-1 (1 x 2). Then g^-1 S_xi is
+    similar to sym B and, with sqrt(det g) = |a1 x a2|,
+      shear  = |(sym B_xi)°|^2                   (° the trace-free part)
+      volume = (tr B_xi)^2 / 2
+      perp   = |p_xi|^2
+      rot    = 2 (skew B_xi)_12^2
+    each multiplied by sqrt(det g) (written for xi = eta; the bilinear form is the same
+    products of xi's factors by eta's). This is math §3's decomposition with the metric
+    tensor's inverse and det g^(3/2) cancelled analytically: the written-out 2 x 2 algebra
+    of g^-1 (products of the metric's entries) lost the path energy's gradient in float32
+    where frames are stretched (relative L2 error 0.96 at 97 x 193 on the cats' straight
+    line, against 3e-4 in this form).
     """
-    g11, g12, g22 = dot(a1, a1), dot(a1, a2), dot(a2, a2)
+    r11 = jnp.sqrt(dot(a1, a1))
+    e1 = a1 / r11[..., None, :, :]
     normal = cross(a1, a2)
-    det = dot(normal, normal)  # = g11 g22 - g12^2 without the cancellation
-    sqrt_det = jnp.sqrt(det)
-    det32 = det * sqrt_det
+    sqrt_det = jnp.sqrt(dot(normal, normal))
+    n = normal / sqrt_det[..., None, :, :]
+    e2 = cross(n, e1)
+    c1 = 1.0 / r11
+    c2 = r11 / sqrt_det  # 1 / r22
+    t = dot(e1, a2) * c1  # r12 / r11
 
     def parts(v1: ArrayLike, v2: ArrayLike):
-        s11, s22 = dot(a1, v1), dot(a2, v2)
-        a12, a21 = dot(a1, v2), dot(a2, v1)
-        s12, w = 0.5 * (a12 + a21), 0.5 * (a12 - a21)
-        m11 = g22 * s11 - g12 * s12
-        m12 = g22 * s12 - g12 * s22
-        m21 = g11 * s12 - g12 * s11
-        m22 = g11 * s22 - g12 * s12
-        return m11 - m22, m11 + m22, m12, m21, w, dot(normal, v1), dot(normal, v2)
+        u1, u2, w1, w2 = dot(e1, v1), dot(e2, v1), dot(e1, v2), dot(e2, v2)
+        b11, b21 = u1 * c1, u2 * c1
+        b12, b22 = (w1 - u1 * t) * c2, (w2 - u2 * t) * c2
+        q1, q2 = dot(n, v1), dot(n, v2)
+        p1, p2 = q1 * c1, (q2 - q1 * t) * c2
+        return b11 - b22, b12 + b21, b11 + b22, b21 - b12, p1, p2
 
-    dx, tx, m12x, m21x, wx, p1x, p2x = parts(x1, x2)
-    dy, ty, m12y, m21y, wy, p1y, p2y = parts(y1, y2)
-    shear = 0.5 * dx * dy + m12x * m21y + m21x * m12y
+    dx, ox, tx, kx, p1x, p2x = parts(x1, x2)
+    dy, oy, ty, ky, p1y, p2y = parts(y1, y2)
+    shear = 0.5 * (dx * dy + ox * oy)
     volume = 0.5 * tx * ty
-    perp = g22 * p1x * p1y - g12 * (p1x * p2y + p2x * p1y) + g11 * p2x * p2y
-    tangential = metric.a * shear + metric.b * volume + metric.c * perp
-    return tangential / det32 + metric.d * 2.0 * wx * wy / sqrt_det
+    perp = p1x * p1y + p2x * p2y
+    rot = 0.5 * kx * ky
+    return sqrt_det * (metric.a * shear + metric.b * volume + metric.c * perp + metric.d * rot)
 
 
 def split_parts(

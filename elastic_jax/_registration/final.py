@@ -34,7 +34,6 @@ from .problem import (
     rotate_surface,
     rotated_end_frame,
     scaling_at,
-    zero_coefficients,
     zero_registration,
 )
 from .records import Refinement, ShapeGeodesicResult
@@ -73,8 +72,10 @@ def _refinement(
     return Refinement(d_time, d_grid, change / jnp.maximum(d, jnp.finfo(d.dtype).tiny))
 
 
-def _final_solves(prob: Problem, options: ShapeOptions, state: State):
-    """The unregistered and the registered geodesics, saddle-checked.
+def _final_solves(prob: Problem, options: ShapeOptions, state: State, parametrized):
+    """The unregistered and the registered geodesics, saddle-checked; the first starts
+    from ``parametrized`` (a coarser level's solution, or zeros), the second from the
+    rounds' path.
 
     One traced solve for both (lax.map runs them one after the other): half the
     compilation of two call sites.
@@ -82,7 +83,7 @@ def _final_solves(prob: Problem, options: ShapeOptions, state: State):
     f1, f2, bases = prob.f1, prob.f2, prob.bases
     starts = jnp.stack([f1, registered_f1(prob, options, state.gamma)])
     ends = jnp.stack([f2, rotate_surface(state.rotation, f2)])
-    inits = jnp.stack([zero_coefficients(prob, options), state.coefficients])
+    inits = jnp.stack([parametrized, state.coefficients])
     identity = identity_frames(prob, options)
     registered = (
         registered_frame(prob, options, state.gamma),
@@ -118,7 +119,7 @@ def geodesics_phase(
 ):
     """Phase 4: the parametrized and the final geodesic (``rounds`` passed on)."""
     prob = make_problem(metric, f1, f2, bases, rigid, options.interpolation)
-    return rounds, _final_solves(prob, options, rounds.state)
+    return rounds, _final_solves(prob, options, rounds.state, rounds.parametrized)
 
 
 def end_phase(
@@ -193,6 +194,8 @@ def end_phase(
         gamma=gamma,
         rotation=rotation,
         coefficients=final.coefficients,
+        parametrized_coefficients=parametrized.coefficients,
+        path_curvature=rounds.curvature,
         energy_history=history,
         rounds=rounds.rounds,
         num_steps=steps,
@@ -269,6 +272,7 @@ def _restore_shape_units(
         parametrized_distance=result.parametrized_distance * s,
         f1_registered=surfaces(result.f1_registered),
         coefficients=result.coefficients * s,
+        parametrized_coefficients=result.parametrized_coefficients * s,
         energy_history=result.energy_history * s**2,
         refinement=result.refinement._replace(
             distance_time=result.refinement.distance_time * s,

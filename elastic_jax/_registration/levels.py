@@ -38,8 +38,9 @@ def level_solve(
     reporter: Reporter | None = None,
 ) -> ShapeGeodesicResult:
     """One level of a resolved distance: the solve on ``grid`` continuing the level
-    ``below`` (its registration and path, without a new start search or coarse rounds:
-    continuation_phase), or, for the first level, from ``start`` or a search of its own.
+    ``below`` (its registration, path and parametrized path, without a new start search
+    or coarse rounds: continuation_phase), or, for the first level, from ``start`` or a
+    search of its own.
 
     The coarser gamma's interpolant can fold between its points (the cats at 13 x 25 read
     at 25 x 49, chain rule), and so can a fine start read on a coarse level: that level
@@ -48,7 +49,8 @@ def level_solve(
     carried = registration_at(start if below is None else below, grid, f1.dtype, modulo)
     level = options.replace(rtol=None, grid=grid)
     if below is not None and carried is not None:
-        carry = (*carried, below.coefficients)
+        paths = (below.coefficients, below.parametrized_coefficients, below.path_curvature)
+        carry = (*carried, *paths)
         return one_grid_solve(f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter)
     return one_grid_solve(f1, f2, metric, modulo, level, carried, reporter=reporter)
 

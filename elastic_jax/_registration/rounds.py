@@ -6,10 +6,11 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from .._geodesics.solvers import minimize
+from .._geodesics.solvers import identity_inverse, minimize
 from .._geometry.metric import SplitMetric
 from .._options import ShapeOptions
 from .problem import (
@@ -29,7 +30,21 @@ from .problem import (
 )
 
 
-def _round(prob: Problem, options: ShapeOptions, rigid: bool, state: State) -> State:
+class _Warm(NamedTuple):
+    """A round's state (:class:`State`'s fields) with the joint BFGS's inverse Hessian
+    approximation at the end of the last round (None for the coordinate method and for
+    lbfgs)."""
+
+    gamma: Array
+    rotation: Array
+    coefficients: Array
+    energy: Array
+    steps: Array
+    shrunk: Array
+    inverse: object
+
+
+def _round(prob: Problem, options: ShapeOptions, rigid: bool, state: _Warm) -> _Warm:
     """One registration round.
 
     joint (Algorithm 2): BFGS over the path coefficients and the next Diff step (and a
@@ -39,6 +54,14 @@ def _round(prob: Problem, options: ShapeOptions, rigid: bool, state: State) -> S
     Algorithm 3 holds the path's interior frames instead, which pins the start to its
     neighbour: it moved the energy by 7-8 % per round on the cats where this reaches
     1 % of its limit in 4 rounds.
+
+    The joint BFGS starts from the path's block of the inverse Hessian the last round
+    ended with (:func:`_path_block_only`): the path's whitened coefficients are the same
+    functions at a nearby point, so their curvature carries over instead of being
+    learned again from the identity each round. The cats' 97 x 193 level continuing
+    49 x 97: 4 rounds and 2263 solver steps instead of 6 and 3415, the same distance to
+    5e-6 (the whole inverse carried, the Diff step's block too: 4 rounds, a distance 1.3 %
+    higher, in a shallower minimum).
     """
     dtype = state.energy.dtype
     scaling = scaling_at(prob, options, state.gamma, state.rotation)
@@ -47,7 +70,13 @@ def _round(prob: Problem, options: ShapeOptions, rigid: bool, state: State) -> S
     z0 = scaling.whitened(state.coefficients)
     solver_kwargs = {"solver": options.solver, "max_steps": options.max_steps, "tol": options.tol}
     if options.method == "joint":
-        found = minimize(objective, (z0, y0), **solver_kwargs)
+        found = minimize(
+            objective,
+            (z0, y0),
+            **solver_kwargs,
+            inverse0=_path_block_only(state.inverse),
+            keep_inverse=True,
+        )
         z, y = found.x
     else:
         found = minimize(lambda y: objective((z0, y)), y0, **solver_kwargs)
@@ -62,7 +91,51 @@ def _round(prob: Problem, options: ShapeOptions, rigid: bool, state: State) -> S
     else:
         res = geodesic_at(prob, options, gamma, rotation, coefficients)
         coefficients, energy, steps = res.coefficients, res.energy, steps + res.num_steps
-    return State(gamma, rotation, coefficients, energy, steps, shrunk)
+    inverse = found.inverse if options.method == "joint" else None
+    return _Warm(gamma, rotation, coefficients, energy, steps, shrunk, inverse)
+
+
+def _with_path_block(inverse, block):
+    """``inverse`` (the joint BFGS's operator over (path, Diff step)) with the path's
+    block set to ``block`` and the Diff step's rows and columns those of the identity."""
+    leaves, treedef = jax.tree_util.tree_flatten(inverse)
+    _, path_step, step_path, step_step = leaves
+    eye = jnp.eye(step_step.shape[0], dtype=step_step.dtype)
+    return treedef.unflatten([block, jnp.zeros_like(path_step), jnp.zeros_like(step_path), eye])
+
+
+def _path_block_only(inverse):
+    """The carried inverse Hessian with its Diff step's rows and columns reset to the
+    identity's: the path's coefficients are the same functions round after round, but a
+    Diff step is taken at the newly composed gamma, a new variable."""
+    if inverse is None:
+        return None
+    return _with_path_block(inverse, jax.tree_util.tree_leaves(inverse)[0])
+
+
+def path_block(inverse, like):
+    """The path's block ``(N - 2, L, N - 2, L)`` of the rounds' inverse Hessian, what a
+    finer level's rounds start from; an empty array when nothing was carried (the
+    coordinate method, lbfgs)."""
+    if inverse is None:
+        return jnp.zeros((0,), like.dtype)
+    return jax.tree_util.tree_leaves(inverse)[0]
+
+
+def _first_inverse(
+    prob: Problem, options: ShapeOptions, rigid: bool, state: State, curvature: Array
+):
+    """The operator the joint BFGS starts its first round from: the identity (its own
+    init's), with the path's block ``curvature`` when a coarser level carried one (an
+    empty array: none), so that the rounds' loop carries one operator structure; None
+    when nothing is carried (the coordinate method, lbfgs)."""
+    if options.method != "joint" or options.solver != "bfgs":
+        return None
+    dtype = state.energy.dtype
+    inverse = identity_inverse((state.coefficients, zero_registration(prob, rigid, dtype)))
+    if curvature.size == 0:
+        return inverse
+    return _with_path_block(inverse, jnp.asarray(curvature, dtype))
 
 
 class Rounds(NamedTuple):
@@ -72,6 +145,11 @@ class Rounds(NamedTuple):
     history: Array  # (outer_steps + 2,) as ShapeGeodesicResult.energy_history, [0] unset
     rounds: Array  # () rounds with the whole path taken
     done: Array  # () bool: the last round met outer_tol or was refused
+    # (N - 2, L) where the parametrized geodesic starts: the level below's solution when
+    # carried (continuation_phase), else the straight line (zeros).
+    parametrized: Array
+    # The path's block of the last round's inverse Hessian (path_block).
+    curvature: Array
 
 
 def rounds_phase(
@@ -94,16 +172,19 @@ def rounds_phase(
             after + options.outer_tol * straight0
         )
 
-    state, history = coarse
-    return Rounds(
-        *iterate(
-            lambda s: _round(prob, options, rigid, s),
-            state,
-            options.outer_steps,
-            small_change,
-            history,
-        )
+    state, history, *carried = coarse
+    parametrized = carried[0] if carried else jnp.zeros_like(state.coefficients)
+    curvature = carried[1] if carried else jnp.zeros((0,), state.energy.dtype)
+    warm = _Warm(*state, _first_inverse(prob, options, rigid, state, curvature))
+    warm, history, rounds, done = iterate(
+        lambda s: _round(prob, options, rigid, s),
+        warm,
+        options.outer_steps,
+        small_change,
+        history,
     )
+    curvature = path_block(warm.inverse, state.energy)
+    return Rounds(State(*warm[:6]), history, rounds, done, parametrized, curvature)
 
 
 def continuation_phase(
@@ -114,10 +195,13 @@ def continuation_phase(
     carried: tuple,
     options: ShapeOptions,
     rigid: bool,
-) -> tuple[State, Array]:
+) -> tuple[State, Array, Array, Array]:
     """Phase 3's start from a registration carried from a coarser working grid (gamma
     and R read at this grid's points, the path's coefficients as they were): the state
-    and the energy history coarse_phase would give, without its rounds.
+    and the energy history coarse_phase would give, without its rounds, where the
+    parametrized geodesic starts (the coarser grid's solution, when carried: fine levels
+    solve it from there instead of from the straight line) and the path's block of the
+    coarser grid's inverse Hessian (the rounds' BFGS starts from it; empty: none).
 
     A pure continuation. The coarse rounds re-register on the L2 mismatch and the straight
     line, away from the carried registration and by a route that turns on rounding: on
@@ -129,11 +213,11 @@ def continuation_phase(
     the same functions on every grid.
     """
     prob = make_problem(metric, f1, f2, bases, rigid, options.interpolation)
-    gamma, rotation, coefficients = carried
+    gamma, rotation, coefficients, parametrized, curvature = carried
     energy = path_energy_at(prob, options, gamma, rotation, coefficients)
     dtype = energy.dtype
     state = State(
         gamma, rotation, coefficients, energy, jnp.zeros((), jnp.int32), jnp.zeros((), bool)
     )
     history = jnp.full((options.outer_steps + 2,), jnp.nan, dtype).at[1].set(energy)
-    return state, history
+    return state, history, parametrized, curvature

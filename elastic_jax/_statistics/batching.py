@@ -370,7 +370,9 @@ def _level_pair(
 ):
     """One pair's solve on one level (``options.grid``): :func:`_registered_pair`'s
     outputs, then the parametrized distance and the refinement change, which the levels'
-    estimate and the matrix's record need."""
+    estimate and the matrix's record need, and the parametrized geodesic's coefficients
+    (where the next level's starts) and the rounds' path curvature. ``start``: (gamma,
+    R, C, parametrized C, path curvature) of the level below."""
     if start is None:
         res = shape_geodesic(a, b, metric, modulo=modulo, options=options)
     else:
@@ -387,6 +389,8 @@ def _level_pair(
         res.coefficients,
         res.parametrized_distance,
         res.refinement.relative_change,
+        res.parametrized_coefficients,
+        res.path_curvature,
     )
 
 
@@ -479,6 +483,8 @@ def levelled_chunk(
     gammas: list = [None] * count
     rotations = np.zeros((count, 3, 3))
     coefficients: list = [None] * count
+    parametrized_paths: list = [None] * count
+    curvatures: list = [None] * count
     parametrized = np.zeros(count)
     noise = [noise_distance(first[i], second[i]) for i in range(count)]
     going = list(range(count))
@@ -517,11 +523,13 @@ def levelled_chunk(
                 jnp.stack([r[0] for _, r in carried]),
                 jnp.stack([r[1] for _, r in carried]),
                 jnp.stack([jnp.asarray(coefficients[i]) for i in indices]),
+                jnp.stack([jnp.asarray(parametrized_paths[i]) for i in indices]),
+                jnp.stack([jnp.asarray(curvatures[i]) for i in indices]),
             )
             groups.append((indices, starts))
         for indices, starts in groups:
             solved = solve(indices, level, starts)
-            d, ok, code, steps, g, r, c, par, change = (np.asarray(x) for x in solved)
+            d, ok, code, steps, g, r, c, par, change, par_c, curv = (np.asarray(x) for x in solved)
             for k, i in enumerate(indices):
                 out["level_distances"][i, index] = d[k]
                 out["distance"][i], out["converged"][i] = d[k], ok[k]
@@ -529,7 +537,8 @@ def levelled_chunk(
                 out["num_steps"][i] += steps[k]
                 out["grid"][i] = grid
                 gammas[i], rotations[i], coefficients[i] = g[k], r[k], c[k]
-                parametrized[i] = par[k]
+                parametrized[i], parametrized_paths[i] = par[k], par_c[k]
+                curvatures[i] = curv[k]
                 if report is not None:
                     info = {"level": index + 1, "levels": len(levels), "grid": tuple(grid)}
                     report(

@@ -607,9 +607,9 @@ def karcher_mean(
             sum_sq_distances, mean_velocity_norm, step_size, num_solves, seconds; a
             resolved mean's first, levelled solves also report each shape's levels as
             they end (stage "level", level, levels, grid, distance, converged) with
-            step 0, shape (its index), shapes (K) and seconds. On a cluster each step's chunks run as tasks on its
-            workers (a resolved mean's first, levelled solves run in this process); the
-            numbers equal the in-process ones.
+            step 0, shape (its index), shapes (K) and seconds. On a cluster each step's
+            chunks run as tasks on its workers (a resolved mean's first, levelled solves
+            run in this process); the numbers equal the in-process ones.
 
     Returns:
         :class:`KarcherResult`. One that did not converge also warns

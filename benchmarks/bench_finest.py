@@ -1,0 +1,151 @@
+"""What the finest level of a resolved distance spends: the 97 x 193 level continuing
+the 49 x 97 level of the same pair, by phase, with its rounds and solver steps.
+
+For each pair, modulo rigid, metric (1, 1, 0.1, 0), the package's defaults otherwise,
+float64: the levels 13 x 25, 25 x 49, 49 x 97 are solved once (kept in ``--keep``, a
+folder, so that later runs continue the very same 49 x 97 solution), then the 97 x 193
+level is solved from it under each ``--variants`` entry:
+
+- ``default``: the package's continuation (the level below's registration, path,
+  parametrized path and the path's block of its rounds' inverse Hessian);
+- ``identity``: the same without the carried inverse Hessian (the rounds' BFGS starts
+  from the identity);
+- a Python dict of ShapeOptions fields, e.g. ``{'outer_steps': 2}``.
+
+One JSON record per solve: the variant, wall seconds (``compiled`` says whether the
+process compiled it first), each phase's seconds, rounds, solver steps, the distance,
+the parametrized distance, the result, the energy after each round, and the same
+registration and path evaluated on the 193 x 385 grid (``distance_grid``).
+
+Run: python benchmarks/bench_finest.py [--pairs cats,cat-horse,horse-hand,pial]
+     [--variants default,identity] [--keep DIR] [--repeat K]
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import pathlib
+import pickle
+import tempfile
+import time
+import warnings
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from bench_order import PAIRS, load  # noqa: E402
+
+import elastic_jax as ej  # noqa: E402
+from elastic_jax._registration import levels as _levels  # noqa: E402
+from elastic_jax._registration.phases import Reporter  # noqa: E402
+
+from _common import emit, environment  # noqa: E402
+
+METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
+FINEST = (97, 193)
+
+
+def below_level(name: str, f1, f2, keep: pathlib.Path):
+    """The pair's levels up to 49 x 97 (rtol tiny, so that all three run), kept in
+    ``keep``; the 49 x 97 result (numpy leaves) and its levels' record."""
+    path = keep / f"below_{name}.pkl"
+    if path.exists():
+        return pickle.loads(path.read_bytes())
+    options = ej.ShapeOptions()
+    options = options.replace(levels=options.levels[:3], rtol=1e-12)
+    begin = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
+    res = jax.tree_util.tree_map(np.asarray, res)
+    emit(
+        {
+            "benchmark": "finest_below",
+            "pair": name,
+            "levels": res.levels.distances.tolist(),
+            "level_seconds": res.levels.seconds.tolist(),
+            "seconds": time.perf_counter() - begin,
+        }
+    )
+    path.write_bytes(pickle.dumps(res))
+    return res
+
+
+def finest(name: str, f1, f2, below, variant: str, compiled: bool) -> dict:
+    """The 97 x 193 level from ``below`` under ``variant``: its record."""
+    options = ej.ShapeOptions()
+    if variant == "identity":
+        below = below._replace(path_curvature=np.zeros((0,)))
+    elif variant != "default":
+        options = options.replace(**ast.literal_eval(variant))
+    reports: list[dict] = []
+    reporter = Reporter(reports.append)
+    begin = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        res = _levels.level_solve(
+            jnp.asarray(f1),
+            jnp.asarray(f2),
+            METRIC,
+            "rigid",
+            options,
+            FINEST,
+            below,
+            None,
+            reporter,
+        )
+        distance = float(res.distance)
+    seconds = time.perf_counter() - begin
+    phases, last = {}, 0.0
+    for report in reports:
+        phases[report["stage"]] = report["seconds"] - last
+        last = report["seconds"]
+    history = np.asarray(res.energy_history)
+    return {
+        "benchmark": "finest_level",
+        "pair": name,
+        "variant": variant,
+        "compiled": compiled,
+        "seconds": seconds,
+        "phases": phases,
+        "rounds": int(res.rounds),
+        "num_steps": int(res.num_steps),
+        "distance": distance,
+        "below_distance": float(below.distance),
+        "parametrized_distance": float(res.parametrized_distance),
+        "result": ej.RESULTS.name(res.result),
+        "round_energies": history[1:][np.isfinite(history[1:])].tolist(),
+        "distance_grid": float(res.refinement.distance_grid),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pairs", default="cats,cat-horse")
+    parser.add_argument("--variants", default="default,identity")
+    parser.add_argument("--keep", default=None, help="folder for the 49 x 97 solutions")
+    parser.add_argument("--repeat", type=int, default=1)
+    args = parser.parse_args()
+    keep = pathlib.Path(args.keep or tempfile.mkdtemp(prefix="bench-finest-"))
+    keep.mkdir(parents=True, exist_ok=True)
+    emit({"benchmark": "environment", "environment": environment(), "keep": str(keep)})
+    variants = [v.strip() for v in args.variants.split(";" if "{" in args.variants else ",")]
+    for name in args.pairs.split(","):
+        f1, f2 = (load(k) for k in PAIRS[name])
+        if f1 is None or f2 is None:
+            emit({"benchmark": "finest_level", "pair": name, "skipped": "data absent"})
+            continue
+        below = below_level(name, f1, f2, keep)
+        seen: set = set()
+        for variant in variants:
+            for _ in range(args.repeat):
+                emit(finest(name, f1, f2, below, variant, variant not in seen))
+                seen.add(variant)
+
+
+if __name__ == "__main__":
+    main()
