@@ -750,7 +750,7 @@ def test_a_registration_above_the_pair_as_given_is_replaced_by_it():
     zero = jnp.zeros((cfg.n_times - 2, 3 * bases.dframe.shape[0]))
     state = State(gamma, jnp.eye(3), zero, jnp.asarray(1.0), jnp.asarray(0), jnp.asarray(False))
     history = jnp.full((cfg.outer_steps + 2,), jnp.nan)
-    rounds = Rounds(state, history, jnp.asarray(0), jnp.asarray(True), zero, jnp.zeros((0,)))
+    rounds = Rounds(state, history, jnp.asarray(0), jnp.asarray(True), zero)
     solved = geodesics_phase(metric, f, f, bases, rounds, cfg, False)
     registered = float(solved[1].energy[1])
     res = end_phase(metric, f, f, bases, solved, cfg, False)

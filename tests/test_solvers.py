@@ -34,6 +34,47 @@ def test_minimum_reports_value_and_gradient_at_its_point(solver, max_steps):
         np.testing.assert_allclose(found.x, 1.0, atol=1e-6)
 
 
+def test_a_carried_inverse_hessian_solves_a_nearby_problem_in_fewer_steps():
+    """bfgs from another solve's inverse Hessian (``inverse0``, a quasi-Newton warm
+    start): an ill-conditioned quadratic (eigenvalues 1 to 100, n = 40) solved once from
+    the identity, then the same quadratic with a shifted minimum from the first solve's
+    end operator. The second solve meets tol at the exact minimizer A^-1 b', in at most
+    half the first solve's steps (measured 10 against 163); from the identity it needs as
+    many as the first (161)."""
+    rng = np.random.default_rng(3)
+    n = 40
+    q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    a = jnp.asarray(q @ np.diag(np.logspace(0, 2, n)) @ q.T)
+    b1, b2 = (jnp.asarray(rng.normal(size=n)) for _ in range(2))
+
+    def quadratic(b):
+        return lambda x: 0.5 * x @ a @ x - b @ x
+
+    tol = 1e-7
+    first = minimize(
+        quadratic(b1), jnp.zeros(n), solver="bfgs", max_steps=1000, tol=tol, keep_inverse=True
+    )
+    start = jnp.linalg.solve(a, b1)
+    warm = minimize(
+        quadratic(b2), start, solver="bfgs", max_steps=1000, tol=tol, inverse0=first.inverse
+    )
+    cold = minimize(quadratic(b2), start, solver="bfgs", max_steps=1000, tol=tol)
+    assert first.result == warm.result == cold.result == RESULTS.successful
+    np.testing.assert_allclose(warm.x, jnp.linalg.solve(a, b2), rtol=1e-6, atol=1e-9)
+    print(
+        "steps: first",
+        int(first.num_steps),
+        "warm",
+        int(warm.num_steps),
+        "cold",
+        int(cold.num_steps),
+    )
+    assert int(warm.num_steps) <= 0.5 * int(first.num_steps)
+    assert int(warm.num_steps) < int(cold.num_steps)
+    # Only when asked for: a solve's program does not carry the n x n operator out.
+    assert cold.inverse is None
+
+
 @pytest.mark.parametrize("solver", ["bfgs", "lbfgs"])
 def test_a_start_that_meets_tol_stops_at_the_first_step(solver):
     x0 = jnp.ones(4)  # Rosenbrock's minimum: gradient exactly zero

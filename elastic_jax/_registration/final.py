@@ -195,7 +195,6 @@ def end_phase(
         rotation=rotation,
         coefficients=final.coefficients,
         parametrized_coefficients=parametrized.coefficients,
-        path_curvature=rounds.curvature,
         energy_history=history,
         rounds=rounds.rounds,
         num_steps=steps,

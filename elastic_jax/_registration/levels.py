@@ -49,8 +49,7 @@ def level_solve(
     carried = registration_at(start if below is None else below, grid, f1.dtype, modulo)
     level = options.replace(rtol=None, grid=grid)
     if below is not None and carried is not None:
-        paths = (below.coefficients, below.parametrized_coefficients, below.path_curvature)
-        carry = (*carried, *paths)
+        carry = (*carried, below.coefficients, below.parametrized_coefficients)
         return one_grid_solve(f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter)
     return one_grid_solve(f1, f2, metric, modulo, level, carried, reporter=reporter)
 

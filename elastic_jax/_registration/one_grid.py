@@ -71,8 +71,7 @@ def one_grid_solve(
     reporter: Reporter | None = None,
 ) -> ShapeGeodesicResult:
     """shape_geodesic on one working grid; ``carry`` = (gamma, R, coefficients or None
-    [, the parametrized geodesic's coefficients or None[, the rounds' path curvature or
-    None]]) continues a registration
+    [, the parametrized geodesic's coefficients or None]) continues a registration
     instead of searching starts (``start`` is then not used): the level below's
     registration, path and parametrized path in the user's units (levels_solve), or an
     inverted registration from its straight line (None; _symmetric_solve)."""
@@ -91,16 +90,8 @@ def one_grid_solve(
         def solve_units(c):  # the straight line for None; the user's units to the solve's
             return jnp.zeros(shape, dtype) if c is None else jnp.asarray(c, dtype) / units.scale
 
-        coefficients, parametrized = (solve_units(c) for c in (*paths, None, None)[:2])
-        curvature = paths[2] if len(paths) > 2 and paths[2] is not None else jnp.zeros((0,))
-        # Whitened and unit-free: the same in the user's units as in the solve's.
-        carried = (
-            gammas[0],
-            rotations[0],
-            coefficients,
-            parametrized,
-            jnp.asarray(curvature, dtype),
-        )
+        coefficients, parametrized = (solve_units(c) for c in (*paths, None)[:2])
+        carried = (gammas[0], rotations[0], coefficients, parametrized)
 
     # As in geodesic: the solve runs on constants and the energy is evaluated again,
     # differentiably, at the solution (envelope theorem: the derivative of the minimal
@@ -136,7 +127,6 @@ def continued_geodesic(
     rotation: ArrayLike,
     coefficients: ArrayLike | None,
     parametrized: ArrayLike | None = None,
-    curvature: ArrayLike | None = None,
 ):
     """shape_geodesic on ``options``'s one working grid (``options.grid``, else the inputs'),
     continuing a registration and path: the registration rounds with the whole path start
@@ -144,9 +134,7 @@ def continued_geodesic(
     ``(3, 3)`` and the path's coefficients ``(N - 2, L)`` in f1's and f2's units (a
     result's ``coefficients``); no start search and no coarse rounds (continuation_phase).
     ``parametrized``: where the parametrized geodesic starts (a coarser level's
-    ``parametrized_coefficients``; None: the straight line); ``curvature``: the path's
-    block of the inverse Hessian the rounds start from (a coarser level's
-    ``path_curvature``; None: the identity).
+    ``parametrized_coefficients``; None: the straight line).
 
     A solve that follows the basin it starts in: its distance is continuous in f1 and f2
     where the rounds' local minimum is (the resolved Karcher mean's steps; a level above
@@ -154,5 +142,5 @@ def continued_geodesic(
     """
     m, n = working_grid_of(options, f1, f2)
     options = options.replace(grid=(m, n), rtol=None)
-    carry = (gamma, rotation, coefficients, parametrized, curvature)
+    carry = (gamma, rotation, coefficients, parametrized)
     return one_grid_solve(f1, f2, metric, modulo, options, None, carry=carry)

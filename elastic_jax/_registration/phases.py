@@ -33,10 +33,10 @@ from .starts import starts_phase
 _STATE_SKELETON = State(*([0] * 6))
 
 
-_ROUNDS_SKELETON = Rounds(_STATE_SKELETON, 0, 0, 0, 0, 0)
+_ROUNDS_SKELETON = Rounds(_STATE_SKELETON, 0, 0, 0, 0)
 
 
-_RESULT_SKELETON = ShapeGeodesicResult(*([0] * 14), RESULTS.successful, 0, 0, Refinement(0, 0, 0))
+_RESULT_SKELETON = ShapeGeodesicResult(*([0] * 13), RESULTS.successful, 0, 0, Refinement(0, 0, 0))
 
 
 _GEODESIC_SKELETON = GeodesicResult(*([0] * 7), RESULTS.successful, 0, 0)
@@ -54,7 +54,7 @@ PHASES = (
 
 # A level's start carried from the level below (levels_solve): in place of the start
 # search and the coarse rounds.
-CONTINUATION = ("shape_continue", continuation_phase, (_STATE_SKELETON, 0, 0, 0))
+CONTINUATION = ("shape_continue", continuation_phase, (_STATE_SKELETON, 0, 0))
 
 
 # The last phase runs for milliseconds and decides nothing the result reports as found

@@ -81,10 +81,6 @@ class ShapeGeodesicResult(NamedTuple):
         coefficients: ``(N - 2, L)`` the path's perturbation (as in :class:`GeodesicResult`).
         parametrized_coefficients: ``(N - 2, L)`` the parametrized geodesic's perturbation
             (f1 -> f2 as given): a finer level starts its parametrized geodesic there.
-        path_curvature: ``(N - 2, L, N - 2, L)`` the registration rounds' BFGS inverse
-            Hessian approximation for the path's whitened coefficients at their end (a
-            finer level's rounds start from it); ``(0,)`` when the rounds kept none
-            (``method="coordinate"``, ``solver="lbfgs"``).
         energy_history: ``(outer_steps + 2,)`` the parametrized geodesic's energy, the
             straight line's after the initialization, then the energy after each
             registration round (NaN for rounds not taken).
@@ -120,7 +116,6 @@ class ShapeGeodesicResult(NamedTuple):
     rotation: Float[Array, "3 3"]
     coefficients: Float[Array, "K L"]
     parametrized_coefficients: Float[Array, "K L"]
-    path_curvature: Float[Array, "..."]
     energy_history: Float[Array, " H"]
     rounds: Int[Array, ""]
     num_steps: Int[Array, ""]

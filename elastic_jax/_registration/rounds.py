@@ -113,29 +113,14 @@ def _path_block_only(inverse):
     return _with_path_block(inverse, jax.tree_util.tree_leaves(inverse)[0])
 
 
-def path_block(inverse, like):
-    """The path's block ``(N - 2, L, N - 2, L)`` of the rounds' inverse Hessian, what a
-    finer level's rounds start from; an empty array when nothing was carried (the
-    coordinate method, lbfgs)."""
-    if inverse is None:
-        return jnp.zeros((0,), like.dtype)
-    return jax.tree_util.tree_leaves(inverse)[0]
-
-
-def _first_inverse(
-    prob: Problem, options: ShapeOptions, rigid: bool, state: State, curvature: Array
-):
-    """The operator the joint BFGS starts its first round from: the identity (its own
-    init's), with the path's block ``curvature`` when a coarser level carried one (an
-    empty array: none), so that the rounds' loop carries one operator structure; None
-    when nothing is carried (the coordinate method, lbfgs)."""
+def _first_inverse(prob: Problem, options: ShapeOptions, rigid: bool, state: State):
+    """The identity operator the joint BFGS starts its first round from (its own
+    init's), so that the rounds' loop carries one operator structure; None when nothing
+    is carried (the coordinate method, lbfgs)."""
     if options.method != "joint" or options.solver != "bfgs":
         return None
     dtype = state.energy.dtype
-    inverse = identity_inverse((state.coefficients, zero_registration(prob, rigid, dtype)))
-    if curvature.size == 0:
-        return inverse
-    return _with_path_block(inverse, jnp.asarray(curvature, dtype))
+    return identity_inverse((state.coefficients, zero_registration(prob, rigid, dtype)))
 
 
 class Rounds(NamedTuple):
@@ -148,8 +133,6 @@ class Rounds(NamedTuple):
     # (N - 2, L) where the parametrized geodesic starts: the level below's solution when
     # carried (continuation_phase), else the straight line (zeros).
     parametrized: Array
-    # The path's block of the last round's inverse Hessian (path_block).
-    curvature: Array
 
 
 def rounds_phase(
@@ -174,8 +157,7 @@ def rounds_phase(
 
     state, history, *carried = coarse
     parametrized = carried[0] if carried else jnp.zeros_like(state.coefficients)
-    curvature = carried[1] if carried else jnp.zeros((0,), state.energy.dtype)
-    warm = _Warm(*state, _first_inverse(prob, options, rigid, state, curvature))
+    warm = _Warm(*state, _first_inverse(prob, options, rigid, state))
     warm, history, rounds, done = iterate(
         lambda s: _round(prob, options, rigid, s),
         warm,
@@ -183,8 +165,7 @@ def rounds_phase(
         small_change,
         history,
     )
-    curvature = path_block(warm.inverse, state.energy)
-    return Rounds(State(*warm[:6]), history, rounds, done, parametrized, curvature)
+    return Rounds(State(*warm[:6]), history, rounds, done, parametrized)
 
 
 def continuation_phase(
@@ -195,13 +176,12 @@ def continuation_phase(
     carried: tuple,
     options: ShapeOptions,
     rigid: bool,
-) -> tuple[State, Array, Array, Array]:
+) -> tuple[State, Array, Array]:
     """Phase 3's start from a registration carried from a coarser working grid (gamma
     and R read at this grid's points, the path's coefficients as they were): the state
-    and the energy history coarse_phase would give, without its rounds, where the
+    and the energy history coarse_phase would give, without its rounds, and where the
     parametrized geodesic starts (the coarser grid's solution, when carried: fine levels
-    solve it from there instead of from the straight line) and the path's block of the
-    coarser grid's inverse Hessian (the rounds' BFGS starts from it; empty: none).
+    solve it from there instead of from the straight line).
 
     A pure continuation. The coarse rounds re-register on the L2 mismatch and the straight
     line, away from the carried registration and by a route that turns on rounding: on
@@ -213,11 +193,11 @@ def continuation_phase(
     the same functions on every grid.
     """
     prob = make_problem(metric, f1, f2, bases, rigid, options.interpolation)
-    gamma, rotation, coefficients, parametrized, curvature = carried
+    gamma, rotation, coefficients, parametrized = carried
     energy = path_energy_at(prob, options, gamma, rotation, coefficients)
     dtype = energy.dtype
     state = State(
         gamma, rotation, coefficients, energy, jnp.zeros((), jnp.int32), jnp.zeros((), bool)
     )
     history = jnp.full((options.outer_steps + 2,), jnp.nan, dtype).at[1].set(energy)
-    return state, history, parametrized, curvature
+    return state, history, parametrized

@@ -371,8 +371,8 @@ def _level_pair(
     """One pair's solve on one level (``options.grid``): :func:`_registered_pair`'s
     outputs, then the parametrized distance and the refinement change, which the levels'
     estimate and the matrix's record need, and the parametrized geodesic's coefficients
-    (where the next level's starts) and the rounds' path curvature. ``start``: (gamma,
-    R, C, parametrized C, path curvature) of the level below."""
+    (where the next level's starts). ``start``: (gamma, R, C, parametrized C) of the
+    level below."""
     if start is None:
         res = shape_geodesic(a, b, metric, modulo=modulo, options=options)
     else:
@@ -390,7 +390,6 @@ def _level_pair(
         res.parametrized_distance,
         res.refinement.relative_change,
         res.parametrized_coefficients,
-        res.path_curvature,
     )
 
 
@@ -484,7 +483,6 @@ def levelled_chunk(
     rotations = np.zeros((count, 3, 3))
     coefficients: list = [None] * count
     parametrized_paths: list = [None] * count
-    curvatures: list = [None] * count
     parametrized = np.zeros(count)
     noise = [noise_distance(first[i], second[i]) for i in range(count)]
     going = list(range(count))
@@ -524,12 +522,11 @@ def levelled_chunk(
                 jnp.stack([r[1] for _, r in carried]),
                 jnp.stack([jnp.asarray(coefficients[i]) for i in indices]),
                 jnp.stack([jnp.asarray(parametrized_paths[i]) for i in indices]),
-                jnp.stack([jnp.asarray(curvatures[i]) for i in indices]),
             )
             groups.append((indices, starts))
         for indices, starts in groups:
             solved = solve(indices, level, starts)
-            d, ok, code, steps, g, r, c, par, change, par_c, curv = (np.asarray(x) for x in solved)
+            d, ok, code, steps, g, r, c, par, change, par_c = (np.asarray(x) for x in solved)
             for k, i in enumerate(indices):
                 out["level_distances"][i, index] = d[k]
                 out["distance"][i], out["converged"][i] = d[k], ok[k]
@@ -538,7 +535,6 @@ def levelled_chunk(
                 out["grid"][i] = grid
                 gammas[i], rotations[i], coefficients[i] = g[k], r[k], c[k]
                 parametrized[i], parametrized_paths[i] = par[k], par_c[k]
-                curvatures[i] = curv[k]
                 if report is not None:
                     info = {"level": index + 1, "levels": len(levels), "grid": tuple(grid)}
                     report(
