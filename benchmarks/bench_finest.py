@@ -6,10 +6,9 @@ float64: the levels 13 x 25, 25 x 49, 49 x 97 are solved once (kept in ``--keep`
 folder, so that later runs continue the very same 49 x 97 solution), then the 97 x 193
 level is solved from it under each ``--variants`` entry:
 
-- ``default``: the package's continuation (the level below's registration, path,
-  parametrized path and the path's block of its rounds' inverse Hessian);
-- ``identity``: the same without the carried inverse Hessian (the rounds' BFGS starts
-  from the identity);
+- ``default``: the package's continuation (the level below's registration, path and
+  parametrized path; each round's BFGS starts from the path's block of the inverse
+  Hessian the round before ended with);
 - a Python dict of ShapeOptions fields, e.g. ``{'outer_steps': 2}``.
 
 One JSON record per solve: the variant, wall seconds (``compiled`` says whether the
@@ -18,7 +17,7 @@ the parametrized distance, the result, the energy after each round, and the same
 registration and path evaluated on the 193 x 385 grid (``distance_grid``).
 
 Run: python benchmarks/bench_finest.py [--pairs cats,cat-horse,horse-hand,pial]
-     [--variants default,identity] [--keep DIR] [--repeat K]
+     [--variants "default;{'outer_steps': 2}"] [--keep DIR] [--repeat K]
 """
 
 from __future__ import annotations
@@ -78,9 +77,7 @@ def below_level(name: str, f1, f2, keep: pathlib.Path):
 def finest(name: str, f1, f2, below, variant: str, compiled: bool) -> dict:
     """The 97 x 193 level from ``below`` under ``variant``: its record."""
     options = ej.ShapeOptions()
-    if variant == "identity":
-        below = below._replace(path_curvature=np.zeros((0,)))
-    elif variant != "default":
+    if variant != "default":
         options = options.replace(**ast.literal_eval(variant))
     reports: list[dict] = []
     reporter = Reporter(reports.append)
@@ -126,7 +123,7 @@ def finest(name: str, f1, f2, below, variant: str, compiled: bool) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", default="cats,cat-horse")
-    parser.add_argument("--variants", default="default,identity")
+    parser.add_argument("--variants", default="default")
     parser.add_argument("--keep", default=None, help="folder for the 49 x 97 solutions")
     parser.add_argument("--repeat", type=int, default=1)
     args = parser.parse_args()

@@ -19,7 +19,8 @@ For each pair, modulo rigid motion, metric (1, 1, 0.1, 0), the package's default
 Each record has the distance, the parametrized distance, converged, the result's name,
 the refinement (distance_time, distance_grid, relative_change), the solve time (the
 first call of each configuration includes its compilation: ``compiled`` says which, and
-``programs_compiled`` how many XLA programs the solve compiled), and
+``programs_compiled`` how many XLA programs the solve compiled; ``phases`` each level's
+phases as [level, stage, seconds], ``num_steps`` the solver steps), and
 then one summary record per pair with the spreads the issue's targets ask about.
 
 Pairs: cat1 -> cat2, cat1 -> horse0, horse0 -> hand4 (../shared/data, skipped when
@@ -179,6 +180,17 @@ def _levels_record(levels) -> dict:
     }
 
 
+def _phase_seconds(reports: list[dict]) -> list[list]:
+    """shape_geodesic's progress as [level, stage, seconds] rows: the time each phase of
+    each level took."""
+    rows, last = [], 0.0
+    for report in reports:
+        if report["stage"] != "level":
+            rows.append([report.get("level"), report["stage"], report["seconds"] - last])
+        last = report["seconds"]
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", default=",".join(PAIRS))
@@ -247,9 +259,12 @@ def main() -> None:
             f1, f2 = (jnp.asarray(f, args.dtype) for f in _inputs(case, *surfaces))
             grid = tuple(f1.shape[-2:])
             start = time.perf_counter()
+            reports: list[dict] = []
             with warnings.catch_warnings(), CompileCounter() as programs:
                 warnings.simplefilter("ignore", ej.ConvergenceWarning)
-                res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
+                res = ej.shape_geodesic(
+                    f1, f2, METRIC, modulo="rigid", options=options, progress=reports.append
+                )
                 jax.block_until_ready(res.distance)
             seconds = time.perf_counter() - start
             distances[case] = float(res.distance)
@@ -274,6 +289,8 @@ def main() -> None:
                     # XLA programs this solve compiled (issue 51: few, and none once
                     # its settings have been solved before).
                     "programs_compiled": programs.count,
+                    "num_steps": int(res.num_steps),
+                    "phases": _phase_seconds(reports),
                     **_levels_record(res.levels),
                 }
             )

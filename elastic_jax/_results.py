@@ -95,6 +95,12 @@ class RESULTS(optx.RESULTS, metaclass=_NamedEnumeration):  # pyright: ignore
         "within rtol: the distance is the finest level's, and levels.estimate states how "
         "far it moved from the level before. Give finer levels, or a larger rtol."
     )
+    below_area_bound = (
+        "The distance came out below the area lower bound sqrt(2 b) |sqrt(A(f2)) - "
+        "sqrt(A(f1))| (math §9) by more than the grid's quadrature can explain: the "
+        "arithmetic lost the energy's precision (the distance is NaN, not a number that "
+        "could be read as a result). Solve in float64."
+    )
     saddle_point = (
         "The solver met its tolerance at a saddle point of the energy (a negative Hessian "
         "eigenvalue), not a minimum: raise saddle_checks to escape along it."

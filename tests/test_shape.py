@@ -760,6 +760,47 @@ def test_a_registration_above_the_pair_as_given_is_replaced_by_it():
     assert float(jnp.abs(res.gamma - ej.sphere_points(m, n)).max()) == 0.0
 
 
+def test_a_distance_below_the_area_bound_is_not_reported_as_a_number():
+    """The end phase's precision guard (math §9: d >= sqrt(2 b) |sqrt(A2) - sqrt(A1)|),
+    fed a registered geodesic whose energy lost its precision (set to 1e-6 between
+    spheres of radii 1 and 2, bound sqrt(8 pi) = 5.01): RESULTS.below_area_bound, not
+    converged, and shape_finish reports a NaN distance, never the number."""
+    from elastic_jax._geometry.units import in_units
+    from elastic_jax._registration.final import end_phase, geodesics_phase, shape_finish
+    from elastic_jax._registration.problem import State, make_bases
+    from elastic_jax._registration.rounds import Rounds
+
+    m, n = 13, 25
+    f1, f2 = (shapes.sample(shapes.sphere, m, n, radius=r) for r in (1.0, 2.0))
+    cfg = ej.ShapeOptions(degree=3, vf_degree=3, n_times=5, tol=1e-8, grid=(m, n), rtol=None)
+    units, (g1, g2) = in_units(f1, f2)
+    bases = make_bases(m, n, cfg, f1.dtype)
+    zero = jnp.zeros((cfg.n_times - 2, 3 * bases.dframe.shape[0]))
+    state = State(ej.sphere_points(m, n), jnp.eye(3), zero, jnp.asarray(1.0), 0, False)
+    history = jnp.full((cfg.outer_steps + 2,), jnp.nan)
+    rounds = Rounds(
+        state._replace(steps=jnp.asarray(0), shrunk=jnp.asarray(False)),
+        history,
+        jnp.asarray(0),
+        jnp.asarray(True),
+        zero,
+    )
+    solved = geodesics_phase(METRIC, g1, g2, bases, rounds, cfg, False)
+    honest = end_phase(METRIC, g1, g2, bases, solved, cfg, False)
+    assert honest.result != ej.RESULTS.below_area_bound
+    rounds_, both = solved
+    tiny = jnp.asarray([both.energy[0], 1e-6])
+    lost = (rounds_, both._replace(energy=tiny, distance=jnp.sqrt(tiny)))
+    res = end_phase(METRIC, g1, g2, bases, lost, cfg, False)
+    assert res.result == ej.RESULTS.below_area_bound and not bool(res.converged)
+    reported = shape_finish(METRIC, g1, g2, bases, res, units, options=cfg, rigid=False)
+    assert np.isnan(float(reported.distance)) and np.isnan(float(reported.energy))
+    # The honest solve lies above the bound, within 1 % of it (the closed form).
+    assert float(honest.distance) == pytest.approx(
+        np.sqrt(8 * np.pi) / float(units.scale), rel=0.01
+    )
+
+
 def test_fsaverage_pial_hemispheres_stay_below_their_parametrized_distance():
     """FreeSurfer's fsaverage5 pial hemispheres (nilearn's wheel) at 11 x 19, modulo diff:
     the L2-matched starts lead the rounds to 181.0 (167.1 on another machine) against the

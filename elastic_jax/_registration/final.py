@@ -13,7 +13,9 @@ from jaxtyping import ArrayLike
 
 from .._geodesics.geodesic import solve_path, upsample_coefficients
 from .._geometry.bases import frames_between, path_from_coefficients, perturbed_frames
+from .._geometry.differential import area_element
 from .._geometry.energy import frame_energy
+from .._geometry.grid import integrate_interior
 from .._geometry.metric import SplitMetric
 from .._geometry.numerics import safe_sqrt
 from .._geometry.units import Units
@@ -122,6 +124,10 @@ def geodesics_phase(
     return rounds, _final_solves(prob, options, rounds.state, rounds.parametrized)
 
 
+# A distance below this fraction of the area bound is lost precision (end_phase).
+_AREA_BOUND_SLACK = 0.9
+
+
 def end_phase(
     metric: SplitMetric,
     f1: ArrayLike,
@@ -180,6 +186,17 @@ def end_phase(
     result = RESULTS.where(not_registered, RESULTS.not_registered, result)
     finite = jnp.isfinite(final.energy)
     result = RESULTS.where(finite, result, RESULTS.nonfinite)
+    # Math §9's area bound holds for every path between the two surfaces, here with the
+    # areas of the path's own end frames (as the energy reads them: a registration that
+    # compresses f1 between the grid's points reads less of its area); a distance far
+    # below it is lost precision, not a shorter path (float32 with the kernel's earlier,
+    # cancelling form ended at 0.0 on a GPU). The slack is well above the quadrature's:
+    # concentric spheres, which attain the bound, are within 1 % of it.
+    ends = (registered_frame(prob, options, gamma), rotated_end_frame(prob, options, rotation))
+    areas = [integrate_interior(area_element(*frame)) for frame in ends]
+    bound = jnp.sqrt(2.0 * prob.metric.b) * jnp.abs(jnp.sqrt(areas[1]) - jnp.sqrt(areas[0]))
+    lost = finite & (final.distance < _AREA_BOUND_SLACK * bound)
+    result = RESULTS.where(lost, RESULTS.below_area_bound, result)
     if options.refinement:
         refinement = _refinement(prob, options, gamma, rotation, final.coefficients, final.energy)
     else:
@@ -198,7 +215,7 @@ def end_phase(
         energy_history=history,
         rounds=rounds.rounds,
         num_steps=steps,
-        converged=final.converged & rounds.done & ~state.shrunk & ~not_registered & finite,
+        converged=final.converged & rounds.done & ~state.shrunk & ~not_registered & finite & ~lost,
         result=result,
         grad_norm=grad_norm,
         min_curvature=final.min_curvature,
@@ -247,6 +264,8 @@ def shape_finish(
     path, energy = _shape_evaluate(
         metric, g1, g2, bases, gamma, rotation, coefficients, options=options, rigid=rigid
     )
+    # A distance that lost its precision (end_phase) is not reported as a number.
+    energy = jnp.where(solved.result == RESULTS.below_area_bound, jnp.nan, energy)
     unit_result = solved._replace(
         path=path, f1_registered=path[0], energy=energy, distance=safe_sqrt(energy)
     )

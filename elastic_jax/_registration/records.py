@@ -96,7 +96,9 @@ class ShapeGeodesicResult(NamedTuple):
             resolved it (J > 0, area floor) and then lowered the energy little or not at
             all, else ``nonlinear_max_steps_reached`` when the rounds ran out, else successful;
             ``nonfinite`` over all of these when the energy is not finite (the distance is
-            then NaN, never 0; levels stop at such a level).
+            then NaN, never 0; levels stop at such a level), ``below_area_bound`` when
+            the distance came out under 0.9 times math §9's area bound for the path's
+            ends (lost precision; the distance is then NaN too).
         grad_norm: ``()`` 2-norm of the gradient of the joint objective (path in whitened
             coefficients and the next Diff step, energy / its scale) at the result.
         min_curvature: ``()`` the final geodesic solve's estimate of the smallest Hessian
