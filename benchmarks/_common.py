@@ -12,8 +12,12 @@ import sys
 import time
 from collections.abc import Callable
 from importlib import metadata
+from typing import TYPE_CHECKING
 
 import jax
+
+if TYPE_CHECKING:
+    import numpy as np
 
 
 def environment() -> dict:
@@ -64,19 +68,34 @@ def emit(record: dict) -> None:
     print(json.dumps(_finite(record), sort_keys=True, allow_nan=False), flush=True)
 
 
-DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data"
+# The authors' surfaces beside the repository (../shared/data/ShapeData), when present, a
+# development convenience: elsewhere elastic_jax.datasets looks in $ELASTIC_JAX_DATA and
+# its cache, then downloads.
+SHAPE_DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "ShapeData"
+
+
+def shape(name: str) -> np.ndarray | None:
+    """The authors' surface ``name`` (3, 50, 99) from ``elastic_jax.datasets``, or None when
+    its file cannot be had (pooch missing, offline). A checksum mismatch still raises."""
+    if SHAPE_DATA.is_dir():
+        os.environ.setdefault("ELASTIC_JAX_DATA", str(SHAPE_DATA))
+    import elastic_jax as ej
+
+    try:
+        return ej.datasets.load(name)
+    except (ImportError, OSError):
+        return None
 
 
 def cat_pair(m: int, n: int):
-    """The shared cats on an m x n grid (resampled from 50 x 99), or None when absent."""
+    """The authors' cats on an m x n grid (resampled from 50 x 99), or None when absent."""
     import numpy as np
 
     import elastic_jax as ej
 
-    paths = [DATA / f"cat{i}_50x99.npz" for i in (1, 2)]
-    if not all(p.exists() for p in paths):
+    f1, f2 = shape("cat1"), shape("cat2")
+    if f1 is None or f2 is None:
         return None
-    f1, f2 = (np.load(p)["f"] for p in paths)
     if (m, n) != (50, 99):
         f1, f2 = (np.asarray(ej.resample(f, m, n)) for f in (f1, f2))
     return f1, f2

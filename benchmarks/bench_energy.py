@@ -1,12 +1,13 @@
 """Value and gradient of the path energy with respect to the interior path points.
 
-Settings (issue 2): 50 x 99 grid, N = 13 time points, metric (1, 1, 0.1, 0), float64 and
-float32; the straight line between the shared cats when ../shared/data is present, else
-between two built-in synthetic surfaces. Prints one JSON record per dtype: compile time
+Settings: 50 x 99 grid, N = 13 time points, metric (1, 1, 0.1, 0), float64 and
+float32; the straight line between the authors' cats (elastic_jax.datasets:
+$ELASTIC_JAX_DATA or a download) when they can be had, else between two built-in synthetic
+surfaces. Prints one JSON record per dtype: compile time
 (ahead of time, separately) and the min and median of repeated calls.
 Target on a 2-core CPU: float64 median at most 10 ms.
 
-Roofline (issue 14: within 3x of it where the authors' code cannot be run alongside):
+Roofline (target: within 3x of it where the authors' code cannot be run alongside):
 XLA's cost analysis of the compiled value-and-gradient gives its floating-point
 operations and bytes accessed; this machine's attainable peaks are measured here, in the
 same process and dtype: a 1024 x 1024 matrix product (2 n^3 flops) and a 32 MiB
@@ -19,9 +20,9 @@ the flop bound is the one a fused kernel can approach.
 Measured (2026-11-23, 2 cores, float64, cats): XLA counts 108 MFLOP and 281 MB for the
 value and gradient; the machine's product reaches 102-106 GFLOP/s and the add 5.5 GB/s,
 so the flop bound is 1.02-1.06 ms and the byte bound 50 ms. The call took 5.6-6.1 ms
-(min) and 7.2-9.4 ms (median) on a machine shared with other jobs (4.4 / 5.2 ms quiet,
-issue 14): 4.3-6x the flop bound, 0.14-0.19 of the byte bound. Against the authors' 93 ms
-(issue 14's one run) that is 15-21x; the 50x target is not met.
+(min) and 7.2-9.4 ms (median) on a machine shared with other jobs (4.4 / 5.2 ms quiet):
+4.3-6x the flop bound, 0.14-0.19 of the byte bound. Against the authors' 93 ms
+(one side-by-side run) that is 15-21x; the 50x target is not met.
 
 Where the time goes (XLA's trace events, float64, same day): 16 "pad" fusions, the
 transposes of the coordinate and time slices, hold about 65 % of the threads' time; each
@@ -32,7 +33,7 @@ against 44); the coordinates as separate arrays 33 ms; time mixing by small matr
 12.5 ms; a lax.map over time steps 13.6 ms; optimization barriers change nothing (XLA:CPU
 expands them before fusing). None reaches 1.9 ms (50x), so none landed.
 
-Issue 51 (2026-11-28, 2 cores, cats, the solvers' compiler options): the path energy's
+Measured again (2026-11-28, 2 cores, cats, the solvers' compiler options): the path energy's
 derivative now comes from the integrand's partials, computed once per point behind a
 conditional (energy.py, speed_density): XLA counts 54 MFLOP and 187 MB instead of 109
 MFLOP and 301 MB; float64 median 3.06 ms (min 2.68) against 4.78 ms (3.78) in the same
@@ -49,7 +50,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import pathlib
 import time
 
 import jax
@@ -62,15 +62,14 @@ import numpy as np  # noqa: E402
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import shapes  # noqa: E402
 
-from _common import emit, environment, time_calls  # noqa: E402
-
-DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data"
+from _common import emit, environment, shape, time_calls  # noqa: E402
 
 
 def end_surfaces(m: int, n: int) -> tuple[np.ndarray, np.ndarray, str]:
-    cat1, cat2 = DATA / "cat1_50x99.npz", DATA / "cat2_50x99.npz"
-    if (m, n) == (50, 99) and cat1.exists() and cat2.exists():
-        return np.load(cat1)["f"], np.load(cat2)["f"], "cat1 -> cat2"
+    if (m, n) == (50, 99):
+        cat1, cat2 = shape("cat1"), shape("cat2")
+        if cat1 is not None and cat2 is not None:
+            return cat1, cat2, "cat1 -> cat2"
     f1 = np.asarray(shapes.sample(shapes.bumpy, m, n))
     f2 = np.asarray(shapes.sample(shapes.bent_cylinder, m, n))
     return f1, f2, "bumpy -> bent_cylinder (synthetic)"

@@ -7,12 +7,12 @@ Tasks (one JSON record each, per grid):
    signal in bending with stretching as the nuisance; the signal in shear with change of
    volume as the nuisance). 12 shapes (seed 0) to learn from, 12 others (seed 1) to score
    on, modulo "none" (the families share one parametrization).
-2. ``animals``: the shared cats, horse and hand (../shared/data), each a class of
+2. ``animals``: the authors' cats, horse and hand (elastic_jax.datasets), each a class of
    ``--members`` shapes made by synthetic deformations: a random size (exp(s), s uniform
    in +-0.5: change of volume, the b term alone), a small stretch along random axes
    (diag(exp(u)), u uniform in +-0.1), a random rotation and a random reparametrization by
    a Moebius map (|a| <= 0.3); half of each class to learn from, half to score on, modulo
-   "rigid". Skipped when ../shared/data is absent.
+   "rigid". Skipped when the surfaces cannot be had ($ELASTIC_JAX_DATA or a download).
 
 Every fit starts from the default metric (1, 1, 0.1, 0), learns a, b, c (d held at 0)
 with the soft nearest neighbours objective (temperature 0.1) and the defaults of
@@ -52,7 +52,7 @@ import numpy as np  # noqa: E402
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import shapes  # noqa: E402
 
-from _common import DATA, deformed, emit, environment  # noqa: E402
+from _common import deformed, emit, environment, shape  # noqa: E402
 
 OPTIONS = {
     (13, 25): ej.ShapeOptions(degree=3, n_times=5, vf_degree=4),
@@ -62,14 +62,14 @@ ANIMALS = ("cat1", "cat2", "horse0", "hand4")
 
 
 def animals(m: int, n: int, members: int, seed: int):
-    """(train, train labels, test, test labels) of deformed shared shapes, or None."""
-    paths = [DATA / f"{name}_50x99.npz" for name in ANIMALS]
-    if not all(p.exists() for p in paths):
+    """(train, train labels, test, test labels) of the authors' shapes deformed, or None."""
+    surfaces = [shape(name) for name in ANIMALS]
+    if any(f is None for f in surfaces):
         return None
     rng = np.random.default_rng(seed)
     train, test, train_labels, test_labels = [], [], [], []
-    for label, p in enumerate(paths):
-        base = np.asarray(ej.center(ej.resample(np.load(p)["f"], m, n)))
+    for label, f in enumerate(surfaces):
+        base = np.asarray(ej.center(ej.resample(f, m, n)))
         base = base / np.sqrt(float(ej.surface_area(base)))
         for j in range(members):
             f = deformed(base, rng, size=0.5)

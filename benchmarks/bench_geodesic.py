@@ -1,10 +1,11 @@
 """Parametrized geodesics (paper Algorithm 1): compile time, solve time, steps, energies.
 
-Settings (issue 3): metric (1, 1, 0.1, 0); 25 x 49 with degree 7 and N = 10, and 50 x 99
-with degree 7 and N = 13; the cat pair from ../shared/data (resampled to 25 x 49 for the
-middle row; skipped when absent) and a synthetic pair (bent cylinders); both solvers; and
-the multiresolution schedule at 50 x 99. One JSON record per solve. Targets on a 2-core
-CPU after compilation: under 5 s at 25 x 49 and under 20 s at 50 x 99.
+Settings: metric (1, 1, 0.1, 0); 25 x 49 with degree 7 and N = 10, and 50 x 99
+with degree 7 and N = 13; the authors' cat pair from elastic_jax.datasets ($ELASTIC_JAX_DATA
+or a download; resampled to 25 x 49 for the middle row; skipped when they cannot be had)
+and a synthetic pair (bent cylinders); both solvers; and the multiresolution schedule at
+50 x 99. One JSON record per solve. Targets on a 2-core CPU after compilation: under 5 s
+at 25 x 49 and under 20 s at 50 x 99.
 
 Run: python benchmarks/bench_geodesic.py [--repeats 3] [--quick] [--dtypes float64,float32]
      [--solvers bfgs,lbfgs]

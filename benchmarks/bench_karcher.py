@@ -1,18 +1,18 @@
 """Karcher steps and distance matrices: time per step for three batching strategies.
 
-Settings (issue 5): 8 surfaces at 25 x 49 (synthetic, plus the shared cats, horse and
-hand when ../shared/data is present, each scaled to unit area since the shape space here
-keeps scale), metric (1, 1, 0.1, 0), modulo="rigid", ShapeOptions(degree=5, vf_degree=5,
-n_times=7) (midpoint scheme, registration rounds to convergence); one Karcher step per
-strategy ("vmap", "map" = lax.map in one jit, "loop" = Python loop of jitted solves),
-each in its own process so that its peak resident memory (ru_maxrss) is its own; then a
-16-shape distance matrix (120 pairs,
-strategy "map" by default). One JSON record per measurement: first call (with
+Settings: 8 surfaces at 25 x 49 (synthetic, plus the authors' cats, horse and
+hand from elastic_jax.datasets when they can be had: $ELASTIC_JAX_DATA or a download; each
+scaled to unit area since the shape space here keeps scale), metric (1, 1, 0.1, 0),
+modulo="rigid", ShapeOptions(degree=5, vf_degree=5, n_times=7) (midpoint scheme,
+registration rounds to convergence); one Karcher step per strategy ("vmap", "map" =
+lax.map in one jit, "loop" = Python loop of jitted solves), each in its own process so
+that its peak resident memory (ru_maxrss) is its own; then a 16-shape distance matrix
+(120 pairs, strategy "map" by default). One JSON record per measurement: first call (with
 compilation), a repeat, and the sum of the distances and of their squares (what every
 strategy must give alike) with whether every inner solve converged.
 
-Measured on 2 CPU cores (jax 0.10.2, float64), repeat after compilation, with issue 5's
-solver (central scheme, 2 outer steps): Karcher step map 17.7 s, loop 19.8 s, vmap
+Measured on 2 CPU cores (jax 0.10.2, float64), repeat after compilation, with the solver
+of that version (central scheme, 2 outer steps): Karcher step map 17.7 s, loop 19.8 s, vmap
 52.8 s; distance matrix map 140.5 s, loop 206 s.
 
 Run: python benchmarks/bench_karcher.py [--shapes 8] [--matrix-shapes 16]
@@ -46,7 +46,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp
 import numpy as np
 sys.path.insert(0, {bench_dir!r})
-from _common import DATA
+from _common import shape
 import elastic_jax as ej
 from elastic_jax import shapes
 
@@ -55,9 +55,9 @@ m, n = 25, 49
 options = ej.ShapeOptions(degree=5, vf_degree=5, n_times=7, rtol=None)
 coll = []
 for name in ("cat1", "cat2", "horse0", "hand4"):
-    p = DATA / f"{{name}}_50x99.npz"
-    if p.exists() and len(coll) < k // 2:
-        f = np.asarray(ej.center(ej.resample(np.load(p)["f"], m, n)))
+    f = shape(name) if len(coll) < k // 2 else None
+    if f is not None:
+        f = np.asarray(ej.center(ej.resample(f, m, n)))
         coll.append(f / np.sqrt(float(ej.surface_area(f))))
 i = 0
 while len(coll) < k:
@@ -94,8 +94,8 @@ print(json.dumps({{"first_s": first, "repeat_s": again,
 
 def resolved(args, emit, environment) -> None:
     """--resolved: one Karcher mean at the package's defaults (resolved: levels, then
-    continuations on the grid they needed), modulo rigid, on the shared shapes (with
-    --deformations more: each a shared shape under a random stretch, rotation and Moebius
+    continuations on the grid they needed), modulo rigid, on the authors' shapes (with
+    --deformations more: each one of them under a random stretch, rotation and Moebius
     map of its parameter sphere), or on three synthetic shapes with --synthetic. With
     --medoid every member's SSD as the centre, from resolved pairwise shape geodesics
     (each pair once, the earlier member reparametrized)."""
@@ -110,7 +110,7 @@ def resolved(args, emit, environment) -> None:
     import elastic_jax as ej
     from elastic_jax import shapes
 
-    from _common import DATA, deformed
+    from _common import deformed, shape
 
     rng = np.random.default_rng(0)
     if args.synthetic:
@@ -122,11 +122,14 @@ def resolved(args, emit, environment) -> None:
         ]
         options = ej.ShapeOptions(degree=3, vf_degree=3, n_times=5)
     else:
-        paths = [DATA / f"{name}_50x99.npz" for name in ("cat1", "cat2", "horse0", "hand4")]
-        if not all(p.exists() for p in paths):
-            print("bench_karcher --resolved: ../shared/data is absent", file=sys.stderr)
+        coll = [shape(name) for name in ("cat1", "cat2", "horse0", "hand4")]
+        if any(f is None for f in coll):
+            print(
+                "bench_karcher --resolved: the authors' shapes cannot be had "
+                "(elastic_jax.datasets: $ELASTIC_JAX_DATA or a download)",
+                file=sys.stderr,
+            )
             return
-        coll = [np.load(p)["f"] for p in paths]
         coll += [deformed(coll[i % 4], rng, method="spline") for i in range(args.deformations)]
         options = ej.ShapeOptions()
         if args.small:

@@ -3,9 +3,9 @@
 Measures ``elastic_jax.io.spherical_parametrization`` (default settings: area_weight 0.9,
 max_steps 20000, rtol 1e-5) on the issue's meshes:
 
-- the four shared surfaces (../shared/data: cat1, cat2, horse0, hand4, each 50 x 99),
-  meshed with ``grid_to_mesh`` (9408 faces); skipped, with a record saying so, when the
-  data is absent;
+- the authors' four surfaces (elastic_jax.datasets: cat1, cat2, horse0, hand4, each
+  50 x 99, from $ELASTIC_JAX_DATA or a download), meshed with ``grid_to_mesh`` (9408
+  faces); skipped, with a record saying so, when they cannot be had;
 - an ellipsoid with axes (1, 0.7, 0.4): an icosphere of 4, 5 or 6 subdivisions scaled
   along the axes (5120, 20480 and 81920 faces);
 - sizes from 5k to 300k faces: the bent tube ``shapes.bent_cylinder`` (not star-shaped)
@@ -37,7 +37,7 @@ vertex of the input mesh to that grid mesh (trimesh.proximity.closest_point), ma
 mean in % of the input's bounding-box diagonal (large where thin parts fall between grid
 points). A ParametrizationError is recorded (folded faces, message) instead of raised.
 Then a summary: the parametrization wall time (``wall_s``) summed over the first issue's
-cases (the shared shapes, the ellipsoids and the 78k-face cat), against its target of at
+cases (the authors' shapes, the ellipsoids and the 78k-face cat), against its target of at
 most 90 s for all of them on 2 CPU cores; ``met`` is true when the sum is within it and
 no case failed, ``all_cases`` whether every one of them ran (a subset or skipped data
 makes the comparison partial); and the size series with its target.
@@ -62,7 +62,7 @@ import trimesh  # noqa: E402
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import io  # noqa: E402
 
-from _common import DATA, emit, environment  # noqa: E402
+from _common import emit, environment, shape  # noqa: E402
 
 TARGET_S = 90.0  # the issue's target: all cases within 90 s on 2 CPU cores
 COVERAGE_GRID = (50, 99)
@@ -72,10 +72,10 @@ SIZE_TARGET = (100_000, 60.0)  # the second issue's: 100k faces within 60 s on 2
 
 # name: (kind, parameter, small enough for --quick)
 CASES = {
-    "cat1": ("shared", "cat1", True),
-    "cat2": ("shared", "cat2", True),
-    "horse0": ("shared", "horse0", True),
-    "hand4": ("shared", "hand4", True),
+    "cat1": ("dataset", "cat1", True),
+    "cat2": ("dataset", "cat2", True),
+    "horse0": ("dataset", "horse0", True),
+    "hand4": ("dataset", "hand4", True),
     "ellipsoid_5k": ("ellipsoid", 4, True),
     "ellipsoid_20k": ("ellipsoid", 5, False),
     "ellipsoid_80k": ("ellipsoid", 6, False),
@@ -141,11 +141,10 @@ def build(name: str) -> tuple[trimesh.Trimesh | None, dict]:
         vertices = np.asarray(ej.shapes.bent_cylinder(points)).T
         mesh = trimesh.Trimesh(vertices, faces, process=False)
         return mesh, {"source": "shapes.bent_cylinder on shapes.geodesic_sphere", "nu": parameter}
-    path = DATA / f"{parameter}_50x99.npz"
-    settings = {"source": str(path.name)}
-    if not path.exists():
+    settings = {"source": f"elastic_jax.datasets {parameter}"}
+    f = shape(parameter)
+    if f is None:
         return None, settings
-    f = np.load(path)["f"]
     if kind == "fine_cat":
         m, n = FINE_CAT_GRIDS[name]
         f = np.asarray(ej.resample(f, m, n))
@@ -175,7 +174,7 @@ def run_case(name: str, progress: bool) -> dict:
     mesh, settings = build(name)
     record = {"benchmark": "spherical_parametrization", "case": name, "settings": settings}
     if mesh is None:
-        record.update({"skipped": True, "reason": f"data absent: {DATA}"})
+        record.update({"skipped": True, "reason": f"data absent: {settings['source']}"})
         emit(record)
         return record
     options = {"area_weight": 0.9, "max_steps": 20_000, "rtol": 1e-5}

@@ -48,10 +48,11 @@ constant ``_RESOLUTION_FACTOR``, 5) for a diagnostic run. ``--path-only`` re-sol
 path on the levels up to ``--path-only-up-to`` (default 49 x 97: on 193 x 385 one path
 solve takes minutes).
 
-Pairs: cat1 -> cat2, cat1 -> horse0, horse0 -> hand4 (../shared/data, skipped when
-absent) and, when nilearn is installed, FreeSurfer's fsaverage5 pial hemispheres
-(``pial``: left against right, each put on the 50 x 99 grid by the package's spherical
-parametrization, area 4 pi).
+Pairs: cat1 -> cat2, cat1 -> horse0, horse0 -> hand4 (the authors' surfaces from
+elastic_jax.datasets: $ELASTIC_JAX_DATA or a download; skipped when they cannot be had)
+and, when nilearn is installed, FreeSurfer's fsaverage5 pial hemispheres (``pial``: left
+against right, each put on the 50 x 99 grid by the package's spherical parametrization,
+area 4 pi).
 
 Run: python benchmarks/bench_order.py [--pairs cats,cat-horse,horse-hand,pial]
      [--levels 13x25,25x49,49x97,97x193] [--factors 1,2,4] [--path-only]
@@ -85,9 +86,8 @@ from elastic_jax._registration import levels as _levels  # noqa: E402
 from elastic_jax._registration import one_grid as _one_grid  # noqa: E402
 from elastic_jax._registration import problem as _problem  # noqa: E402
 
-from _common import emit, environment  # noqa: E402
+from _common import emit, environment, shape  # noqa: E402
 
-DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data"
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 PAIRS = {
     "cats": ("cat1", "cat2"),
@@ -101,8 +101,8 @@ J_EDGES = (0.0, 0.5, 2.0, 4.0, 8.0, np.inf)
 
 
 def load(name: str):
-    """A shared shape's 50 x 99 grid, or an fsaverage5 pial hemisphere on 50 x 99; None
-    when its source is absent."""
+    """One of the authors' shapes on its 50 x 99 grid, or an fsaverage5 pial hemisphere on
+    50 x 99; None when its source is absent."""
     if name.startswith("pial_"):
         if importlib.util.find_spec("nilearn") is None:
             return None
@@ -111,8 +111,7 @@ def load(name: str):
         folder = pathlib.Path(importlib.util.find_spec("nilearn").origin).parent
         path = folder / "datasets" / "data" / "fsaverage5" / f"{name}.gii.gz"
         return np.asarray(io.load_surface(path, 50, 99, normalize="area"))
-    path = DATA / f"{name}_50x99.npz"
-    return np.load(path)["f"] if path.exists() else None
+    return shape(name)
 
 
 def balanced(f, m: int = 99, n: int = 197):

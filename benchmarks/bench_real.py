@@ -1,4 +1,4 @@
-"""Real shapes: is the distance a property of the two shapes? (issue 29)
+"""Real shapes: is the distance a property of the two shapes?
 
 For each pair, modulo rigid motion, metric (1, 1, 0.1, 0), the package's defaults
 (ShapeOptions()), float64, one record per solve:
@@ -6,7 +6,7 @@ For each pair, modulo rigid motion, metric (1, 1, 0.1, 0), the package's default
 - ``grid25``: both surfaces resampled (bilinear) to 25 x 49;
 - ``up49``: those same 25 x 49 surfaces upsampled (bilinear, grid points kept) to 49 x 97,
   so the continuous surfaces are the same as ``grid25``'s;
-- ``data``: the surfaces at their own grid (50 x 99 for the shared data);
+- ``data``: the surfaces at their own grid (50 x 99 for the authors' surfaces);
 - ``moebius``: f1 read from its data through a Moebius map (|a| = 0.3, a seeded direction)
   and rotated, on the data's grid: should equal ``data``;
 - ``reversed``: the pair in the other order, on the data's grid: should equal ``data``;
@@ -23,8 +23,9 @@ first call of each configuration includes its compilation: ``compiled`` says whi
 phases as [level, stage, seconds], ``num_steps`` the solver steps), and
 then one summary record per pair with the spreads the issue's targets ask about.
 
-Pairs: cat1 -> cat2, cat1 -> horse0, horse0 -> hand4 (../shared/data, skipped when
-absent), a synthetic pair (a bumpy surface against a stretched copy, sampled at 50 x 99),
+Pairs: cat1 -> cat2, cat1 -> horse0, horse0 -> hand4 (the authors' surfaces from
+elastic_jax.datasets: $ELASTIC_JAX_DATA or a download; skipped when they cannot be had), a
+synthetic pair (a bumpy surface against a stretched copy, sampled at 50 x 99),
 and, when nilearn is installed, FreeSurfer's fsaverage5 left hemisphere against the
 mirrored right one, inflated (``fsaverage``), white (``fsaverage-white``) and pial
 (``fsaverage-pial``) (nilearn ships the meshes; they are put on the grid by
@@ -70,7 +71,7 @@ from elastic_jax import shapes  # noqa: E402
 from elastic_jax._options import DIFFERENTIALS, INTERPOLATIONS  # noqa: E402
 from elastic_jax._runtime.cache import CompileCounter  # noqa: E402
 
-from _common import DATA, emit, environment  # noqa: E402
+from _common import emit, environment, shape  # noqa: E402
 
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 PAIRS = {
@@ -136,10 +137,10 @@ def _pair(name: str):
         return shapes.sample(shapes.bumpy, 50, 99), jnp.einsum("i,imn->imn", stretch, moved)
     if name.startswith("fsaverage"):
         return _fsaverage({"fsaverage": "infl"}.get(name, name.removeprefix("fsaverage-")))
-    paths = [DATA / f"{s}_50x99.npz" for s in PAIRS[name]]
-    if not all(p.exists() for p in paths):
+    surfaces = [shape(s) for s in PAIRS[name]]
+    if any(f is None for f in surfaces):
         return None
-    return tuple(jnp.asarray(np.load(p)["f"]) for p in paths)
+    return tuple(jnp.asarray(f) for f in surfaces)
 
 
 def _inputs(case: str, f1, f2):
@@ -286,7 +287,7 @@ def main() -> None:
                     "relative_change": float(res.refinement.relative_change),
                     "seconds": seconds,
                     "compiled": grid not in seen,
-                    # XLA programs this solve compiled (issue 51: few, and none once
+                    # XLA programs this solve compiled (few, and none once
                     # its settings have been solved before).
                     "programs_compiled": programs.count,
                     "num_steps": int(res.num_steps),

@@ -17,10 +17,11 @@ gradient norm, the energy history, the refinement's relative change), then one s
 per pair: the relative spread (max - min) / min of the distance over the variants and
 over those that converged, and whether every variant converged.
 
-Pairs: cat1 -> cat2 and cat1 -> horse0 (../shared/data, skipped when absent) and a
-synthetic pair (a bumpy surface against a stretched copy under a rotation of the
-parameter sphere), metric (1, 1, 0.1, 0), modulo "diff". Rows: the paper's low
-(12 x 25, degree 5 / 5, N 5) and middle (25 x 49, 7 / 8, N 10).
+Pairs: cat1 -> cat2 and cat1 -> horse0 (the authors' surfaces from elastic_jax.datasets:
+$ELASTIC_JAX_DATA or a download; skipped when they cannot be had) and a synthetic pair (a
+bumpy surface against a stretched copy under a rotation of the parameter sphere), metric
+(1, 1, 0.1, 0), modulo "diff". Rows: the paper's low (12 x 25, degree 5 / 5, N 5) and
+middle (25 x 49, 7 / 8, N 10).
 
 Measured (2026-11-24, 2 CPU cores, float64, jax 0.10.2; distances in the user's units;
 the library compiles without the fusion emitters, and reports RESULTS.resolution_limited):
@@ -71,7 +72,7 @@ from elastic_jax._geometry.units import in_units  # noqa: E402
 from elastic_jax._registration import phases as _phases  # noqa: E402
 from elastic_jax._registration.problem import make_bases  # noqa: E402
 
-from _common import DATA, emit, environment  # noqa: E402
+from _common import emit, environment, shape  # noqa: E402
 
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 ROWS = {
@@ -101,10 +102,10 @@ def surfaces(name: str, m: int, n: int):
         other = shapes.sample(shapes.ellipsoid, m, n, axes=(1.0, 0.8, 0.6))
         return (*(np.asarray(f) for f in bench_shape.pair("synthetic", m, n)), np.asarray(other))
     files = {"cats": ("cat1", "cat2", "horse0"), "horse": ("cat1", "horse0", "cat2")}[name]
-    paths = [DATA / f"{f}_50x99.npz" for f in files]
-    if not all(p.exists() for p in paths):
+    loaded = [shape(f) for f in files]
+    if any(f is None for f in loaded):
         return None
-    return tuple(np.asarray(ej.resample(np.load(p)["f"], m, n)) for p in paths)
+    return tuple(np.asarray(ej.resample(f, m, n)) for f in loaded)
 
 
 def summary(result, scale: float) -> dict:

@@ -8,8 +8,9 @@ Four measurements, one JSON record each (settings, figures, environment):
    worker processes (one thread each). Each configuration runs in a fresh process with
    its own empty compilation cache, so every one pays its compilations; the record gives
    the wall time, pairs per second, and the largest difference from the in-process
-   matrix. Shapes: the shared cats, horse and hand at unit area when ../shared/data is
-   there, then rotated ellipsoids and bumpy surfaces.
+   matrix. Shapes: the authors' cats, horse and hand at unit area when they can be had
+   (elastic_jax.datasets: $ELASTIC_JAX_DATA or a download), then rotated ellipsoids and
+   bumpy surfaces.
 2. ``first_call``: a fresh Python process solving one shape geodesic (the cats, modulo
    "diff"), cold (empty persistent compilation cache) and warm (the cache filled by the
    cold run): the paper's low row (12 x 25, degree 5 / 5, N = 5) and middle row
@@ -118,7 +119,7 @@ last at LLVM level 0), and enable_compilation_cache stores every program
         compete with the runs they overlapped before); LLVM level 0 for the search phases
         (compile halves, runs 4-7 times slower: the middle row's coarse phase 4.3 -> 22 s).
         Still missed: cold <= 6.9 s (16.5 s) and warm <= 2 s (2.1-2.3 s).
-    matrix, 16 shapes (120 pairs, 111 converged; the shared cats, horse and hand and 12
+    matrix, 16 shapes (120 pairs, 111 converged; the authors' cats, horse and hand and 12
         synthetic shapes; batched jobs compile the solve as one program, so this part is
         not changed by the phases): in process 423 s (0.284 pairs/s, RSS 935 MB);
         LocalCluster 1 worker 455 s (0.264); 2 workers 292 s (0.411, 1.45 times the
@@ -135,7 +136,7 @@ process loads them without lowering the programs) (2026-11-24, quiet):
     memory: shape_geodesic 25 x 49 at the defaults 614 MB with no cache, 657 MB filling
         the cache (executables serialized too), 588 MB loading it; geodesic 50 x 99
         873 MB (code unchanged; 858-860 before).
-    matrix, 32 shapes (496 pairs, 473 converged; the shared cats, horse and hand and 28
+    matrix, 32 shapes (496 pairs, 473 converged; the authors' cats, horse and hand and 28
         synthetic shapes): in process 1451 s (0.342 pairs/s, RSS 953 MB); LocalCluster
         1 worker 1549 s (0.320); 2 workers 969 s (0.512, 1.50 times the in-process
         rate); every matrix equal to the in-process one (largest difference 0.0).
@@ -164,7 +165,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import numpy as np
 sys.path.insert(0, {here!r})
-from _common import DATA
+from _common import shape as load_shape
 import elastic_jax as ej
 from elastic_jax import shapes
 warnings.simplefilter("ignore", ej.ConvergenceWarning)
@@ -174,7 +175,9 @@ def rss_mb():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 def cats(m, n):
-    f1, f2 = (np.load(DATA / f"cat{{i}}_50x99.npz")["f"] for i in (1, 2))
+    f1, f2 = load_shape("cat1"), load_shape("cat2")
+    if f1 is None or f2 is None:
+        raise FileNotFoundError("the authors' cats cannot be had (elastic_jax.datasets)")
     return tuple(np.asarray(ej.resample(f, m, n)) for f in (f1, f2))
 """
 
@@ -184,9 +187,9 @@ k, workers = {shapes}, {workers}
 m, n = 25, 49
 coll = []
 for name in ("cat1", "cat2", "horse0", "hand4"):
-    p = DATA / f"{{name}}_50x99.npz"
-    if p.exists() and len(coll) < k:
-        f = np.asarray(ej.center(ej.resample(np.load(p)["f"], m, n)))
+    f = load_shape(name) if len(coll) < k else None
+    if f is not None:
+        f = np.asarray(ej.center(ej.resample(f, m, n)))
         coll.append(f / np.sqrt(float(ej.surface_area(f))))
 i = 0
 while len(coll) < k:

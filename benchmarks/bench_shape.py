@@ -5,9 +5,10 @@ Rows (paper, Table 3, laptop without GPU): low 12 x 25, degree 5 / vf degree 5, 
 (505-842 s); plus the package's defaults (ShapeOptions()) at 25 x 49. Metric
 (1, 1, 0.1, 0), modulo="diff". Pairs: a synthetic one (a bumpy surface against a stretched
 copy under a random rotation of the parameter sphere, sampled exactly at every grid, so
-every row sees the same continuous surfaces) and every pair of the four shared animals
-(cat1, cat2, horse0, hand4; ../shared/data, 50 x 99, interpolated bicubically to the
-lower rows' grids; skipped when absent), so that a slowdown on one pair shows.
+every row sees the same continuous surfaces) and every pair of the authors' four animals
+(cat1, cat2, horse0, hand4 from elastic_jax.datasets: $ELASTIC_JAX_DATA or a download;
+50 x 99, interpolated bicubically to the lower rows' grids; skipped when they cannot be
+had), so that a slowdown on one pair shows.
 
 One JSON record per solve: compile time (first call minus a repeat), solve time, the
 distance, its refinement (halved time steps, the finer grid), converged, rounds, steps,
@@ -35,13 +36,12 @@ import jax
 jax.config.update("jax_enable_x64", True)  # a script, not the library
 
 import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import shapes  # noqa: E402
 from elastic_jax._runtime.cache import CompileCounter  # noqa: E402
 
-from _common import DATA, emit, environment  # noqa: E402
+from _common import emit, environment, shape  # noqa: E402
 
 METRIC = (1.0, 1.0, 0.1, 0.0)
 ROWS = {
@@ -75,11 +75,10 @@ def pair(name: str, m: int, n: int):
         moved = shapes.sample(shapes.bumpy, m, n, rotation=h)
         return shapes.sample(shapes.bumpy, m, n), jnp.einsum("i,imn->imn", stretch, moved)
     first, second = ("cat1", "cat2") if name == "cats" else name.split("-")
-    paths = [DATA / f"{animal}_50x99.npz" for animal in (first, second)]
-    if not all(p.exists() for p in paths):
+    animals = [shape(animal) for animal in (first, second)]
+    if any(f is None for f in animals):
         return None
     points = ej.sphere_points(m, n)
-    animals = [np.load(p)["f"] for p in paths]
     if (m, n) == (50, 99):
         return tuple(jnp.asarray(f) for f in animals)
     return tuple(_grid(ej.reparametrize(f, points, "bicubic")) for f in animals)

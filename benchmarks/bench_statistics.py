@@ -1,10 +1,11 @@
 """Statistics on the parametrized space: shoot, log, transport, tangent PCA; the paper's Table 2.
 
-Part 1, timings (issue 13). Metric (1, 1, 0.1, 0), degree 7, N = 13, float64, midpoint
-scheme, at 25 x 49 and 50 x 99, on the shared cats and horse (../shared/data, resampled
-from 50 x 99; synthetic surfaces from elastic_jax.shapes when it is absent, and the
-record says so). What is timed, each with its first call (compilation included) and the
-min / median of ``--repeat`` further calls:
+Part 1, timings. Metric (1, 1, 0.1, 0), degree 7, N = 13, float64, midpoint
+scheme, at 25 x 49 and 50 x 99, on the authors' cats and horse (elastic_jax.datasets:
+$ELASTIC_JAX_DATA or a download; resampled from 50 x 99; synthetic surfaces from
+elastic_jax.shapes when they cannot be had, and the record says so). What is timed, each
+with its first call (compilation included) and the min / median of ``--repeat`` further
+calls:
 
 - ``log``: modulo "none", cat1 -> cat2 (one :func:`geodesic` solve with its saddle check);
 - ``shoot``: from cat1 with that log's velocity (N - 2 Newton solves); the record holds
@@ -121,7 +122,7 @@ import numpy as np  # noqa: E402
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import shapes  # noqa: E402
 
-from _common import DATA, emit, environment, time_calls  # noqa: E402
+from _common import emit, environment, shape, time_calls  # noqa: E402
 
 METRIC = (1.0, 1.0, 0.1, 0.0)
 SRNF_METRIC = (0.0, 0.5, 1.0, 0.0)
@@ -158,14 +159,14 @@ def midpoint_area_ratios(path) -> list[float]:
 
 
 def surface(name: str, m: int, n: int) -> tuple[np.ndarray, str]:
-    """A shared shape on an m x n grid (resampled from 50 x 99), or its synthetic stand-in."""
-    path = DATA / f"{name}_50x99.npz"
-    if not path.exists():
-        return _synthetic(name, m, n), "synthetic (../shared/data absent)"
-    f = np.load(path)["f"]
+    """One of the authors' shapes on an m x n grid (resampled from 50 x 99), or its
+    synthetic stand-in."""
+    f = shape(name)
+    if f is None:
+        return _synthetic(name, m, n), "synthetic (the authors' surfaces absent)"
     if (m, n) != (50, 99):
         f = np.asarray(ej.resample(f, m, n))
-    return f, f"../shared/data/{name}_50x99.npz"
+    return f, f"elastic_jax.datasets {name}"
 
 
 def grid(text: str) -> tuple[int, int]:

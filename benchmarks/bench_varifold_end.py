@@ -1,5 +1,5 @@
 """The varifold-relaxed end condition, measured (docs/guides/registration_notes.md, "Tried and
-not adopted"; issue 29).
+not adopted").
 
 The route of H2_SurfaceMatch and BaRe-ESA, put on the package's grid: the path starts at
 f1 (fixed, on its own grid) and ends at a free surface f_end = f1 + sum_k c_k Y_k (real
@@ -45,7 +45,7 @@ from elastic_jax._geometry.so3 import so3_exp_unchecked  # noqa: E402
 from elastic_jax._geometry.srnf import center_unchecked  # noqa: E402
 from elastic_jax._meshes.resample import grid_faces as _grid_faces  # noqa: E402
 
-from _common import DATA, emit, environment  # noqa: E402
+from _common import emit, environment, shape  # noqa: E402
 
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 
@@ -129,8 +129,8 @@ def _relaxed(f1, f2, *, L, degree, n_times, schedule, steps):
 
 
 def _load(name):
-    path = DATA / f"{name}_50x99.npz"
-    return jnp.asarray(np.load(path)["f"]) if path.exists() else None
+    f = shape(name)
+    return None if f is None else jnp.asarray(f)
 
 
 def main() -> None:
@@ -147,7 +147,7 @@ def main() -> None:
     names = args.pair.split(",")
     f1, f2 = (_load(s) for s in names)
     if f1 is None or f2 is None:
-        emit({"skipped": f"{args.pair}: ../shared/data is absent"})
+        emit({"skipped": f"{args.pair}: the authors' surfaces (elastic_jax.datasets) are absent"})
         return
     f1, f2 = center_unchecked(f1), center_unchecked(f2)
     base = {"benchmark": "varifold_end", "pair": args.pair, **environment()}

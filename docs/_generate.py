@@ -14,7 +14,13 @@ import pathlib
 import re
 
 # The modules whose public names the API reference must cover (``__all__`` of each).
-PUBLIC_MODULES = ("elastic_jax", "elastic_jax.io", "elastic_jax.plot", "elastic_jax.shapes")
+PUBLIC_MODULES = (
+    "elastic_jax",
+    "elastic_jax.io",
+    "elastic_jax.plot",
+    "elastic_jax.shapes",
+    "elastic_jax.datasets",
+)
 
 
 def public_names() -> list[str]:

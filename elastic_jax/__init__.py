@@ -1,5 +1,6 @@
 """elastic_jax: elastic shape analysis of spherical surfaces (split metrics, Su et al. 2020)."""
 
+from . import datasets as datasets
 from . import shapes as shapes
 from ._errors import ConvergenceWarning as ConvergenceWarning
 from ._errors import InputError as InputError
@@ -16,6 +17,8 @@ from ._geodesics.srnf_inverse import srnf_invert as srnf_invert
 from ._geodesics.transport import TransportResult as TransportResult
 from ._geodesics.transport import parallel_transport as parallel_transport
 from ._geometry.differential import differential as differential
+from ._geometry.energy import EnergyDensity as EnergyDensity
+from ._geometry.energy import energy_density as energy_density
 from ._geometry.energy import path_energy as path_energy
 from ._geometry.energy import path_length as path_length
 from ._geometry.energy import straight_path as straight_path
@@ -82,6 +85,7 @@ from ._version import VERSION as __version__  # noqa: F401  (elastic_jax.__versi
 __all__ = [
     "ConvergenceWarning",
     "DistanceMatrixResult",
+    "EnergyDensity",
     "GeodesicResult",
     "InputError",
     "JobOptions",
@@ -111,6 +115,7 @@ __all__ = [
     "distance_matrix",
     "elastic_metric_inner",
     "enable_compilation_cache",
+    "energy_density",
     "exp",
     "fit_metric",
     "geodesic",

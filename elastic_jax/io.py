@@ -35,6 +35,7 @@ import jax
 import numpy as np
 import scipy.io
 import trimesh
+from jaxtyping import ArrayLike
 
 from ._checks import check_bool, check_choice, check_grid_shape, check_positive
 from ._errors import FrameWarning, InputError
@@ -476,35 +477,50 @@ def load_surface(
     return f if vertex_map is None else (f, vertex_map)
 
 
-def _export_gifti(mesh: trimesh.Trimesh, path: pathlib.Path) -> pathlib.Path:
+def _export_gifti(
+    mesh: trimesh.Trimesh, path: pathlib.Path, values: Mapping[str, np.ndarray] | None = None
+) -> pathlib.Path:
     """A GIfTI surface: the vertices as a float32 NIFTI_INTENT_POINTSET, the faces as an
-    int32 NIFTI_INTENT_TRIANGLE (the types GIfTI readers expect), base64-gzip encoded."""
+    int32 NIFTI_INTENT_TRIANGLE (the types GIfTI readers expect), base64-gzip encoded;
+    each per-vertex value a float32 NIFTI_INTENT_SHAPE array named by its ``Name``."""
     nibabel = _nibabel(path, "writing GIfTI surfaces")
     gifti = nibabel.gifti
-    image = gifti.GiftiImage(
-        darrays=[
+    darrays = [
+        gifti.GiftiDataArray(
+            np.asarray(mesh.vertices, np.float32),
+            intent="NIFTI_INTENT_POINTSET",
+            datatype="NIFTI_TYPE_FLOAT32",
+        ),
+        gifti.GiftiDataArray(
+            np.asarray(mesh.faces, np.int32),
+            intent="NIFTI_INTENT_TRIANGLE",
+            datatype="NIFTI_TYPE_INT32",
+        ),
+    ]
+    for name, value in (values or {}).items():
+        darrays.append(
             gifti.GiftiDataArray(
-                np.asarray(mesh.vertices, np.float32),
-                intent="NIFTI_INTENT_POINTSET",
+                np.asarray(value, np.float32),
+                intent="NIFTI_INTENT_SHAPE",
                 datatype="NIFTI_TYPE_FLOAT32",
-            ),
-            gifti.GiftiDataArray(
-                np.asarray(mesh.faces, np.int32),
-                intent="NIFTI_INTENT_TRIANGLE",
-                datatype="NIFTI_TYPE_INT32",
-            ),
-        ]
-    )
+                meta={"Name": name},
+            )
+        )
+    image = gifti.GiftiImage(darrays=darrays)
     with atomic_path(path) as tmp:
         # Written to bytes here: nibabel picks its writer by the temporary's suffix.
         pathlib.Path(tmp).write_bytes(image.to_bytes())
     return path
 
 
-def _export_mesh(mesh: trimesh.Trimesh, path: pathlib.Path) -> pathlib.Path:
+def _export_mesh(
+    mesh: trimesh.Trimesh, path: pathlib.Path, values: Mapping[str, np.ndarray] | None = None
+) -> pathlib.Path:
     kind = _suffix(path)
     if kind == "gii":
-        return _export_gifti(mesh, path)
+        return _export_gifti(mesh, path, values)
+    for name, value in (values or {}).items():  # .ply: vertex properties (float64)
+        mesh.vertex_attributes[name] = np.asarray(value, np.float64)
     options = {}
     if kind in _DECIMALS:
         # Fixed-point text: trimesh's decimals (8 for .obj, 10 for .off) are absolute; a
@@ -518,7 +534,42 @@ def _export_mesh(mesh: trimesh.Trimesh, path: pathlib.Path) -> pathlib.Path:
     return path
 
 
-def save_surface(f, path: str | os.PathLike) -> pathlib.Path:
+# The formats that carry per-vertex values beside the surface (save_surface's fields).
+_FIELD_FORMATS = ("npz", "ply", "gii")
+
+
+def _checked_fields(fields: Mapping, grid: tuple[int, int], kind: str) -> dict[str, np.ndarray]:
+    if not isinstance(fields, Mapping):
+        raise InputError(f"fields must be a mapping of names to (m, n) arrays; got {fields!r}")
+    if fields and kind not in _FIELD_FORMATS:
+        raise InputError(
+            f"fields are written to {', '.join('.' + k for k in _FIELD_FORMATS)} files, not .{kind}"
+        )
+    checked = {}
+    for name, value in fields.items():
+        if not isinstance(name, str) or not name.isidentifier() or name in ("f", "x", "y", "z"):
+            raise InputError(f"field name {name!r} must be an identifier other than f, x, y, z")
+        value = np.asarray(value, dtype=np.float64)
+        if value.shape != grid:
+            raise InputError(
+                f"field {name!r} must have the surface's grid shape {grid}; got {value.shape}"
+            )
+        if not np.isfinite(value).all():
+            raise InputError(f"field {name!r} has NaN or infinite values")
+        checked[name] = value
+    return checked
+
+
+def _vertex_values(field: np.ndarray) -> np.ndarray:
+    """A grid field's values at grid_to_mesh's vertices: the distinct grid points, each
+    pole the mean of its row (a field of the pole's own point is constant there)."""
+    poles = np.stack([field[0, :-1].mean(), field[-1, :-1].mean()])
+    return np.concatenate([poles[:1], field[1:-1, :-1].reshape(-1), poles[1:]])
+
+
+def save_surface(
+    f, path: str | os.PathLike, fields: Mapping[str, ArrayLike] | None = None
+) -> pathlib.Path:
     """Write one surface ``(3, m, n)`` to ``path`` atomically; the suffix picks the format.
 
     ``.npz``: the array under the key ``f``, exactly. A mesh format (``MESH_FORMATS``:
@@ -533,25 +584,38 @@ def save_surface(f, path: str | os.PathLike) -> pathlib.Path:
     neuroimaging readers (FreeSurfer, Workbench, nilearn) expect (float32 is the only
     floating type GIfTI's standard lists).
 
+    ``fields`` are values on the grid beside the surface (e.g. the terms of
+    :func:`~elastic_jax.energy_density`), so that a viewer (FreeSurfer, Connectome
+    Workbench, ParaView, MeshLab) shows them on the mesh: in ``.npz`` each array under its
+    name, exactly; in ``.ply`` a float64 vertex property per field; in ``.gii`` a float32
+    ``NIFTI_INTENT_SHAPE`` array per field with its name in the array's ``Name``. A mesh
+    vertex takes its grid point's value, each pole the mean of its row.
+
     Args:
         f: ``(3, m, n)`` surface, checked with ``validate_surface``.
         path: the destination; its directory is created if missing.
+        fields: ``{name: (m, n) array}``, finite; names are identifiers other than f, x, y
+            and z. Only for ``.npz``, ``.ply`` and ``.gii``.
 
     Returns:
         the path written.
 
     Raises:
         ValueError: a bad surface or an unknown suffix (the supported ones are named).
-        InputError: ``.gii`` without nibabel (the extra to install is named).
+        InputError: ``.gii`` without nibabel (the extra to install is named); a field of
+            the wrong shape, not finite, badly named, or for a format without fields (each
+            names the field or the format).
     """
     path = pathlib.Path(path)
     kind = _suffix(path)
     if kind != "npz" and kind not in _WRITTEN_FORMATS:
         raise _unknown_suffix(path, "save", ("npz",) + _WRITTEN_FORMATS)
     f = checked_surfaces(f, "f", "(3, m, n)")
+    values = _checked_fields(fields or {}, tuple(f.shape[1:]), kind)
     if kind == "npz":
-        return save_npz_atomic(path, f=f)
-    return _export_mesh(grid_to_mesh(f), path)
+        return save_npz_atomic(path, f=f, **values)
+    vertex_values = {name: _vertex_values(value) for name, value in values.items()}
+    return _export_mesh(grid_to_mesh(f), path, vertex_values)
 
 
 def _json_default(value):

@@ -35,6 +35,7 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from ._checks import check_bool, check_choice, check_int, check_positive
 from ._errors import InputError
+from ._geometry.grid import quadrature_weights
 from ._geometry.metric import SplitMetric
 from ._geometry.validation import as_surface
 from ._runtime.atomic import atomic_path
@@ -43,6 +44,7 @@ from ._statistics.pca import TangentPCA, mode_path
 __all__ = [
     "parametrization_colors",
     "plot_path",
+    "plot_field",
     "plot_modes",
     "plot_energy",
     "plot_distance_matrix",
@@ -435,6 +437,99 @@ def plot_path(
         left_band=0.0,
         suptitle=suptitle,
     )
+    return fig
+
+
+# Inches added to a field's figure for its colour bar, and the bar's width in them.
+_COLORBAR_BAND = 0.9
+_COLORBAR_WIDTH = 0.15
+
+
+def _cell_values(field: np.ndarray, per_area: bool) -> np.ndarray:
+    """A grid field ``(m, n)`` as one value per grid cell ``(m - 1, n - 1)``: the mean of
+    its corners, per unit area of the parameter sphere when ``per_area`` (corners of no
+    quadrature weight, the poles, left out)."""
+    m, n = field.shape
+    if per_area:
+        weights = np.asarray(quadrature_weights(m, n, dtype=np.float64))
+        field = np.divide(field, weights, out=np.full((m, n), np.nan), where=weights > 0)
+    corners = np.stack([field[:-1, :-1], field[1:, :-1], field[1:, 1:], field[:-1, 1:]])
+    return np.nanmean(corners, axis=0)
+
+
+def plot_field(
+    f,
+    field,
+    *,
+    per_area: bool = True,
+    cmap: str = "viridis",
+    limits: tuple[float, float] | None = None,
+    label: str | None = None,
+    title: str | None = None,
+    view: str = "fit",
+    shade: bool = True,
+) -> Figure:
+    """Draw a surface coloured by a value on its grid, with a colour bar.
+
+    For instance a term of :func:`~elastic_jax.energy_density` on the geodesic's first
+    frame (where the two shapes differ, and how) or any per-point quantity. Each grid cell
+    takes the mean of its four corners' values; with ``per_area`` the field is first
+    divided by the grid's quadrature weights (:func:`~elastic_jax.quadrature_weights`), so
+    that a field of per-point integrals (an energy density's) reads as a density per unit
+    area of the parameter sphere, comparable between large and small cells. The camera and
+    layout are :func:`plot_path`'s.
+
+    Args:
+        f: ``(3, m, n)`` the surface to draw.
+        field: ``(m, n)`` finite values on the same grid.
+        per_area: divide by the quadrature weights first (the pole rows, of weight zero,
+            are then left out of their cells' means).
+        cmap: a matplotlib colour map name.
+        limits: ``(low, high)`` of the colour scale; default the cells' range.
+        label: the colour bar's label.
+        title: the axes' title.
+        view: ``"fit"`` or ``"default"`` (:func:`plot_path`).
+        shade: darken each cell by its angle to the light (:func:`plot_path`).
+
+    Returns:
+        The figure: ``fig.axes[0]`` the surface, ``fig.axes[1]`` the colour bar.
+
+    Raises:
+        ValueError: a malformed surface, a field of another shape or not finite, or
+            ``limits`` that are not increasing.
+    """
+    from matplotlib import colormaps
+    from matplotlib.cm import ScalarMappable
+
+    x = _as_path(f)
+    if x.shape[0] != 1:
+        raise InputError(f"f must be one surface (3, m, n); got shape {np.shape(f)}")
+    m, n = x.shape[-2:]
+    values = np.asarray(field, dtype=float)
+    if values.shape != (m, n):
+        raise InputError(f"field must have the surface's grid shape {(m, n)}; got {values.shape}")
+    if not np.isfinite(values).all():
+        raise InputError("field has NaN or infinite values")
+    cells = _cell_values(values, check_bool("per_area", per_area))
+    low, high = (float(cells.min()), float(cells.max())) if limits is None else limits
+    if not (np.isfinite(low) and np.isfinite(high) and low < high):
+        if limits is not None:
+            raise InputError(f"limits must be finite and increasing; got {limits!r}")
+        high = low + max(abs(low), 1.0) * 1e-12  # a constant field: one colour
+    norm = mcolors.Normalize(low, high, clip=True)
+    colors = colormaps[cmap](norm(cells))
+    titles = None if title is None else [title]
+    fig = plot_path(x[0], titles=titles, colors=colors, view=view, shade=shade)
+    width, height = fig.get_size_inches()
+    total = width + _COLORBAR_BAND
+    # Widen the figure by the bar's band, keeping each panel's size in inches (the fit
+    # view's zoom was computed for it).
+    for ax in fig.axes:
+        box = ax.get_position()
+        ax.set_position([box.x0 * width / total, box.y0, box.width * width / total, box.height])
+    fig.set_size_inches(total, height)
+    bar = fig.add_axes([(width + 0.2) / total, 0.15, _COLORBAR_WIDTH / total, 0.7])
+    fig.colorbar(ScalarMappable(norm=norm, cmap=colormaps[cmap]), cax=bar, label=label)
     return fig
 
 

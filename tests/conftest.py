@@ -55,17 +55,24 @@ def _no_exported_programs_after_a_test():
 
 
 DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
+# The authors' files beside the repository: elastic_jax.datasets reads them from here and
+# the tests never download (a test whose file is not here skips).
+SHAPE_DATA = DATA / "ShapeData"
+os.environ.setdefault("ELASTIC_JAX_DATA", str(SHAPE_DATA))
 
 # Tolerances for float64 identities and for float32, in one place.
 RTOL = {np.dtype("float64"): 1e-12, np.dtype("float32"): 1e-5}
 
 
 def load_shape(name: str) -> np.ndarray:
-    """A real surface from ../shared/data, (3, 50, 99) float64; skips the test when absent."""
-    path = DATA / f"{name}_50x99.npz"
-    if not path.exists():
-        pytest.skip(f"{path} is absent")
-    return np.load(path)["f"]
+    """One of the authors' surfaces by name (elastic_jax.datasets), (3, 50, 99) float64,
+    from $ELASTIC_JAX_DATA; skips the test when the file is not there."""
+    from elastic_jax import datasets
+
+    folder = pathlib.Path(os.environ["ELASTIC_JAX_DATA"])
+    if not (folder / f"{name}_50_99.mat").is_file():
+        pytest.skip(f"{name}_50_99.mat is not in {folder}")
+    return datasets.load(name)
 
 
 @pytest.fixture

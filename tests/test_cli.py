@@ -504,6 +504,19 @@ def test_karcher_and_shape_geodesic_equal_the_library(tmp_path, capsys):
     assert refinement["relative_change"] == float(res.refinement.relative_change)
     assert refinement["distance_time"] == float(res.refinement.distance_time)
     np.testing.assert_allclose(np.load(out / "registration.npz")["gamma"], res.gamma, atol=1e-9)
+    # Where the energy lies, beside the meshes: the written path's energy by point and term.
+    written = np.load(out / "path" / "path.npz")["path"]
+    fields = np.load(out / "energy_density.npz")
+    energy = float(ej.path_energy(METRIC, written))
+    assert float(fields["total"].sum()) == pytest.approx(energy, rel=1e-10)
+    terms = summary["energy_terms"]
+    parts = sum(terms[k] for k in ("shear", "area", "bending", "rotation"))
+    assert parts == pytest.approx(terms["total"], rel=1e-12)
+    assert terms["total"] == pytest.approx(energy, rel=1e-10)
+    ply = trimesh.load(out / "energy_density.ply", process=False)
+    total = ply.metadata["_ply_raw"]["vertex"]["data"]["total"]
+    np.testing.assert_array_equal(total[1:-1], fields["total"][1:-1, :-1].reshape(-1))
+    assert (out / "energy_density.png").is_file()
 
 
 def test_bench_reports_the_library_distance(capsys, tmp_path):

@@ -232,3 +232,71 @@ def test_the_volume_term_bounds_a_path_by_its_pointwise_change_of_area(abcd):
     straight = ej.path_energy(metric, ej.straight_path(f1, f2, 17))
     solved = ej.geodesic(f1, f2, metric, degree=4, n_times=9).energy
     assert 0.0 < float(bound) < float(solved) <= float(straight)
+
+
+# energy_density: the path energy of each grid point, split by the metric's terms.
+DENSITY_METRIC = ej.SplitMetric(1.0, 0.7, 0.3, 0.2)
+
+
+@pytest.mark.parametrize("scheme", ["midpoint", "forward", "central"])
+def test_the_energy_density_partitions_the_path_energy(scheme):
+    f1 = shapes.sample(shapes.bumpy, 13, 25)
+    f2 = shapes.sample(shapes.ellipsoid, 13, 25)
+    paths = jnp.stack([ej.straight_path(f1, f2, 5), ej.straight_path(f2, 1.3 * f1, 5)])
+    fields = ej.energy_density(DENSITY_METRIC, paths, scheme)
+    assert fields.total.shape == (2, 13, 25)
+    terms = fields.shear + fields.area + fields.bending + fields.rotation
+    np.testing.assert_allclose(terms, fields.total, rtol=1e-13, atol=0.0)
+    energy = ej.path_energy(DENSITY_METRIC, paths, scheme)
+    np.testing.assert_allclose(fields.total.sum(axis=(-2, -1)), energy, rtol=1e-10)
+    # Every term is a sum of squares; the poles carry no weight, the seam's two columns
+    # share theirs.
+    for field in fields:
+        assert float(field.min()) >= 0.0
+        assert float(jnp.abs(field[:, [0, -1], :]).max()) == 0.0
+        np.testing.assert_array_equal(field[..., 0], field[..., -1])
+    # Divided by the quadrature weights, the seam column reads as its neighbours do.
+    per_area = fields.total[0, 1:-1] / ej.quadrature_weights(13, 25)[1:-1]
+    assert float(jnp.abs(per_area[:, 0] - per_area[:, 1]).max()) < 0.5 * float(per_area.max())
+
+
+def test_a_term_whose_coefficient_is_zero_is_zero_everywhere():
+    path = ej.straight_path(
+        shapes.sample(shapes.bumpy, 13, 25), shapes.sample(shapes.ellipsoid, 13, 25), 5
+    )
+    for k, name in enumerate(("shear", "area", "bending", "rotation")):
+        abcd = [1.0, 0.7, 0.3, 0.2]
+        abcd[k] = 0.0
+        fields = ej.energy_density(ej.SplitMetric(*abcd), path)
+        assert float(jnp.abs(getattr(fields, name)).max()) == 0.0
+        others = [getattr(fields, n) for n in ("shear", "area", "bending", "rotation") if n != name]
+        assert all(float(f.sum()) > 0.0 for f in others)
+
+
+def test_concentric_spheres_put_their_energy_in_the_area_term():
+    f = shapes.sample(shapes.sphere, 25, 49)
+    fields = ej.energy_density(DENSITY_METRIC, ej.straight_path(f, 2.0 * f, 7))
+    total = float(fields.total.sum())
+    assert float(fields.area.sum()) == pytest.approx(total, rel=1e-12)
+    for other in (fields.shear, fields.bending, fields.rotation):
+        assert float(other.sum()) <= 1e-8 * total
+    # The area term of a scaling by 2 is 2 b (2 - 1)^2 4 pi with the grid's area.
+    area = float(ej.surface_area(f))
+    assert total == pytest.approx(2.0 * DENSITY_METRIC.b * area, rel=1e-12)
+
+
+def test_a_translation_costs_nothing_and_a_rotation_neither_shears_nor_changes_area():
+    f = shapes.sample(shapes.bumpy, 13, 25)
+    moved = ej.straight_path(f, f + jnp.array([0.3, -0.2, 0.5])[:, None, None], 5)
+    for field in ej.energy_density(DENSITY_METRIC, moved):  # to the rounding of f + c
+        assert float(jnp.abs(field).sum()) <= 1e-24
+    # A rigid rotation of f, frame by frame: under the midpoint scheme each step's
+    # velocity is a skew-symmetric map of its base frame, which has no symmetric part.
+    axis = jnp.array([0.3, 0.5, 0.8]) / jnp.linalg.norm(jnp.array([0.3, 0.5, 0.8]))
+    turns = [ej.so3_exp(t * 0.9 * axis) for t in jnp.linspace(0.0, 1.0, 7)]
+    rotated = jnp.stack([jnp.einsum("ij,jmn->imn", r, f) for r in turns])
+    fields = ej.energy_density(DENSITY_METRIC, rotated)
+    total = float(fields.total.sum())
+    assert float(fields.bending.sum()) > 0.1 * total
+    assert float(fields.shear.sum()) <= 1e-12 * total
+    assert float(fields.area.sum()) <= 1e-12 * total

@@ -680,3 +680,52 @@ def test_load_surface_normalizes_on_request(tmp_path):
     )
     with pytest.raises(ej.InputError, match="normalize"):
         io.load_surface(grid_file, normalize="volume")
+
+
+def _energy_fields(f):
+    """Per-point fields of a real computation: the terms of a straight line's energy."""
+    density = ej.energy_density(ej.SplitMetric(1.0, 1.0, 0.1, 0.2), ej.straight_path(f, 1.5 * f, 3))
+    return {name: np.asarray(getattr(density, name)) for name in ("shear", "area", "total")}
+
+
+def test_fields_beside_the_surface_read_back_in_every_format(tmp_path):
+    nibabel = pytest.importorskip("nibabel")
+    f = np.asarray(shapes.sample(shapes.bumpy, 13, 25))
+    fields = _energy_fields(f)
+    # .npz: the arrays themselves.
+    stored = np.load(io.save_surface(f, tmp_path / "b.npz", fields=fields))
+    np.testing.assert_array_equal(stored["f"], f)
+    for name, value in fields.items():
+        np.testing.assert_array_equal(stored[name], value)
+    # A mesh vertex takes its grid point's value; a pole the mean of its row.
+    mesh = io.grid_to_mesh(f)
+    expected = {
+        name: np.concatenate([[v[0, :-1].mean()], v[1:-1, :-1].ravel(), [v[-1, :-1].mean()]])
+        for name, v in fields.items()
+    }
+    # .ply: float64 vertex properties, as trimesh reads them.
+    ply = trimesh.load(io.save_surface(f, tmp_path / "b.ply", fields=fields), process=False)
+    vertices = ply.metadata["_ply_raw"]["vertex"]["data"]
+    assert len(vertices) == len(mesh.vertices)
+    for name, value in expected.items():
+        np.testing.assert_array_equal(vertices[name], value)
+    # .gii: one float32 shape array per field, named, as nibabel reads them.
+    image = nibabel.load(io.save_surface(f, tmp_path / "b.gii", fields=fields))
+    shapes_ = image.get_arrays_from_intent("NIFTI_INTENT_SHAPE")
+    assert [a.meta["Name"] for a in shapes_] == list(fields)
+    for array, value in zip(shapes_, expected.values(), strict=True):
+        np.testing.assert_array_equal(array.data, value.astype(np.float32))
+    assert io.load_surface(tmp_path / "b.gii", 13, 25).shape == (3, 13, 25)
+
+
+def test_a_field_that_does_not_fit_is_refused_by_name(tmp_path):
+    f = np.asarray(shapes.sample(shapes.bumpy, 13, 25))
+    with pytest.raises(ej.InputError, match="'energy'.*\\(13, 25\\)"):
+        io.save_surface(f, tmp_path / "b.ply", fields={"energy": np.zeros((13, 24))})
+    with pytest.raises(ej.InputError, match="'energy'.*NaN"):
+        io.save_surface(f, tmp_path / "b.ply", fields={"energy": np.full((13, 25), np.nan)})
+    with pytest.raises(ej.InputError, match="'x'"):
+        io.save_surface(f, tmp_path / "b.ply", fields={"x": np.zeros((13, 25))})
+    with pytest.raises(ej.InputError, match=r"\.obj"):
+        io.save_surface(f, tmp_path / "b.obj", fields={"energy": np.zeros((13, 25))})
+    assert not list(tmp_path.iterdir())  # nothing was written

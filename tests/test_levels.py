@@ -19,6 +19,7 @@ METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 OPTIONS = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5, rtol=None)
 
 
+@pytest.mark.slow
 def test_an_input_on_a_finer_grid_is_read_through_its_interpolant():
     """f2 given at 25 x 49 and solved on a 13 x 25 working grid: its interpolant is read
     at the working grid's points, which are points of the finer grid. With grid
@@ -126,6 +127,7 @@ def test_levels_resolve_the_concentric_spheres():
     assert "levels=Levels(" in repr(res) and len(repr(res)) <= 2000
 
 
+@pytest.mark.slow
 def test_levels_that_run_out_say_so():
     """rtol tighter than the levels reach: the finest level's distance, not converged,
     RESULTS.not_resolved, and a warning that lists the levels."""

@@ -585,3 +585,39 @@ def test_plot_modes_refuses_a_metric_with_paths():
     _, paths = _mode_paths(5)
     with pytest.raises(ValueError, match=r"metric is only used with a TangentPCA"):
         plot.plot_modes(paths, ej.SplitMetric(1.0, 1.0, 0.1, 0.0))
+
+
+def test_a_field_colours_each_cell_by_its_corners_through_the_colour_map():
+    from matplotlib import colormaps
+
+    import elastic_jax as ej
+
+    sphere = np.array(shapes.sample(shapes.sphere, M, N))
+    scaling = ej.straight_path(sphere, 1.4 * sphere, 3)
+    field = np.asarray(ej.energy_density(ej.SplitMetric(1.0, 1.0, 0.1, 0.0), scaling).area)
+    fig = plot.plot_field(sphere, field, label="area term", shade=False)
+    surface, bar = fig.axes
+    # Per unit area: the field over the quadrature weights, then each cell's corners.
+    weights = np.asarray(ej.quadrature_weights(M, N))
+    per_area = np.where(weights > 0, field / np.where(weights > 0, weights, 1.0), np.nan)
+    corners = [per_area[:-1, :-1], per_area[1:, :-1], per_area[1:, 1:], per_area[:-1, 1:]]
+    cells = np.nanmean(np.stack(corners), axis=0)
+    # A uniform scaling of the round sphere has a constant area density, 2 b (1.4 - 1)^2
+    # per unit area, up to the grid differential's error.
+    np.testing.assert_allclose(cells, 2.0 * 0.4**2, rtol=0.05)
+    low, high = bar.get_ylim()
+    assert (low, high) == pytest.approx((cells.min(), cells.max()), rel=1e-12)
+    expected = colormaps["viridis"](mcolors.Normalize(low, high)(cells)).reshape(-1, 4)
+    np.testing.assert_allclose(_grid_order_colors(surface), expected, atol=1e-12)
+    assert bar.get_ylabel() == "area term"
+    # A varying field on another surface, on a fixed scale.
+    f = np.array(shapes.sample(shapes.bumpy, M, N))
+    bumpy = np.asarray(f[2]) ** 2
+    fig = plot.plot_field(f, bumpy, per_area=False, shade=False, limits=(0.0, 2.0))
+    cells = np.mean([bumpy[:-1, :-1], bumpy[1:, :-1], bumpy[1:, 1:], bumpy[:-1, 1:]], axis=0)
+    expected = colormaps["viridis"](np.clip(cells.reshape(-1) / 2.0, 0.0, 1.0))
+    np.testing.assert_allclose(_grid_order_colors(fig.axes[0]), expected, atol=1e-12)
+    with pytest.raises(InputError, match="grid shape"):
+        plot.plot_field(f, bumpy[:, :-1])
+    with pytest.raises(InputError, match="increasing"):
+        plot.plot_field(f, bumpy, limits=(1.0, 1.0))

@@ -801,6 +801,7 @@ def test_a_distance_below_the_area_bound_is_not_reported_as_a_number():
     )
 
 
+@pytest.mark.slow
 def test_fsaverage_pial_hemispheres_stay_below_their_parametrized_distance():
     """FreeSurfer's fsaverage5 pial hemispheres (nilearn's wheel) at 11 x 19, modulo diff:
     the L2-matched starts lead the rounds to 181.0 (167.1 on another machine) against the

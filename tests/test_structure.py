@@ -24,7 +24,7 @@ RANKS = {
     "_statistics": 5,
     "public": 6,
 }
-PUBLIC_MODULES = {"io", "plot", "shapes", "cli", "__init__", "__main__"}
+PUBLIC_MODULES = {"io", "plot", "shapes", "datasets", "cli", "__init__", "__main__"}
 
 
 def _module_name(path: pathlib.Path) -> str:
@@ -185,12 +185,14 @@ def _cached_line() -> int:
 # The public API as users import it; a rename or a removal is a decision, not an accident
 # of moving code (issue 31: the tree may change, these names may not).
 PUBLIC = {
-    "elastic_jax": """ConvergenceWarning DistanceMatrixResult GeodesicResult InputError JobOptions
+    "elastic_jax": """ConvergenceWarning DistanceMatrixResult EnergyDensity GeodesicResult
+        InputError JobOptions
         KarcherResult Levels LogResult MetricFit RESULTS Refinement ShapeGeodesicResult ShapeOptions
         RetrievalScores ShootingResult SphericalHarmonics SplitMetric SrnfGeodesic
         SrnfInversion TangentPCA TransportResult WarmupReport base_inner center clear_caches
         diffeomorphism diffeomorphism_bound differential distance_matrix
-        elastic_metric_inner enable_compilation_cache exp fit_metric geodesic grid_angles
+        elastic_metric_inner enable_compilation_cache energy_density exp fit_metric geodesic
+        grid_angles
         hat icosahedral_group integrate jacobian_determinant karcher_mean log max_degree
         metric_inner mode_path moebius parallel_transport path_energy path_length
         quadrature_weights real_sph_harm reparametrize resample retrieval_scores
@@ -204,10 +206,11 @@ PUBLIC = {
         ParametrizationError SphericalParametrization VertexMap grid_to_mesh grid_to_vertices
         load_surface mesh_to_grid normalize_scale save_path save_surface
         spherical_parametrization star_center surface_files""",
-    "elastic_jax.plot": """parametrization_colors plot_path plot_modes plot_energy
+    "elastic_jax.plot": """parametrization_colors plot_path plot_field plot_modes plot_energy
         plot_distance_matrix save_figure""",
     "elastic_jax.shapes": "sphere ellipsoid bumpy bent_cylinder sample random_rotation two_classes "
     "geodesic_sphere",
+    "elastic_jax.datasets": "REPOSITORY COMMIT cache_dir load names path",
 }
 
 
@@ -360,3 +363,44 @@ def test_cli_imports_at_call_time_only_what_the_package_has_not_loaded():
         if isinstance(node, ast.Import | ast.ImportFrom) and ast.unparse(node) not in allowed
     )
     assert late == []
+
+
+# What users read says what the package does, not how its work was organised.
+_PROCESS_WORDING = re.compile(r"\bthis stop\b|\bstops? \d+\b|\bissues? #?\d+\b", re.IGNORECASE)
+
+
+def _user_texts() -> list[pathlib.Path]:
+    root = PACKAGE.parent
+    docs = [
+        p
+        for p in (root / "docs").rglob("*")
+        if p.suffix in (".md", ".py", ".ipynb") and "_build" not in p.parts
+    ]
+    benchmarks = sorted((root / "benchmarks").glob("*.py"))
+    notebooks = sorted((root / "notebooks").glob("*"))
+    package = sorted(PACKAGE.rglob("*.py"))
+    return [root / "README.md", root / "CHANGELOG.md", *docs, *benchmarks, *notebooks, *package]
+
+
+def test_user_texts_carry_no_process_wording():
+    found = []
+    for path in _user_texts():
+        if not path.is_file():
+            continue
+        for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+            if _PROCESS_WORDING.search(line):
+                found.append(f"{path.relative_to(PACKAGE.parent)}:{number}: {line.strip()[:80]}")
+    assert found == []
+
+
+def test_no_wheel_is_tracked():
+    import shutil
+    import subprocess
+
+    root = PACKAGE.parent
+    if shutil.which("git") is None or not (root / ".git").exists():
+        return  # an unpacked source tree: nothing is tracked
+    tracked = subprocess.run(
+        ["git", "ls-files", "*.whl"], cwd=root, capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert tracked == []

@@ -3,15 +3,18 @@
     python docs/gallery/make_gallery.py [--parts geodesics,multires,karcher] [--quick]
     python docs/gallery/make_gallery.py --replot [--parts ...]
 
-Reads the shared real surfaces (``../shared/data``, cat1, cat2, horse0 on the
-50 x 99 grid; never copied into the project); writes ``docs/gallery/figures/*.png``,
-``docs/gallery/figures.json`` and the arrays the figures draw, ``figures.npz`` beside it
-(float16, enough to draw: the drawn frames of each path and mode path, the mean and the
-registered inputs; about 1 MB). ``--replot`` solves nothing: it redraws every figure from
-``figures.json`` and ``figures.npz`` (a part whose arrays are missing redraws only what
-needs none: the energy and Karcher histories, stored in ``figures.json``, and the Karcher
-inputs, which are the input shapes). Every figure is titled: the surfaces are drawn with
-``view="fit"``, the geodesics with a title naming the pair and the distance.
+Reads the authors' surfaces cat1, cat2 and horse0 (50 x 99) through
+``elastic_jax.datasets`` (never copied into the project): from ``$ELASTIC_JAX_DATA``, a
+folder of the authors' ``.mat`` files (by default ``../shared/data/ShapeData`` beside the
+repository when that exists), else the user cache or a download; writes
+``docs/gallery/figures/*.png``, ``docs/gallery/figures.json`` and the arrays the figures
+draw, ``figures.npz`` beside it (float16, enough to draw: the drawn frames of each path
+and mode path, the mean and the registered inputs; about 1 MB). ``--replot`` solves
+nothing: it redraws every figure from ``figures.json`` and ``figures.npz`` (a part whose
+arrays are missing redraws only what needs none: the energy and Karcher histories, stored
+in ``figures.json``, and the Karcher inputs, which are the input shapes). Every figure is
+titled: the surfaces are drawn with ``view="fit"``, the geodesics with a title naming the
+pair and the distance.
 
 The paper's tables come from the benchmark harness (``benchmarks/bench_shape.py`` and
 ``bench_statistics.py --only-table``), whose JSON lines are stored in
@@ -54,18 +57,21 @@ from elastic_jax import plot  # noqa: E402
 from elastic_jax._runtime.atomic import write_text_atomic  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
-# ELASTIC_JAX_DATA points elsewhere (a machine without the shared folder beside the repo).
-DATA = pathlib.Path(os.environ.get("ELASTIC_JAX_DATA", HERE.parents[2] / "shared" / "data"))
+# The authors' .mat files beside the repository, when there, unless ELASTIC_JAX_DATA says
+# otherwise; elastic_jax.datasets then looks in its cache and downloads.
+SHAPE_DATA = HERE.parents[2] / "shared" / "data" / "ShapeData"
+if SHAPE_DATA.is_dir():
+    os.environ.setdefault("ELASTIC_JAX_DATA", str(SHAPE_DATA))
 FIGURES = HERE / "figures"
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
-# The animals only: the shared hand4 is stored about 100 times smaller (area 1.0e-4
+# The animals only: the authors' hand4 is stored about 100 times smaller (area 1.0e-4
 # against 0.92-1.87), so a path to it is mostly a change of size.
 NAMES = ("cat1", "cat2", "horse0")
 PAIRS = (("cat1", "cat2"), ("cat1", "horse0"), ("cat2", "horse0"))
 
 
 def load(name: str, m: int, n: int) -> np.ndarray:
-    f = np.load(DATA / f"{name}_50x99.npz")["f"]
+    f = ej.datasets.load(name)
     return np.asarray(ej.resample(f, m, n)) if (m, n) != f.shape[1:] else f
 
 
@@ -264,7 +270,7 @@ def solve_karcher(quick: bool) -> tuple[dict, dict]:
 
 def draw_karcher(out: dict, arrays: dict) -> None:
     m, n = out["grid"]
-    # The inputs as given need no solve: drawn from the shared data whatever is stored.
+    # The inputs as given need no solve: drawn from the authors' surfaces whatever is stored.
     fig = plot.plot_path(
         inputs(m, n), titles=list(NAMES), suptitle="The inputs, as given", view="fit"
     )

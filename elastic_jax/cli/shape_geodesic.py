@@ -7,6 +7,7 @@ import time
 import jax
 import numpy as np
 
+from .._geometry.energy import energy_density
 from .._registration.shape import shape_geodesic
 from .._runtime.atomic import atomic_path, save_npz_atomic
 from .common import (
@@ -54,6 +55,31 @@ def write_on_mesh(directory, path, vertex_map, progress: Progress) -> list[str]:
             vertex_map.to_mesh(f).export(tmp, file_type="ply")
         written.append(str(target))
     return written
+
+
+_TERMS = ("shear", "area", "bending", "rotation", "total")
+
+
+def write_energy_density(out, path, metric, scheme: str, progress: Progress):
+    """The path's energy by grid point and term (energy_density) in ``energy_density.npz``,
+    on the path's first frame (f1 registered) as ``energy_density.ply`` vertex properties,
+    and drawn per unit area on that frame; returns the files and each term's sum."""
+    from .. import io, plot
+
+    density = energy_density(metric, path, scheme)
+    fields = {name: np.asarray(getattr(density, name)) for name in _TERMS}
+    first = np.asarray(path[0])
+    progress(f"writing the path's energy by point and term to {out / 'energy_density.*'}")
+    written = [
+        str(save_npz_atomic(out / "energy_density.npz", **fields)),
+        str(io.save_surface(first, out / "energy_density.ply", fields=fields)),
+    ]
+    written += write_figure(
+        out / "energy_density.png",
+        lambda: plot.plot_field(first, fields["total"], label="path energy per unit area"),
+        progress,
+    )
+    return written, {name: float(value.sum()) for name, value in fields.items()}
 
 
 def run_shape_geodesic(args, progress: Progress) -> dict:
@@ -108,6 +134,10 @@ def run_shape_geodesic(args, progress: Progress) -> dict:
     if args.on_target_mesh and files:
         path = np.asarray(res.path)
         files += write_on_mesh(args.out / "path", path, args.vertex_maps[1], progress)
+    terms = None
+    if files:  # a finite path: where its energy lies, beside the meshes
+        written, terms = write_energy_density(args.out, res.path, metric, options.scheme, progress)
+        files += written
     files.append(
         str(
             save_npz_atomic(
@@ -133,6 +163,7 @@ def run_shape_geodesic(args, progress: Progress) -> dict:
         "energy_history": json_floats(res.energy_history),
         "rounds": int(res.rounds),
         "levels": levels,
+        "energy_terms": terms,
         **result_fields(res),
         "grad_norm": float(res.grad_norm),
         "refinement": {
