@@ -95,16 +95,16 @@ class ShapeOptions:
             the Moebius group).
         interpolation: how an input is read off its grid (f1 o gamma, an input on
             another grid than the working one) and how gamma is composed:
-            ``"spline"`` (default since 2026-11-27): the interpolating cubic B-spline,
+            ``"spline"`` (default): the interpolating cubic B-spline,
             C^2, fourth order in value and derivative; with the chain rule gamma's
             differential is its spline's derivative too (f o phi_a, abs(a) = 0.5, at
             25 x 49: differential error 0.03 % against 1.2 % for bicubic and central
             differences; the spheres' closed form 0.3 % off at 13 x 25 against 2-4 %).
-            ``"bicubic"``: Catmull-Rom, C^1, third order (the default until
-            2026-11-27). ``"bilinear"``: the paper's.
+            ``"bicubic"``: Catmull-Rom, C^1, third order (the earlier
+            default). ``"bilinear"``: the paper's.
         differential: how the differential of f1 o gamma is taken
             (:doc:`/guides/registration_notes`).
-            ``"chain"`` (default since 2026-11-27): by the chain rule, (df1 at gamma)
+            ``"chain"`` (default): by the chain rule, (df1 at gamma)
             dgamma, with df1 the exact derivative of f1's interpolant and dgamma the
             derivative of gamma's spline (with ``interpolation="spline"``; otherwise
             central differences of gamma with a rotation's chords made exact); R f2's
@@ -119,7 +119,7 @@ class ShapeOptions:
             ``path_energy(path)``, and :func:`log` returns the frames its solve used
             for :func:`shoot`.
             ``"grid"``: central differences of f1 o gamma on the grid, as of every other
-            surface (the default until 2026-11-27); an input that is f1 sampled through
+            surface (the earlier default); an input that is f1 sampled through
             some gamma on the working grid is then matched exactly (d(f, R f o phi) at
             most 0.3 % of d(cat1, cat2) at 50 x 99). Where gamma stretches, those
             differences are chords across a stretch of f1, shorter than its tangents,

@@ -729,3 +729,26 @@ def test_a_field_that_does_not_fit_is_refused_by_name(tmp_path):
     with pytest.raises(ej.InputError, match=r"\.obj"):
         io.save_surface(f, tmp_path / "b.obj", fields={"energy": np.zeros((13, 25))})
     assert not list(tmp_path.iterdir())  # nothing was written
+
+
+def test_an_energy_density_on_the_input_meshs_own_vertices_keeps_its_sum():
+    import warnings
+
+    mesh = io.grid_to_mesh(shapes.sample(shapes.bumpy, 25, 49))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", io.FrameWarning)  # the bumpy surface is symmetric
+        f, vertex_map = io.mesh_to_grid(mesh, 25, 49, return_map=True)
+    # The vertices' shares of the parameter sphere tile it.
+    areas = vertex_map.vertex_areas()
+    assert areas.min() > 0.0 and areas.sum() == pytest.approx(4.0 * np.pi, rel=1e-12)
+    metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.2)
+    density = ej.energy_density(metric, ej.straight_path(f, 1.3 * f, 3))
+    on_vertices = density.on_vertices(vertex_map)
+    assert on_vertices.total.shape == (len(mesh.vertices),)
+    # The same energy by the vertices' quadrature: 0.1 % apart here.
+    assert on_vertices.total.sum() == pytest.approx(float(density.total.sum()), rel=5e-3)
+    parts = on_vertices.shear + on_vertices.area + on_vertices.bending + on_vertices.rotation
+    np.testing.assert_allclose(parts, on_vertices.total, rtol=1e-12)
+    # A pointwise quantity is read as it is: the grid's z coordinate gives the vertices'.
+    z = vertex_map.to_vertex_values(np.asarray(f[2]), integrals=False)
+    np.testing.assert_allclose(z, vertex_map.to_vertices(f)[:, 2], rtol=0, atol=1e-12)

@@ -238,6 +238,22 @@ class EnergyDensity(NamedTuple):
     rotation: Float[Array, "*batch m n"]
     total: Float[Array, "*batch m n"]
 
+    def on_vertices(self, vertex_map) -> EnergyDensity:
+        """The fields at the vertices of the mesh an input was read from, ``(..., V)``
+        numpy arrays: each field's density read at the vertices' directions times their
+        shares of the parameter sphere (``io.VertexMap.to_vertex_values``), so that
+        they sum to about the grid's energy and can be written beside the input's own
+        mesh (``vertex_map.to_mesh``). The grid's points must carry that input's
+        parametrization: a geodesic between parametrized surfaces, or a shape geodesic
+        with the map of f2 (its path ends at R f2 in f2's parametrization; its other end
+        is f1 o gamma, whose points are not f1's vertices).
+
+        Args:
+            vertex_map: the :class:`~elastic_jax.io.VertexMap` of the input (from
+                ``io.mesh_to_grid`` or ``io.load_surface`` with ``return_map=True``).
+        """
+        return EnergyDensity(*(vertex_map.to_vertex_values(field) for field in self))
+
 
 @functools.partial(jax.jit, static_argnames=("scheme",))
 def _energy_density(metric, path, *, scheme):

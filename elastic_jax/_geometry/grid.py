@@ -61,12 +61,19 @@ def quadrature_weights(m: int, n: int, dtype=None) -> Float[Array, "m n"]:
     Returns:
         ``(m, n)`` array; ``integral_{S^2} h = sum(w * h)`` for ``h`` sampled on the grid.
     """
+    return jnp.asarray(quadrature_weights_np(m, n), dtype=dtype)
+
+
+@cached
+def quadrature_weights_np(m: int, n: int) -> np.ndarray:
+    """:func:`quadrature_weights` in float64 numpy."""
     w = np.zeros((m, n))
     w[1:-1, :-1] = interior_weights_np(m, n)
     # Split the seam column's weight between the two copies of theta = 0.
     w[1:-1, 0] *= 0.5
     w[1:-1, -1] = w[1:-1, 0]
-    return jnp.asarray(w, dtype=dtype)
+    w.flags.writeable = False
+    return w
 
 
 def integrate(values: Float[ArrayLike, "*batch m n"]) -> Float[Array, "*batch"]:

@@ -661,6 +661,51 @@ class VertexMap(NamedTuple):
         (:func:`grid_to_vertices`)."""
         return grid_to_vertices(f, self.directions, method=method)
 
+    def vertex_areas(self) -> np.ndarray:
+        """``(V,)`` each vertex's share of the parameter sphere: a third of the spherical
+        area of each face at it (the faces' vertices at their directions). They sum to
+        4 pi when the directions embed the faces (a spherical parametrization's do)."""
+        a, b, c = (self.directions[self.faces[:, k]] for k in range(3))
+        # Van Oosterom and Strackee: tan(E / 2) of the spherical triangle a, b, c.
+        triple = np.abs(np.einsum("ij,ij->i", a, np.cross(b, c)))
+        dots = 1.0 + np.einsum("ij,ij->i", a, b) + np.einsum("ij,ij->i", b, c)
+        dots += np.einsum("ij,ij->i", c, a)
+        excess = 2.0 * np.arctan2(triple, dots)
+        areas = np.zeros(len(self.directions))
+        for k in range(3):
+            np.add.at(areas, self.faces[:, k], excess / 3.0)
+        return areas
+
+    def to_vertex_values(self, field, *, integrals: bool = True, method: str = "spline"):
+        """A grid field ``(..., m, n)`` at the mesh's vertices, ``(..., V)``.
+
+        ``integrals`` (default): the field holds per-point integrals on the grid (its
+        quadrature weight included, as :func:`~elastic_jax.energy_density`'s fields do).
+        It is divided by :func:`~elastic_jax.quadrature_weights` into a density per unit
+        area of the parameter sphere (the pole rows taken from their neighbouring rows'
+        mean), read at each vertex's direction and multiplied by the vertex's share of
+        the sphere (:meth:`vertex_areas`), so that the vertices' values sum to about
+        the grid's (to the two quadratures' difference). Otherwise the field's values
+        themselves are read at the directions (a pointwise quantity).
+        """
+        from .._geometry.grid import quadrature_weights_np
+
+        values = np.asarray(field, dtype=np.float64)
+        if values.ndim < 2:
+            raise InputError(f"field must have shape (..., m, n); got {values.shape}")
+        m, n = values.shape[-2:]
+        if integrals:
+            weights = quadrature_weights_np(m, n)
+            inner = values[..., 1:-1, :] / weights[1:-1, :]
+            north = inner[..., :1, :-1].mean(axis=-1, keepdims=True)
+            south = inner[..., -1:, :-1].mean(axis=-1, keepdims=True)
+            rows = [np.broadcast_to(north, inner.shape[:-2] + (1, n)), inner]
+            rows.append(np.broadcast_to(south, inner.shape[:-2] + (1, n)))
+            values = np.concatenate(rows, axis=-2)
+        stacked = np.broadcast_to(values[..., None, :, :], values.shape[:-2] + (3, m, n))
+        read = grid_to_vertices(stacked, self.directions, method=method)[..., 0]
+        return read * self.vertex_areas() if integrals else read
+
     def to_mesh(self, f, method: str = "spline") -> trimesh.Trimesh:
         """The surface f ``(3, m, n)`` as a mesh with the input's faces: vertex k is f(u_k)
         (``process=False``: the input's vertex order)."""
