@@ -516,6 +516,8 @@ def plot_field(
         if limits is not None:
             raise InputError(f"limits must be finite and increasing; got {limits!r}")
         high = low + max(abs(low), 1.0) * 1e-12  # a constant field: one colour
+    if cmap not in colormaps:
+        raise InputError(f"cmap {cmap!r} is not a matplotlib colour map (e.g. 'viridis')")
     norm = mcolors.Normalize(low, high, clip=True)
     colors = colormaps[cmap](norm(cells))
     titles = None if title is None else [title]

@@ -621,3 +621,5 @@ def test_a_field_colours_each_cell_by_its_corners_through_the_colour_map():
         plot.plot_field(f, bumpy[:, :-1])
     with pytest.raises(InputError, match="increasing"):
         plot.plot_field(f, bumpy, limits=(1.0, 1.0))
+    with pytest.raises(InputError, match="cmap 'no-such-map'"):
+        plot.plot_field(f, bumpy, cmap="no-such-map")

@@ -690,6 +690,8 @@ class VertexMap(NamedTuple):
         """
         from .._geometry.grid import quadrature_weights_np
 
+        if not isinstance(integrals, bool):
+            raise InputError(f"integrals must be True or False; got {integrals!r}")
         values = np.asarray(field, dtype=np.float64)
         if values.ndim < 2:
             raise InputError(f"field must have shape (..., m, n); got {values.shape}")
