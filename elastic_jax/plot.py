@@ -35,7 +35,7 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from ._checks import check_bool, check_choice, check_int, check_positive
 from ._errors import InputError
-from ._geometry.grid import quadrature_weights
+from ._geometry.grid import per_unit_area_np
 from ._geometry.metric import SplitMetric
 from ._geometry.validation import as_surface
 from ._runtime.atomic import atomic_path
@@ -449,10 +449,8 @@ def _cell_values(field: np.ndarray, per_area: bool) -> np.ndarray:
     """A grid field ``(m, n)`` as one value per grid cell ``(m - 1, n - 1)``: the mean of
     its corners, per unit area of the parameter sphere when ``per_area`` (corners of no
     quadrature weight, the poles, left out)."""
-    m, n = field.shape
     if per_area:
-        weights = np.asarray(quadrature_weights(m, n, dtype=np.float64))
-        field = np.divide(field, weights, out=np.full((m, n), np.nan), where=weights > 0)
+        field = per_unit_area_np(field)
     corners = np.stack([field[:-1, :-1], field[1:, :-1], field[1:, 1:], field[:-1, 1:]])
     return np.nanmean(corners, axis=0)
 

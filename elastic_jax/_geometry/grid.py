@@ -64,6 +64,16 @@ def quadrature_weights(m: int, n: int, dtype=None) -> Float[Array, "m n"]:
     return jnp.asarray(quadrature_weights_np(m, n), dtype=dtype)
 
 
+def per_unit_area_np(values: np.ndarray) -> np.ndarray:
+    """A field of per-point integrals ``(..., m, n)`` (its quadrature weight included) as a
+    density per unit area of the parameter sphere; NaN on the pole rows, which carry no
+    weight."""
+    weights = quadrature_weights_np(*values.shape[-2:])
+    out = np.full(values.shape, np.nan)
+    np.divide(values, weights, out=out, where=weights > 0)
+    return out
+
+
 @cached
 def quadrature_weights_np(m: int, n: int) -> np.ndarray:
     """:func:`quadrature_weights` in float64 numpy."""

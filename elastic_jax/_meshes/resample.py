@@ -688,7 +688,7 @@ class VertexMap(NamedTuple):
         the grid's (to the two quadratures' difference). Otherwise the field's values
         themselves are read at the directions (a pointwise quantity).
         """
-        from .._geometry.grid import quadrature_weights_np
+        from .._geometry.grid import per_unit_area_np
 
         if not isinstance(integrals, bool):
             raise InputError(f"integrals must be True or False; got {integrals!r}")
@@ -697,8 +697,7 @@ class VertexMap(NamedTuple):
             raise InputError(f"field must have shape (..., m, n); got {values.shape}")
         m, n = values.shape[-2:]
         if integrals:
-            weights = quadrature_weights_np(m, n)
-            inner = values[..., 1:-1, :] / weights[1:-1, :]
+            inner = per_unit_area_np(values)[..., 1:-1, :]
             north = inner[..., :1, :-1].mean(axis=-1, keepdims=True)
             south = inner[..., -1:, :-1].mean(axis=-1, keepdims=True)
             rows = [np.broadcast_to(north, inner.shape[:-2] + (1, n)), inner]
