@@ -24,6 +24,10 @@ Four measurements, one JSON record each (settings, figures, environment):
    (StableHLO characters, HLO instructions, fusions). XLA:CPU generates code fusion by
    fusion, and loading a cached executable links them again: both the cold and the warm
    first call grow with the program, so its size is the figure to bring down.
+5. ``programs``: how many XLA programs a resolved solve compiles (levels 13 x 25 and
+   25 x 49, synthetic shapes, no persistent cache): one pair by shape_geodesic, and
+   distance matrices of 3 and 5 shapes one pair after another ("loop") and of 3 side by
+   side ("vmap").
 
 Measured (2026-11-23, 2 CPU cores, quiet, float64; each configuration's compilations
 included):
@@ -141,8 +145,12 @@ process loads them without lowering the programs) (2026-11-24, quiet):
         1 worker 1549 s (0.320); 2 workers 969 s (0.512, 1.50 times the in-process
         rate); every matrix equal to the in-process one (largest difference 0.0).
 
-Run: python benchmarks/bench_scale.py [--shapes 32] [--parts matrix,compile,first_call,memory]
-     [--workers 1,2]
+Measured (2026-12-02, 2 CPU cores, degree 4 / 4, N 5):
+    programs: one resolved pair 34; resolved matrices one pair after another 65 (3
+        shapes) and 65 (5 shapes, 10 pairs); side by side 47 (3 shapes).
+
+Run: python benchmarks/bench_scale.py [--shapes 32]
+     [--parts matrix,compile,first_call,memory,programs] [--workers 1,2]
 """
 
 from __future__ import annotations
@@ -292,6 +300,28 @@ record["rss_mb"] = rss_mb()
 print(json.dumps(record))
 """
 
+PROGRAMS = r"""
+from elastic_jax._runtime.cache import CompileCounter
+m, n = 13, 25
+coll = [shapes.sample(shapes.bumpy, m, n), shapes.sample(shapes.ellipsoid, m, n)]
+coll += [shapes.sample(shapes.bumpy, m, n, scale=1.1 + 0.05 * i,
+                       rotation=shapes.random_rotation(i)) for i in range({shapes} - 2)]
+coll = np.stack(coll)
+options = ej.ShapeOptions(degree={degree}, vf_degree={vf_degree}, n_times={n_times},
+                          levels={levels})
+job = ej.JobOptions(strategy={strategy!r})
+t0 = time.perf_counter()
+with CompileCounter() as programs:
+    if {shapes} == 2:
+        res = ej.shape_geodesic(coll[0], coll[1], metric, modulo="rigid", options=options)
+        grids = [np.asarray(res.levels.grids).tolist()[-1]]
+    else:
+        res = ej.distance_matrix(coll, metric, modulo="rigid", options=options, job=job)
+        grids = np.asarray(res.grids)[np.triu_indices({shapes}, 1)].tolist()
+print(json.dumps({{"programs_compiled": programs.count, "seconds": time.perf_counter() - t0,
+                  "finest_grids": grids}}))
+"""
+
 ROWS = {
     "low": {"grid": (12, 25), "degree": 5, "vf_degree": 5, "n_times": 5},
     "middle": {"grid": (25, 49), "degree": 7, "vf_degree": 8, "n_times": 10},
@@ -318,9 +348,14 @@ def main() -> None:
     parser.add_argument("--shapes", type=int, default=32)
     parser.add_argument("--workers", default="1,2", help="LocalCluster sizes")
     parser.add_argument("--parts", default="matrix,compile,first_call,memory")
+    parser.add_argument(
+        "--programs-options",
+        default="4,4,5",
+        help="degree,vf_degree,n_times of the programs part (the package's: 7,8,13)",
+    )
     args = parser.parse_args()
     parts = args.parts.split(",")
-    unknown = sorted(set(parts) - {"matrix", "compile", "first_call", "memory"})
+    unknown = sorted(set(parts) - {"matrix", "compile", "first_call", "memory", "programs"})
     if unknown:
         parser.error(f"--parts: unknown part(s) {', '.join(unknown)}")
     env = environment()
@@ -390,6 +425,31 @@ def main() -> None:
                     "benchmark": "compile",
                     "row": row,
                     "settings": {**settings, "modulo": "diff", "pair": "cat1 -> cat2"},
+                    **record,
+                    "environment": env,
+                }
+            )
+    if "programs" in parts:
+        # How many XLA programs a resolved solve compiles (no persistent cache: every
+        # program counts): one pair, and matrices whose pairs share each level's
+        # programs (one after another) or run side by side (vmap, one batch per level).
+        degree, vf_degree, n_times = (int(x) for x in args.programs_options.split(","))
+        levels = ((13, 25), (25, 49))
+        for shapes, strategy in ((2, "loop"), (3, "loop"), (5, "loop"), (3, "vmap")):
+            settings = {
+                "shapes": shapes,
+                "strategy": strategy,
+                "degree": degree,
+                "vf_degree": vf_degree,
+                "n_times": n_times,
+                "levels": levels,
+            }
+            record = run(PROGRAMS.format(**settings))
+            emit(
+                {
+                    "benchmark": "programs",
+                    "solve": "shape_geodesic" if shapes == 2 else "distance_matrix",
+                    "settings": {**settings, "modulo": "rigid", "rtol": 0.03},
                     **record,
                     "environment": env,
                 }

@@ -132,14 +132,19 @@ def test_resolved_mean_of_moebius_read_concentric_spheres(modulo, tmp_path, monk
         driver, "save_npz_atomic", lambda p, **arrays: written.append(arrays) or save(p, **arrays)
     )
     reports = []
-    res = ej.karcher_mean(
-        spheres, METRIC, **kwargs, job=ej.JobOptions(checkpoint=path, progress=reports.append)
-    )
+    # One shape per chunk: the checkpoint is written after each chunk of step 0.
+    job = ej.JobOptions(checkpoint=path, progress=reports.append, batch_size=1)
+    res = ej.karcher_mean(spheres, METRIC, **kwargs, job=job)
     assert res.converged, res.message
-    # Step 0's levelled solves report each level of each shape as it ends, with the
-    # distance the result records; then one report per step.
+    # Step 0's levelled solves take the shapes through the levels together and report
+    # each level of each shape as it ends, level by level, with the distance the result
+    # records; then one report per step.
     ends = [r for r in reports if r.get("stage") == "level"]
-    assert [(r["shape"], r["shapes"]) for r in ends] == sorted((r["shape"], 3) for r in ends)
+    assert all(r["shapes"] == 3 for r in ends)
+    assert [r["level"] for r in ends] == sorted(r["level"] for r in ends)
+    for k in range(3):
+        mine = [r["level"] for r in ends if r["shape"] == k]
+        assert mine == list(range(1, len(mine) + 1))
     assert len(ends) == int(np.isfinite(res.level_distances).sum())
     for r in ends:
         assert r["distance"] == pytest.approx(res.level_distances[r["shape"], r["level"] - 1])
@@ -181,9 +186,9 @@ def test_resolved_mean_of_moebius_read_concentric_spheres(modulo, tmp_path, monk
         assert float(d) >= _area_bound(f, res.mean)
     if modulo == "diff":
         return
-    # A kill during step 0 loses one levelled solve at most: the checkpoint holds each
-    # shape's as it ends. Resumed from the file as it was with two of three, one is
-    # solved again, and step 0 is the same.
+    # A kill during step 0 loses one chunk's levelled solves at most (here one shape's):
+    # the checkpoint holds each chunk's as it ends. Resumed from the file as it was with
+    # two of three, one is solved again, and step 0 is the same.
     assert [sorted(k for k in w if k.startswith("first_levels")) for w in written[:3]] == [
         [f"first_levels_{i}" for i in range(j + 1)] for j in range(3)
     ]

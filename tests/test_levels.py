@@ -334,3 +334,42 @@ def test_a_resolved_matrix_is_the_same_side_by_side_and_one_after_another():
     # The pair that missed rtol on the finest level says so, as shape_geodesic would.
     assert not bool(loop.converged) and loop.result == ej.RESULTS.not_resolved
     assert np.asarray(loop.estimate)[0, 2] > 0.03 and loop.grids[0, 2].tolist() == [17, 33]
+
+
+def test_one_levels_loop_lets_each_pair_leave_when_it_resolves():
+    """run_levels, the loop shape_geodesic's levels and the collections' levelled solves
+    share: a pair leaves once two successive levels agree within rtol at a converged
+    solve; a non-finite distance ends its levels; the others go on to the next grid,
+    each continuing its own solution from the level below."""
+    from elastic_jax._registration.levels import LevelOutcome, run_levels
+
+    levels = ((9, 17), (13, 25), (17, 33), (25, 49))
+    # Per pair, per level: (distance, converged). Pair 0 agrees within 3 % at level 2;
+    # pair 1 agrees at level 3 but that solve did not converge, so it goes on; pair 2
+    # turns non-finite at level 2; pair 3 never agrees.
+    table = {
+        0: [(1.0, True), (1.02, True)],
+        1: [(1.0, True), (1.5, True), (1.51, False), (1.52, True)],
+        2: [(2.0, True), (np.nan, False)],
+        3: [(1.0, True), (2.0, True), (3.0, True), (4.0, True)],
+    }
+    calls = []
+
+    def solve(index, grid, going, below):
+        calls.append((index, grid, list(going)))
+        for i, sol in zip(going, below, strict=True):  # each continues its own solution
+            assert sol == (None if index == 0 else (i, index - 1))
+        return [LevelOutcome(*table[i][index], 10.0, (i, index)) for i in going]
+
+    tracks = run_levels(4, levels, 0.03, [0.0] * 4, solve)
+    assert calls == [
+        (0, (9, 17), [0, 1, 2, 3]),
+        (1, (13, 25), [0, 1, 2, 3]),
+        (2, (17, 33), [1, 3]),
+        (3, (25, 49), [1, 3]),
+    ]
+    assert [len(t.distances) for t in tracks] == [2, 4, 2, 4]
+    assert tracks[0].estimate == pytest.approx(0.02 / 1.02)
+    assert tracks[1].estimate == pytest.approx(0.01 / 1.52)
+    assert np.isnan(tracks[2].distances[-1]) and tracks[2].grids[-1] == (13, 25)
+    assert tracks[3].estimate == pytest.approx(0.25) and tracks[3].solution == (3, 3)

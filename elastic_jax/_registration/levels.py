@@ -4,9 +4,11 @@ below, until two successive distances agree within rtol (math §10).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -54,6 +56,72 @@ def level_solve(
     return one_grid_solve(f1, f2, metric, modulo, level, carried, reporter=reporter)
 
 
+class LevelOutcome(NamedTuple):
+    """One pair's solve on one level, as :func:`run_levels` needs it: its distance,
+    whether that solve converged, its parametrized distance (the near-equal scale of
+    :func:`level_change`) and the solution the next level continues (opaque here)."""
+
+    distance: float
+    converged: bool
+    parametrized: ArrayLike
+    solution: object
+
+
+@dataclasses.dataclass
+class LevelTrack:
+    """One pair's levels so far: the grids solved, their distances and seconds, the
+    last level's solution, and the levels estimate (:func:`level_change`)."""
+
+    grids: list = dataclasses.field(default_factory=list)
+    distances: list = dataclasses.field(default_factory=list)
+    seconds: list = dataclasses.field(default_factory=list)
+    solution: object = None
+    estimate: float = np.nan
+
+
+def run_levels(
+    count: int,
+    levels: Sequence[tuple[int, int]],
+    rtol: float,
+    noise: Sequence[float],
+    solve: Callable[[int, tuple[int, int], list, list], list],
+) -> list[LevelTrack]:
+    """The levels of working grids for ``count`` pairs at once (math §10): the one loop
+    every resolved solve runs, a single pair as a batch of one (:func:`levels_solve`)
+    and a collection's pairs (``levelled_chunk`` of distance_matrix, fit_metric, log and
+    karcher_mean).
+
+    ``solve(index, grid, going, below)`` solves the pairs ``going`` (indices) on
+    ``levels[index]``, each continuing its solution ``below`` from the level before
+    (None on the first level), and returns one :class:`LevelOutcome` per pair. A pair
+    leaves once two successive levels agree within ``rtol`` at a converged solve, or
+    when its distance is not finite (RESULTS.nonfinite ends its levels too); the others
+    go on to the next grid. ``noise[i]``: pair i's :func:`noise_distance`. Each pair's
+    seconds are its level's wall time (the whole group's, when several share it).
+    """
+    tracks = [LevelTrack() for _ in range(count)]
+    going = list(range(count))
+    for index, grid in enumerate(levels):
+        if not going:
+            break
+        begin = time.perf_counter()
+        outcomes = solve(index, tuple(grid), going, [tracks[i].solution for i in going])
+        seconds = time.perf_counter() - begin
+        still = []
+        for i, outcome in zip(going, outcomes, strict=True):
+            track = tracks[i]
+            track.grids.append(tuple(grid))
+            track.distances.append(float(outcome.distance))
+            track.seconds.append(seconds)
+            track.solution = outcome.solution
+            track.estimate = level_change(track.distances, outcome.parametrized, noise[i])
+            resolved = track.estimate <= rtol and bool(outcome.converged)
+            if np.isfinite(track.distances[-1]) and not resolved:
+                still.append(i)
+        going = still
+    return tracks
+
+
 def levels_solve(
     f1: ArrayLike,
     f2: ArrayLike,
@@ -92,35 +160,32 @@ def levels_solve(
             check_grid_options(options, m, n)
         except InputError as error:
             raise InputError(f"levels: the {m} x {n} level: {error}") from None
-    grids, distances, seconds = [], [], []
-    result = None
     noise = noise_distance(f1, f2)
+
+    def solve(index: int, grid: tuple[int, int], going: list, below: list) -> list:
+        if reporter is not None:
+            reporter.level = {"level": index + 1, "levels": len(options.levels)}
+        result = level_solve(f1, f2, metric, modulo, options, grid, below[0], start, reporter)
+        distance = float(jax.block_until_ready(result.distance))
+        if reporter is not None:
+            reporter.send(
+                stage="level",
+                grid=tuple(grid),
+                energy=float(result.energy),
+                distance=distance,
+                converged=bool(result.converged),
+            )
+        converged = bool(result.converged)
+        return [LevelOutcome(distance, converged, result.parametrized_distance, result)]
+
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
-        for index, grid in enumerate(options.levels, 1):
-            begin = time.perf_counter()
-            if reporter is not None:
-                reporter.level = {"level": index, "levels": len(options.levels)}
-            result = level_solve(f1, f2, metric, modulo, options, grid, result, start, reporter)
-            distances.append(float(jax.block_until_ready(result.distance)))
-            seconds.append(time.perf_counter() - begin)
-            grids.append(grid)
-            if reporter is not None:
-                reporter.send(
-                    stage="level",
-                    grid=tuple(grid),
-                    energy=float(result.energy),
-                    distance=distances[-1],
-                    converged=bool(result.converged),
-                )
-            change = level_change(distances, result.parametrized_distance, noise)
-            if not np.isfinite(distances[-1]) or (
-                change <= options.rtol and bool(result.converged)
-            ):
-                break  # a non-finite level (RESULTS.nonfinite) ends the levels too
+        (track,) = run_levels(1, options.levels, options.rtol, [noise], solve)
     if reporter is not None:
         reporter.level = {}
-    result = with_levels(result, grids, distances, seconds, options.rtol, noise)
+    result = with_levels(
+        track.solution, track.grids, track.distances, track.seconds, options.rtol, noise
+    )
     warn_unless_converged(result, stacklevel=4)
     return result
 

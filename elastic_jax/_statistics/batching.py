@@ -23,7 +23,7 @@ from .._geometry.grid import sphere_points
 from .._geometry.metric import SplitMetric
 from .._geometry.validation import as_surface
 from .._options import ShapeOptions, check_choice
-from .._registration.levels import level_change, noise_distance, registration_at
+from .._registration.levels import LevelOutcome, noise_distance, registration_at, run_levels
 from .._registration.one_grid import check_grid_options, continued_geodesic
 from .._registration.records import turned_back
 from .._registration.shape import resolve_options, shape_geodesic
@@ -455,6 +455,9 @@ def levelled_chunk(
     own compiled phases (a vmapped step costs the batch's size on a CPU, and a padded
     lax.map solves its padding).
 
+    The levels' loop is :func:`run_levels`, the one shape_geodesic's levels run (a
+    single pair is a batch of one there); this function solves each level's pairs.
+
     ``report(i, info)``: after each level, for each pair i solved on it, as
     shape_geodesic's progress reports a level (``stage`` "level", ``level`` and
     ``levels`` counted from 1, ``grid``, ``distance``, ``converged``).
@@ -468,27 +471,11 @@ def levelled_chunk(
         except InputError as error:
             raise InputError(f"levels: the {m} x {n} level: {error}") from None
     dtype = first.dtype
-    nan = np.full(count, np.nan)
-    out = {
-        "distance": nan.copy(),
-        "converged": np.zeros(count, bool),
-        "refinement_change": nan.copy(),
-        "result": np.zeros(count, np.int32),
-        "num_steps": np.zeros(count, np.int64),
-        "estimate": nan.copy(),
-        "grid": np.zeros((count, 2), np.int32),
-        "level_distances": np.full((count, len(levels)), np.nan),
-    }
-    gammas: list = [None] * count
-    rotations = np.zeros((count, 3, 3))
-    coefficients: list = [None] * count
-    parametrized_paths: list = [None] * count
-    parametrized = np.zeros(count)
     noise = [noise_distance(first[i], second[i]) for i in range(count)]
-    going = list(range(count))
     mode = "loop" if strategy == "map" else strategy
+    steps = np.zeros(count, np.int64)
 
-    def solve(indices: list, level: ShapeOptions, starts: tuple | None):
+    def solve_group(indices: list, level: ShapeOptions, starts: tuple | None):
         def batch_call(batch: tuple, mode: str):
             return _level_batch(batch, metric, modulo=modulo, options=level, mode=mode)
 
@@ -500,72 +487,64 @@ def levelled_chunk(
             batch = (*batch, *starts)
         return _solve_chunk(batch_call, single_call, batch, mode, size)
 
-    for index, grid in enumerate(levels):
-        if not going:
-            break
+    def solve(index: int, grid: tuple[int, int], going: list, below: list) -> list:
+        # A pair continues its solution below where that registration reads at this
+        # grid's points without folding; the others (and the first level) search.
         level = options.replace(grid=grid, rtol=None)
         carried, searched = [], []
-        for i in going:
-            read = (
-                None
-                if gammas[i] is None
-                else registration_at((gammas[i], rotations[i]), grid, dtype, modulo)
-            )
-            (searched if read is None else carried).append((i, read))
+        for i, sol in zip(going, below, strict=True):
+            read = None if sol is None else registration_at((sol[4], sol[5]), grid, dtype, modulo)
+            (searched if read is None else carried).append((i, read, sol))
         groups = []
         if searched:
-            groups.append(([i for i, _ in searched], None))
+            groups.append(([i for i, *_ in searched], None))
         if carried:
-            indices = [i for i, _ in carried]
             starts = (
-                jnp.stack([r[0] for _, r in carried]),
-                jnp.stack([r[1] for _, r in carried]),
-                jnp.stack([jnp.asarray(coefficients[i]) for i in indices]),
-                jnp.stack([jnp.asarray(parametrized_paths[i]) for i in indices]),
+                jnp.stack([r[0] for _, r, _ in carried]),
+                jnp.stack([r[1] for _, r, _ in carried]),
+                jnp.stack([jnp.asarray(sol[6]) for *_, sol in carried]),
+                jnp.stack([jnp.asarray(sol[9]) for *_, sol in carried]),
             )
-            groups.append((indices, starts))
+            groups.append(([i for i, *_ in carried], starts))
+        outcomes = {}
         for indices, starts in groups:
-            solved = solve(indices, level, starts)
-            d, ok, code, steps, g, r, c, par, change, par_c = (np.asarray(x) for x in solved)
+            solved = [np.asarray(x) for x in solve_group(indices, level, starts)]
             for k, i in enumerate(indices):
-                out["level_distances"][i, index] = d[k]
-                out["distance"][i], out["converged"][i] = d[k], ok[k]
-                out["result"][i], out["refinement_change"][i] = code[k], change[k]
-                out["num_steps"][i] += steps[k]
-                out["grid"][i] = grid
-                gammas[i], rotations[i], coefficients[i] = g[k], r[k], c[k]
-                parametrized[i], parametrized_paths[i] = par[k], par_c[k]
+                sol = tuple(x[k] for x in solved)
+                d, ok, *_ = sol
+                steps[i] += sol[3]
+                outcomes[i] = LevelOutcome(float(d), bool(ok), float(sol[7]), sol)
                 if report is not None:
                     info = {"level": index + 1, "levels": len(levels), "grid": tuple(grid)}
                     report(
-                        i,
-                        {
-                            "stage": "level",
-                            **info,
-                            "distance": float(d[k]),
-                            "converged": bool(ok[k]),
-                        },
+                        i, {"stage": "level", **info, "distance": float(d), "converged": bool(ok)}
                     )
-        still = []
-        for i in going:
-            distances = out["level_distances"][i, : index + 1]
-            change = level_change(distances, parametrized[i], noise[i])
-            out["estimate"][i] = change
-            if np.isfinite(out["distance"][i]) and not (
-                change <= options.rtol and out["converged"][i]
-            ):
-                still.append(i)
-        going = still
-    met = out["estimate"] <= options.rtol
-    unresolved = out["converged"] & ~met
-    out["result"][unresolved] = RESULTS.not_resolved._value
-    out["converged"] &= met
+        return [outcomes[i] for i in going]
+
+    tracks = run_levels(count, levels, options.rtol, noise, solve)
+    solutions = [t.solution for t in tracks]
+    estimate = np.asarray([t.estimate for t in tracks], np.float64)
+    level_distances = np.full((count, len(levels)), np.nan)
+    for i, t in enumerate(tracks):
+        level_distances[i, : len(t.distances)] = t.distances
+    converged = np.asarray([bool(sol[1]) for sol in solutions])
+    result = np.asarray([int(sol[2]) for sol in solutions], np.int32)
+    met = estimate <= options.rtol
+    result[converged & ~met] = RESULTS.not_resolved._value
+    gammas = [sol[4] for sol in solutions]
     same = len({g.shape for g in gammas}) == 1
     return LevelledPairs(
-        **out,
+        distance=np.asarray([float(sol[0]) for sol in solutions]),
+        converged=converged & met,
+        refinement_change=np.asarray([float(sol[8]) for sol in solutions]),
+        result=result,
+        num_steps=steps,
+        estimate=estimate,
+        grid=np.asarray([t.grids[-1] for t in tracks], np.int32),
+        level_distances=level_distances,
         gamma=np.stack(gammas) if same else gammas,
-        rotation=rotations,
-        coefficients=np.stack(coefficients),
+        rotation=np.stack([np.asarray(sol[5]) for sol in solutions]),
+        coefficients=np.stack([np.asarray(sol[6]) for sol in solutions]),
     )
 
 
