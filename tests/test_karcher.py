@@ -136,12 +136,11 @@ def test_resolved_mean_of_moebius_read_concentric_spheres(modulo, tmp_path, monk
     job = ej.JobOptions(checkpoint=path, progress=reports.append, batch_size=1)
     res = ej.karcher_mean(spheres, METRIC, **kwargs, job=job)
     assert res.converged, res.message
-    # Step 0's levelled solves take the shapes through the levels together and report
-    # each level of each shape as it ends, level by level, with the distance the result
-    # records; then one report per step.
+    # Step 0's levelled solves report each level of each shape as it ends (chunk by
+    # chunk, here shape by shape), with the distance the result records; then one
+    # report per step.
     ends = [r for r in reports if r.get("stage") == "level"]
-    assert all(r["shapes"] == 3 for r in ends)
-    assert [r["level"] for r in ends] == sorted(r["level"] for r in ends)
+    assert [(r["shape"], r["shapes"]) for r in ends] == sorted((r["shape"], 3) for r in ends)
     for k in range(3):
         mine = [r["level"] for r in ends if r["shape"] == k]
         assert mine == list(range(1, len(mine) + 1))
@@ -194,15 +193,21 @@ def test_resolved_mean_of_moebius_read_concentric_spheres(modulo, tmp_path, monk
     ]
     np.savez(path, **written[1])
     levelled = []
-    solve = karcher.shape_geodesic
+    solve = karcher.levelled_chunk
     monkeypatch.setattr(
-        karcher, "shape_geodesic", lambda *a, **k: levelled.append(1) or solve(*a, **k)
+        karcher,
+        "levelled_chunk",
+        lambda first, *a, **k: levelled.append(len(first)) or solve(first, *a, **k),
     )
     with pytest.warns(ej.ConvergenceWarning, match="max_steps"):
         again = ej.karcher_mean(
-            spheres, METRIC, max_steps=0, **kwargs, job=ej.JobOptions(checkpoint=path, resume=True)
+            spheres,
+            METRIC,
+            max_steps=0,
+            **kwargs,
+            job=ej.JobOptions(checkpoint=path, resume=True, batch_size=1),
         )
-    assert len(levelled) == 1
+    assert levelled == [1]  # the one shape the file lacked
     np.testing.assert_allclose(again.level_distances, res.level_distances, rtol=1e-10, atol=1e-14)
     np.testing.assert_allclose(again.history[0], res.history[0], rtol=1e-9)
 
