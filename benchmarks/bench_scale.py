@@ -433,7 +433,13 @@ def main() -> None:
         # How many XLA programs a resolved solve compiles (no persistent cache: every
         # program counts): one pair, and matrices whose pairs share each level's
         # programs (one after another) or run side by side (vmap, one batch per level).
-        degree, vf_degree, n_times = (int(x) for x in args.programs_options.split(","))
+        try:
+            degree, vf_degree, n_times = (int(x) for x in args.programs_options.split(","))
+        except ValueError:
+            parser.error(
+                f"--programs-options: three integers degree,vf_degree,n_times; "
+                f"got {args.programs_options!r}"
+            )
         levels = ((13, 25), (25, 49))
         for shapes, strategy in ((2, "loop"), (3, "loop"), (5, "loop"), (3, "vmap")):
             settings = {

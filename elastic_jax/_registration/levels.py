@@ -167,15 +167,15 @@ def levels_solve(
             reporter.level = {"level": index + 1, "levels": len(options.levels)}
         result = level_solve(f1, f2, metric, modulo, options, grid, below[0], start, reporter)
         distance = float(jax.block_until_ready(result.distance))
+        converged = bool(result.converged)
         if reporter is not None:
             reporter.send(
                 stage="level",
                 grid=tuple(grid),
                 energy=float(result.energy),
                 distance=distance,
-                converged=bool(result.converged),
+                converged=converged,
             )
-        converged = bool(result.converged)
         return [LevelOutcome(distance, converged, result.parametrized_distance, result)]
 
     with warnings.catch_warnings():

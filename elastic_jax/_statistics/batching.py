@@ -393,6 +393,21 @@ def _level_pair(
     )
 
 
+class _LevelSolution(NamedTuple):
+    """:func:`_level_pair`'s outputs by name (one pair's, or a group's stacked)."""
+
+    distance: ArrayLike
+    converged: ArrayLike
+    result: ArrayLike
+    num_steps: ArrayLike
+    gamma: ArrayLike
+    rotation: ArrayLike
+    coefficients: ArrayLike
+    parametrized_distance: ArrayLike
+    refinement_change: ArrayLike
+    parametrized_coefficients: ArrayLike
+
+
 @functools.partial(solver_jit, static_argnames=("modulo", "options", "mode"))
 def _level_batch(
     batch: tuple, metric: SplitMetric, *, modulo: str, options: ShapeOptions, mode: str
@@ -493,7 +508,11 @@ def levelled_chunk(
         level = options.replace(grid=grid, rtol=None)
         carried, searched = [], []
         for i, sol in zip(going, below, strict=True):
-            read = None if sol is None else registration_at((sol[4], sol[5]), grid, dtype, modulo)
+            read = (
+                None
+                if sol is None
+                else registration_at((sol.gamma, sol.rotation), grid, dtype, modulo)
+            )
             (searched if read is None else carried).append((i, read, sol))
         groups = []
         if searched:
@@ -502,23 +521,21 @@ def levelled_chunk(
             starts = (
                 jnp.stack([r[0] for _, r, _ in carried]),
                 jnp.stack([r[1] for _, r, _ in carried]),
-                jnp.stack([jnp.asarray(sol[6]) for *_, sol in carried]),
-                jnp.stack([jnp.asarray(sol[9]) for *_, sol in carried]),
+                jnp.stack([jnp.asarray(sol.coefficients) for *_, sol in carried]),
+                jnp.stack([jnp.asarray(sol.parametrized_coefficients) for *_, sol in carried]),
             )
             groups.append(([i for i, *_ in carried], starts))
         outcomes = {}
         for indices, starts in groups:
-            solved = [np.asarray(x) for x in solve_group(indices, level, starts)]
+            solved = _LevelSolution(*(np.asarray(x) for x in solve_group(indices, level, starts)))
             for k, i in enumerate(indices):
-                sol = tuple(x[k] for x in solved)
-                d, ok, *_ = sol
-                steps[i] += sol[3]
-                outcomes[i] = LevelOutcome(float(d), bool(ok), float(sol[7]), sol)
+                sol = _LevelSolution(*(x[k] for x in solved))
+                d, ok = float(sol.distance), bool(sol.converged)
+                steps[i] += sol.num_steps
+                outcomes[i] = LevelOutcome(d, ok, float(sol.parametrized_distance), sol)
                 if report is not None:
                     info = {"level": index + 1, "levels": len(levels), "grid": tuple(grid)}
-                    report(
-                        i, {"stage": "level", **info, "distance": float(d), "converged": bool(ok)}
-                    )
+                    report(i, {"stage": "level", **info, "distance": d, "converged": ok})
         return [outcomes[i] for i in going]
 
     tracks = run_levels(count, levels, options.rtol, noise, solve)
@@ -527,24 +544,24 @@ def levelled_chunk(
     level_distances = np.full((count, len(levels)), np.nan)
     for i, t in enumerate(tracks):
         level_distances[i, : len(t.distances)] = t.distances
-    converged = np.asarray([bool(sol[1]) for sol in solutions])
-    result = np.asarray([int(sol[2]) for sol in solutions], np.int32)
+    converged = np.asarray([bool(sol.converged) for sol in solutions])
+    result = np.asarray([int(sol.result) for sol in solutions], np.int32)
     met = estimate <= options.rtol
     result[converged & ~met] = RESULTS.not_resolved._value
-    gammas = [sol[4] for sol in solutions]
+    gammas = [sol.gamma for sol in solutions]
     same = len({g.shape for g in gammas}) == 1
     return LevelledPairs(
-        distance=np.asarray([float(sol[0]) for sol in solutions]),
+        distance=np.asarray([float(sol.distance) for sol in solutions]),
         converged=converged & met,
-        refinement_change=np.asarray([float(sol[8]) for sol in solutions]),
+        refinement_change=np.asarray([float(sol.refinement_change) for sol in solutions]),
         result=result,
         num_steps=steps,
         estimate=estimate,
         grid=np.asarray([t.grids[-1] for t in tracks], np.int32),
         level_distances=level_distances,
         gamma=np.stack(gammas) if same else gammas,
-        rotation=np.stack([np.asarray(sol[5]) for sol in solutions]),
-        coefficients=np.stack([np.asarray(sol[6]) for sol in solutions]),
+        rotation=np.stack([np.asarray(sol.rotation) for sol in solutions]),
+        coefficients=np.stack([np.asarray(sol.coefficients) for sol in solutions]),
     )
 
 
