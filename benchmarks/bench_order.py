@@ -32,6 +32,11 @@ quantiles 0.18-4.4 of its mean on the data, 0.51-2.1 balanced).
 (that many degrees about (1, 2, 3) / sqrt(14)) by the spline at 99 x 197, so that the
 data's poles land away from the working grid's.
 
+``--fourier``: each input replaced by its trigonometric interpolant (``fourier_read``:
+the data's samples interpolated by a Fourier series on the sphere doubled in phi,
+sampled 4 times finer, then read by the spline): an interpolant that is smooth between
+the samples where the spline's third derivatives jump at every grid line.
+
 ``--stretch FRACTION``: solve with ``ShapeOptions(stretch_quadrature=FRACTION)`` (that
 fraction of the cells, where gamma stretches most, integrated 4 x 4 finer).
 
@@ -57,7 +62,7 @@ area 4 pi).
 Run: python benchmarks/bench_order.py [--pairs cats,cat-horse,horse-hand,pial]
      [--levels 13x25,25x49,49x97,97x193] [--factors 1,2,4] [--path-only]
      [--path-only-up-to 49x97] [--interpolation spline] [--floor 5] [--balanced]
-     [--turn 0] [--stretch 0] [--down]
+     [--turn 0] [--fourier] [--stretch 0] [--down]
 """
 
 from __future__ import annotations
@@ -132,6 +137,28 @@ def turned(f, degrees: float, m: int = 99, n: int = 197):
     g[:, 0], g[:, -1] = g[:, 0, :1], g[:, -1, :1]
     g[:, :, -1] = g[:, :, 0]
     return g
+
+
+def fourier_read(f, factor: int = 4):
+    """f's trigonometric interpolant on the sphere doubled in phi (the rows continued past
+    the south pole by f(2 pi - phi, theta + pi), a periodic (2 (m - 1), n - 1) array),
+    sampled ``factor`` times finer in each direction: ``(3, factor (m - 1) + 1,
+    factor (n - 1) + 1)``, equal to f at f's own points (to rounding) and smooth between
+    them. n - 1 must be even (the half turn in theta is a whole number of columns)."""
+    from scipy.signal import resample
+
+    f = np.asarray(f)
+    m, n = f.shape[-2:]
+    columns = n - 1
+    g = f[:, :, :columns]
+    beyond = np.roll(g[:, m - 2 : 0 : -1, :], columns // 2, axis=2)
+    doubled = np.concatenate([g, beyond], axis=1)
+    doubled = resample(doubled, factor * doubled.shape[1], axis=1)
+    doubled = resample(doubled, factor * columns, axis=2)
+    out = doubled[:, : factor * (m - 1) + 1]
+    out = np.concatenate([out, out[:, :, :1]], axis=2)
+    out[:, 0], out[:, -1] = out[:, 0, :1], out[:, -1, :1]
+    return out
 
 
 def density_quantiles(f) -> list[float]:
@@ -299,6 +326,7 @@ def main() -> None:
     parser.add_argument("--floor", type=float, default=None)
     parser.add_argument("--balanced", action="store_true")
     parser.add_argument("--turn", type=float, default=0.0)
+    parser.add_argument("--fourier", action="store_true")
     parser.add_argument("--stretch", type=float, default=0.0)
     parser.add_argument("--down", action="store_true")
     args = parser.parse_args()
@@ -318,6 +346,7 @@ def main() -> None:
         "interpolation": args.interpolation,
         "balanced": args.balanced,
         "turn_degrees": args.turn,
+        "fourier": args.fourier,
         "floor": args.floor if args.floor is not None else _problem._RESOLUTION_FACTOR,
         "stretch_quadrature": args.stretch,
     }
@@ -331,6 +360,8 @@ def main() -> None:
             f1, f2 = (balanced(f) for f in (f1, f2))
         if args.turn:
             f1, f2 = (turned(f, args.turn) for f in (f1, f2))
+        if args.fourier:
+            f1, f2 = (fourier_read(f) for f in (f1, f2))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ej.ConvergenceWarning)
             solved = levels_of(f1, f2, options)

@@ -25,9 +25,10 @@ Four measurements, one JSON record each (settings, figures, environment):
    fusion, and loading a cached executable links them again: both the cold and the warm
    first call grow with the program, so its size is the figure to bring down.
 5. ``programs``: how many XLA programs a resolved solve compiles (levels 13 x 25 and
-   25 x 49, synthetic shapes, no persistent cache): one pair by shape_geodesic, and
-   distance matrices of 3 and 5 shapes one pair after another ("loop") and of 3 side by
-   side ("vmap").
+   25 x 49 by default, ``--programs-levels 4`` all of the package's, synthetic shapes,
+   no persistent cache): one pair by shape_geodesic, and distance matrices of 3 and 5
+   shapes one pair after another ("loop") and of 3 side by side ("vmap")
+   (``--programs-solves`` picks them).
 
 Measured (2026-11-23, 2 CPU cores, quiet, float64; each configuration's compilations
 included):
@@ -148,9 +149,12 @@ process loads them without lowering the programs) (2026-11-24, quiet):
 Measured (2026-12-02, 2 CPU cores, degree 4 / 4, N 5):
     programs: one resolved pair 34; resolved matrices one pair after another 65 (3
         shapes) and 65 (5 shapes, 10 pairs); side by side 47 (3 shapes).
+    programs at degree 7 / 8, N 13, all four levels (--programs-levels 4): one pair 58
+        (80 s); a matrix of 3 shapes one pair after another 93 (158 s).
 
 Run: python benchmarks/bench_scale.py [--shapes 32]
      [--parts matrix,compile,first_call,memory,programs] [--workers 1,2]
+     [--programs-options 4,4,5] [--programs-levels 2] [--programs-solves 2:loop,3:vmap]
 """
 
 from __future__ import annotations
@@ -308,7 +312,7 @@ coll += [shapes.sample(shapes.bumpy, m, n, scale=1.1 + 0.05 * i,
                        rotation=shapes.random_rotation(i)) for i in range({shapes} - 2)]
 coll = np.stack(coll)
 options = ej.ShapeOptions(degree={degree}, vf_degree={vf_degree}, n_times={n_times},
-                          levels={levels})
+                          levels={levels}, rtol={rtol})
 job = ej.JobOptions(strategy={strategy!r})
 t0 = time.perf_counter()
 with CompileCounter() as programs:
@@ -343,6 +347,13 @@ def run(script: str) -> dict:
     return record
 
 
+def ej_levels() -> tuple:
+    """The package's default levels (imported here: the parts run in subprocesses)."""
+    import elastic_jax as ej
+
+    return ej.ShapeOptions().levels
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shapes", type=int, default=32)
@@ -352,6 +363,18 @@ def main() -> None:
         "--programs-options",
         default="4,4,5",
         help="degree,vf_degree,n_times of the programs part (the package's: 7,8,13)",
+    )
+    parser.add_argument(
+        "--programs-levels",
+        type=int,
+        default=2,
+        help="how many of the package's levels the programs part runs (2: 13 x 25, 25 x 49;"
+        " 4: up to 97 x 193); with more than 2 every pair runs them all (rtol 1e-9)",
+    )
+    parser.add_argument(
+        "--programs-solves",
+        default="2:loop,3:loop,5:loop,3:vmap",
+        help="shapes:strategy of each programs solve (2 shapes: one shape_geodesic)",
     )
     args = parser.parse_args()
     parts = args.parts.split(",")
@@ -440,8 +463,21 @@ def main() -> None:
                 f"--programs-options: three integers degree,vf_degree,n_times; "
                 f"got {args.programs_options!r}"
             )
-        levels = ((13, 25), (25, 49))
-        for shapes, strategy in ((2, "loop"), (3, "loop"), (5, "loop"), (3, "vmap")):
+        all_levels = ej_levels()
+        if not 1 <= args.programs_levels <= len(all_levels):
+            parser.error(f"--programs-levels: 1 to {len(all_levels)}; got {args.programs_levels}")
+        levels = all_levels[: args.programs_levels]
+        rtol = 0.03 if args.programs_levels <= 2 else 1e-9
+        try:
+            solves = [
+                (int(k), strategy)
+                for k, strategy in (item.split(":") for item in args.programs_solves.split(","))
+            ]
+        except ValueError:
+            parser.error(f"--programs-solves: shapes:strategy items; got {args.programs_solves!r}")
+        if any(k < 2 or strategy not in ("loop", "map", "vmap") for k, strategy in solves):
+            parser.error(f"--programs-solves: shapes >= 2 and loop/map/vmap; got {solves}")
+        for shapes, strategy in solves:
             settings = {
                 "shapes": shapes,
                 "strategy": strategy,
@@ -449,13 +485,14 @@ def main() -> None:
                 "vf_degree": vf_degree,
                 "n_times": n_times,
                 "levels": levels,
+                "rtol": rtol,
             }
             record = run(PROGRAMS.format(**settings))
             emit(
                 {
                     "benchmark": "programs",
                     "solve": "shape_geodesic" if shapes == 2 else "distance_matrix",
-                    "settings": {**settings, "modulo": "rigid", "rtol": 0.03},
+                    "settings": {**settings, "modulo": "rigid"},
                     **record,
                     "environment": env,
                 }
