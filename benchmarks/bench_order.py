@@ -150,6 +150,8 @@ def fourier_read(f, factor: int = 4):
     f = np.asarray(f)
     m, n = f.shape[-2:]
     columns = n - 1
+    if columns % 2:
+        raise ValueError(f"fourier_read needs an even n - 1 (a half turn in columns); got n = {n}")
     g = f[:, :, :columns]
     beyond = np.roll(g[:, m - 2 : 0 : -1, :], columns // 2, axis=2)
     doubled = np.concatenate([g, beyond], axis=1)

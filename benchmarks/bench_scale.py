@@ -347,13 +347,6 @@ def run(script: str) -> dict:
     return record
 
 
-def ej_levels() -> tuple:
-    """The package's default levels (imported here: the parts run in subprocesses)."""
-    import elastic_jax as ej
-
-    return ej.ShapeOptions().levels
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shapes", type=int, default=32)
@@ -463,7 +456,10 @@ def main() -> None:
                 f"--programs-options: three integers degree,vf_degree,n_times; "
                 f"got {args.programs_options!r}"
             )
-        all_levels = ej_levels()
+        # The parts run in subprocesses; this process imports the package only here.
+        from elastic_jax import ShapeOptions
+
+        all_levels = ShapeOptions().levels
         if not 1 <= args.programs_levels <= len(all_levels):
             parser.error(f"--programs-levels: 1 to {len(all_levels)}; got {args.programs_levels}")
         levels = all_levels[: args.programs_levels]
