@@ -40,6 +40,10 @@ the samples where the spline's third derivatives jump at every grid line.
 ``--stretch FRACTION``: solve with ``ShapeOptions(stretch_quadrature=FRACTION)`` (that
 fraction of the cells, where gamma stretches most, integrated 4 x 4 finer).
 
+``--quadrature Q``: solve with ``ShapeOptions(quadrature=Q)`` (every energy of a level
+integrated at the nodes of the grid Q times finer); the ``quadrature`` records still
+integrate the result by the nodes of the working grid cut by each factor.
+
 ``--down``: after the levels, each coarser level solved again from the finest level's
 registration and path (``continued_geodesic``): the coarser grids' values in the finest
 level's basin, with their 2x-grid evaluations. The levels' own changes mix the
@@ -53,11 +57,11 @@ constant ``_RESOLUTION_FACTOR``, 5) for a diagnostic run. ``--path-only`` re-sol
 path on the levels up to ``--path-only-up-to`` (default 49 x 97: on 193 x 385 one path
 solve takes minutes).
 
-Pairs: cat1 -> cat2, cat1 -> horse0, horse0 -> hand4 (the authors' surfaces from
-elastic_jax.datasets: $ELASTIC_JAX_DATA or a download; skipped when they cannot be had)
-and, when nilearn is installed, FreeSurfer's fsaverage5 pial hemispheres (``pial``: left
-against right, each put on the 50 x 99 grid by the package's spherical parametrization,
-area 4 pi).
+Pairs: cat1 -> cat2, cat1 -> horse0 (``horse-cat``: the other order), horse0 -> hand4
+(the authors' surfaces from elastic_jax.datasets: $ELASTIC_JAX_DATA or a download;
+skipped when they cannot be had) and, when nilearn is installed, FreeSurfer's
+fsaverage5 pial hemispheres (``pial``: left against right, each put on the 50 x 99 grid
+by the package's spherical parametrization, area 4 pi).
 
 Run: python benchmarks/bench_order.py [--pairs cats,cat-horse,horse-hand,pial]
      [--levels 13x25,25x49,49x97,97x193] [--factors 1,2,4] [--path-only]
@@ -97,6 +101,7 @@ METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 PAIRS = {
     "cats": ("cat1", "cat2"),
     "cat-horse": ("cat1", "horse0"),
+    "horse-cat": ("horse0", "cat1"),
     "horse-hand": ("horse0", "hand4"),
     "pial": ("pial_left", "pial_right"),
 }
@@ -192,7 +197,9 @@ class Evaluation(NamedTuple):
 
 
 def evaluation(f1, f2, result, grid, options) -> Evaluation:
-    opts = options.replace(grid=grid, rtol=None, refinement=False, tol=default_tol(f1.dtype))
+    opts = options.replace(
+        grid=grid, rtol=None, refinement=False, tol=default_tol(f1.dtype), quadrature=1
+    )
     bases = _problem.make_bases(*grid, opts, f1.dtype)
     prob = _problem.make_problem(
         METRIC, jnp.asarray(f1), jnp.asarray(f2), bases, True, opts.interpolation
@@ -331,13 +338,17 @@ def main() -> None:
     parser.add_argument("--fourier", action="store_true")
     parser.add_argument("--stretch", type=float, default=0.0)
     parser.add_argument("--down", action="store_true")
+    parser.add_argument("--quadrature", type=int, default=1)
     args = parser.parse_args()
     if args.floor is not None:
         _problem._RESOLUTION_FACTOR = args.floor
     levels = tuple(tuple(int(v) for v in g.split("x")) for g in args.levels.split(","))
     factors = [int(k) for k in args.factors.split(",")]
     options = ej.ShapeOptions(
-        levels=levels, interpolation=args.interpolation, stretch_quadrature=args.stretch
+        levels=levels,
+        interpolation=args.interpolation,
+        stretch_quadrature=args.stretch,
+        quadrature=args.quadrature,
     )
     path_only_up_to = tuple(int(v) for v in args.path_only_up_to.split("x"))
     settings = {
@@ -351,6 +362,7 @@ def main() -> None:
         "fourier": args.fourier,
         "floor": args.floor if args.floor is not None else _problem._RESOLUTION_FACTOR,
         "stretch_quadrature": args.stretch,
+        "quadrature": args.quadrature,
     }
     for pair in args.pairs.split(","):
         names = PAIRS[pair]

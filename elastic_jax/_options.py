@@ -140,6 +140,14 @@ class ShapeOptions:
             path solve still integrates by the nodes. Needs ``scheme="midpoint"`` and
             ``differential="chain"``.
         stretch_subdivision: that subdivision s >= 2 (s x s sub-cells per cell).
+        quadrature: q >= 1: every energy of a registration (its rounds, the
+            parametrized and the registered geodesic, the reported distance) is
+            integrated at the nodes of the grid q times finer than the working grid,
+            (q (m - 1) + 1) x (q (n - 1) + 1), with gamma, the rotation and the path's
+            coefficients still those of the working grid: f1 o gamma is read there
+            through gamma's and f1's interpolants, the path's harmonics exactly. 1
+            (default): the working grid's own nodes. Costs about q^2 times the points.
+            Needs ``differential="chain"`` and ``stretch_quadrature=0``.
 
     Grid fields:
         grid: one working grid ``(m, n)`` the path is discretized on (odd n, m, n >= 5),
@@ -185,6 +193,7 @@ class ShapeOptions:
     differential: str = "chain"
     stretch_quadrature: float = 0.0
     stretch_subdivision: int = 4
+    quadrature: int = 1
     refinement: bool = True
     saddle_checks: int = 1
     grid: tuple[int, int] | None = None
@@ -201,6 +210,7 @@ class ShapeOptions:
             "init_candidates": 1,
             "saddle_checks": 0,
             "stretch_subdivision": 2,
+            "quadrature": 1,
         }
         for name, minimum in ints.items():
             object.__setattr__(self, name, check_int(name, getattr(self, name), minimum))
@@ -235,6 +245,13 @@ class ShapeOptions:
             raise InputError(
                 "stretch_quadrature integrates the midpoint scheme's energy of the chain "
                 f"rule's frames; got scheme={self.scheme!r}, differential={self.differential!r}"
+            )
+        if self.quadrature > 1 and (self.differential != "chain" or self.stretch_quadrature > 0.0):
+            raise InputError(
+                "quadrature > 1 reads f1 o gamma between the nodes by the chain rule, and "
+                "replaces stretch_quadrature; got "
+                f"differential={self.differential!r}, "
+                f"stretch_quadrature={self.stretch_quadrature!r}"
             )
         if self.grid is not None:
             object.__setattr__(self, "grid", _checked_grid("grid", self.grid))

@@ -11,6 +11,7 @@ from elastic_jax._geometry.reparam import (
     directional_derivatives,
     reparametrize_unchecked,
     sample_points,
+    spline_upsample,
 )
 
 DEGREE = 5
@@ -262,3 +263,23 @@ def test_the_spline_frame_is_the_splines_derivative_at_the_knots(grid):
     # and not the central differences (second order), which differ at this grid
     central = interior_frame(f)
     assert float(jnp.max(jnp.abs(frame[1] - central[1]))) > 1e-4
+
+
+@pytest.mark.parametrize("factor", [2, 3])
+def test_spline_upsample_is_the_spline_read_at_the_finer_points(factor):
+    # The spline of a Moebius map's samples (13 x 25) at every point of the grid 2 and
+    # 3 times finer: the fixed-offset filter against the general read (measured
+    # 1.5e-15 and 1.1e-15), pole rows and seam included.
+    from elastic_jax._geometry.grid import sphere_points
+
+    m, n = 13, 25
+    gamma = ej.moebius(sphere_points(m, n, jnp.float64), jnp.asarray([0.55, 0.3, 0.1]))
+    points = sphere_points(factor * (m - 1) + 1, factor * (n - 1) + 1, jnp.float64)
+    read = reparametrize_unchecked(gamma, points, method="spline")
+    upsampled = spline_upsample(gamma, factor)
+    assert upsampled.shape == read.shape
+    np.testing.assert_allclose(np.asarray(upsampled), np.asarray(read), rtol=0, atol=1e-13)
+    # At the working grid's own points it is the samples themselves.
+    np.testing.assert_allclose(
+        np.asarray(upsampled[:, ::factor, ::factor]), np.asarray(gamma), rtol=0, atol=1e-14
+    )

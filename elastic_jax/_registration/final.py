@@ -30,6 +30,7 @@ from .problem import (
     identity_frames,
     joint_objective,
     make_problem,
+    path_dframe,
     path_energy_at,
     registered_f1,
     registered_frame,
@@ -56,7 +57,7 @@ def _refinement(
     n_fine = 2 * options.n_times - 1
     halved = upsample_coefficients(coefficients, degree, degree, n_fine)
     straight = frames_between(start, end, n_fine)
-    frames = perturbed_frames(straight, halved, bases.dframe)
+    frames = perturbed_frames(straight, halved, path_dframe(prob, options))
     time_energy = frame_energy(metric, *frames, options.scheme)
 
     fine_gamma = compose(gamma, bases.fine_points, options.interpolation)
@@ -101,7 +102,7 @@ def _final_solves(prob: Problem, options: ShapeOptions, state: State, parametriz
             end,
             init,
             bases.values,
-            bases.dframe,
+            path_dframe(prob, options),
             **geodesic_options(options),
             saddle_checks=options.saddle_checks,
             frames=(start_frame, end_frame),

@@ -35,6 +35,7 @@ from .._geometry.reparam import (
     sample_points,
     spline_coefficients,
     spline_frame,
+    spline_upsample,
 )
 from .._geometry.so3 import icosahedral_np, so3_exp_unchecked
 from .._geometry.srnf import center_unchecked
@@ -67,6 +68,8 @@ class _Bases(NamedTuple):
     ico: Array  # (60, 3, 3)
     fine_points: Array  # (3, 2m - 1, 2n - 1) the refinement grid's points
     fine_dframe: Array  # (K, 2 P') the path harmonics' differentials there
+    quad_points: Array  # (3, M, N) the quadrature's nodes (options.quadrature > 1)
+    quad_dframe: Array  # (K, 2 P'') the path harmonics' differentials there
     area_floor: Array  # () least grid area a reparametrization may keep (_resolution_np)
     max_boost: Array  # () largest |a| of a Moebius map the grid resolves
 
@@ -319,9 +322,26 @@ def frame_of(f: ArrayLike, gamma: ArrayLike, options: ShapeOptions):
     return _chain_frame(f, gamma, options.interpolation, read)
 
 
+def quadrature_gamma(prob: Problem, options: ShapeOptions, gamma: ArrayLike):
+    """gamma at the nodes of the energy's quadrature: itself with ``options.quadrature``
+    1, else read through its interpolant at the finer grid's points (bases.quad_points):
+    gamma stays a function of the working grid, the energy sees it between the nodes."""
+    if options.quadrature == 1:
+        return gamma
+    if options.interpolation == "spline":
+        g = spline_upsample(gamma, options.quadrature)
+        return g / jnp.linalg.norm(g, axis=-3, keepdims=True)
+    return compose(gamma, prob.bases.quad_points, options.interpolation)
+
+
+def path_dframe(prob: Problem, options: ShapeOptions):
+    """The path harmonics' differentials ``(K, 2 P)`` on the quadrature's interior nodes."""
+    return prob.bases.dframe if options.quadrature == 1 else prob.bases.quad_dframe
+
+
 def registered_frame(prob: Problem, options: ShapeOptions, gamma: ArrayLike):
-    """The differential of f1 o gamma (interior points)."""
-    return frame_of(prob.source1, gamma, options)
+    """The differential of f1 o gamma on the quadrature's interior nodes."""
+    return frame_of(prob.source1, quadrature_gamma(prob, options, gamma), options)
 
 
 def rotated_end_frame(prob: Problem, options: ShapeOptions, rotation: ArrayLike):
@@ -330,7 +350,8 @@ def rotated_end_frame(prob: Problem, options: ShapeOptions, rotation: ArrayLike)
     if options.differential == "grid":
         frame = interior_frame(prob.f2)
     else:
-        frame = frame_of(prob.source2, prob.e1, options)
+        # At the identity read as f1 o gamma's are: the same points, the same frames.
+        frame = frame_of(prob.source2, quadrature_gamma(prob, options, prob.e1), options)
     return tuple(rotate_surface(rotation, a) for a in frame)
 
 
@@ -362,7 +383,7 @@ def geodesic_at(
         rotate_surface(rotation, prob.f2),
         init,
         prob.bases.values,
-        prob.bases.dframe,
+        path_dframe(prob, options),
         **geodesic_options(options),
         frames=(registered_frame(prob, options, gamma), rotated_end_frame(prob, options, rotation)),
     )
@@ -419,7 +440,7 @@ def joint_objective(
         end = [rotate_surface(r_step, a) for a in end_frame]
         straight = frames_between(start, end, options.n_times)
         coefficients = scaling.coefficients(z)
-        frames = perturbed_frames(straight, coefficients, prob.bases.dframe)
+        frames = perturbed_frames(straight, coefficients, path_dframe(prob, options))
         turned = r_step @ rotation
         energy = _frames_energy(prob, options, frames, stepped, turned, coefficients, cells)
         return energy / scaling.energy_scale
@@ -466,7 +487,7 @@ def scaling_at(prob: Problem, options: ShapeOptions, gamma: ArrayLike, rotation:
         prob.metric,
         registered_f1(prob, options, gamma),
         rotate_surface(rotation, prob.f2),
-        prob.bases.dframe,
+        path_dframe(prob, options),
         options.n_times,
         options.scheme,
         (registered_frame(prob, options, gamma), rotated_end_frame(prob, options, rotation)),
@@ -484,11 +505,12 @@ def path_frames_at(
     rotation: ArrayLike,
     coefficients: ArrayLike,
 ):
-    """The frames (a1, a2), each ``(N, 3, m - 2, n - 1)``, of the straight line from
+    """The frames (a1, a2), each ``(N, 3, M - 2, N' - 1)`` on the quadrature's grid
+    (the working grid with ``options.quadrature`` 1), of the straight line from
     f1 o gamma to R f2 plus the perturbation: the path as the solve sees it."""
     start, end = registered_frame(prob, options, gamma), rotated_end_frame(prob, options, rotation)
     straight = frames_between(start, end, options.n_times)
-    return perturbed_frames(straight, coefficients, prob.bases.dframe)
+    return perturbed_frames(straight, coefficients, path_dframe(prob, options))
 
 
 def path_energy_at(
@@ -605,6 +627,12 @@ def make_bases(m: int, n: int, options: ShapeOptions, dtype: DTypeLike) -> _Base
     tables = vector_field_tables_np(m, n, options.vf_degree)
     fine = (2 * m - 1, 2 * n - 1)
     fine_dframe = basis_np(*fine, options.degree)[1] if options.refinement else np.zeros((1, 1))
+    q = options.quadrature
+    quad = (q * (m - 1) + 1, q * (n - 1) + 1)
+    if q == 1:
+        quad_points, quad_dframe = np.zeros((3, 1, 1)), np.zeros((1, 1))
+    else:
+        quad_points, quad_dframe = sphere_points_np(*quad), basis_np(*quad, options.degree)[1]
     arrays = _Bases(
         values=values,
         dframe=dframe,
@@ -617,6 +645,8 @@ def make_bases(m: int, n: int, options: ShapeOptions, dtype: DTypeLike) -> _Base
         ico=icosahedral_np(),
         fine_points=sphere_points_np(*fine),
         fine_dframe=fine_dframe,
+        quad_points=quad_points,
+        quad_dframe=quad_dframe,
         area_floor=np.asarray(_resolution_np(m, n)[0]),
         max_boost=np.asarray(_resolution_np(m, n)[1]),
     )

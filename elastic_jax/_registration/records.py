@@ -29,7 +29,9 @@ class Refinement(NamedTuple):
             points, frames linearly interpolated).
         distance_grid: ``()`` the same path on the (2m - 1) x (2n - 1) grid: gamma and
             f2 interpolated there, f1 o gamma read from f1's own grid, the path's
-            spherical-harmonic perturbation evaluated on the finer grid.
+            spherical-harmonic perturbation evaluated on the finer grid. With
+            ``ShapeOptions(quadrature=2)`` the solve already integrated at those
+            nodes, and only the time steps can move the distance.
         relative_change: ``()`` max(abs(distance_time - d), abs(distance_grid - d)) / d.
     """
 
