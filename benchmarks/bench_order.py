@@ -41,7 +41,8 @@ the samples where the spline's third derivatives jump at every grid line.
 fraction of the cells, where gamma stretches most, integrated 4 x 4 finer).
 
 ``--quadrature Q``: solve with ``ShapeOptions(quadrature=Q)`` (every energy of a level
-integrated at the nodes of the grid Q times finer); the ``quadrature`` records still
+integrated at the nodes of the grid Q times finer; the package's default when absent,
+2 on the levels; ``--quadrature 1`` for the node rule); the ``quadrature`` records still
 integrate the result by the nodes of the working grid cut by each factor.
 
 ``--down``: after the levels, each coarser level solved again from the finest level's
@@ -338,7 +339,7 @@ def main() -> None:
     parser.add_argument("--fourier", action="store_true")
     parser.add_argument("--stretch", type=float, default=0.0)
     parser.add_argument("--down", action="store_true")
-    parser.add_argument("--quadrature", type=int, default=1)
+    parser.add_argument("--quadrature", type=int, default=None)
     args = parser.parse_args()
     if args.floor is not None:
         _problem._RESOLUTION_FACTOR = args.floor

@@ -145,9 +145,15 @@ class ShapeOptions:
             integrated at the nodes of the grid q times finer than the working grid,
             (q (m - 1) + 1) x (q (n - 1) + 1), with gamma, the rotation and the path's
             coefficients still those of the working grid: f1 o gamma is read there
-            through gamma's and f1's interpolants, the path's harmonics exactly. 1
-            (default): the working grid's own nodes. Costs about q^2 times the points.
-            Needs ``differential="chain"`` and ``stretch_quadrature=0``.
+            through gamma's and f1's interpolants, the path's harmonics exactly; 1:
+            the working grid's own nodes (the paper's rule). Costs about q^2 times the
+            points. q > 1 needs ``differential="chain"`` and ``stretch_quadrature=0``.
+            None (default): 2 on the levels of a resolved distance, where the node
+            rule's levels converge at first order on real shapes and the finer nodes'
+            at second (:doc:`/guides/registration_notes`, "Every energy at the nodes
+            of the grid twice finer"), and 1 on one working grid (``grid=`` or
+            ``rtol=None``: the paper's protocol); 1 on the levels too with the grid
+            differential or stretched cells.
 
     Grid fields:
         grid: one working grid ``(m, n)`` the path is discretized on (odd n, m, n >= 5),
@@ -193,7 +199,7 @@ class ShapeOptions:
     differential: str = "chain"
     stretch_quadrature: float = 0.0
     stretch_subdivision: int = 4
-    quadrature: int = 1
+    quadrature: int | None = None
     refinement: bool = True
     saddle_checks: int = 1
     grid: tuple[int, int] | None = None
@@ -210,8 +216,9 @@ class ShapeOptions:
             "init_candidates": 1,
             "saddle_checks": 0,
             "stretch_subdivision": 2,
-            "quadrature": 1,
         }
+        if self.quadrature is not None:
+            ints["quadrature"] = 1
         for name, minimum in ints.items():
             object.__setattr__(self, name, check_int(name, getattr(self, name), minimum))
         if self.init_candidates > 60:
@@ -246,7 +253,8 @@ class ShapeOptions:
                 "stretch_quadrature integrates the midpoint scheme's energy of the chain "
                 f"rule's frames; got scheme={self.scheme!r}, differential={self.differential!r}"
             )
-        if self.quadrature > 1 and (self.differential != "chain" or self.stretch_quadrature > 0.0):
+        finer = self.quadrature is not None and self.quadrature > 1
+        if finer and (self.differential != "chain" or self.stretch_quadrature > 0.0):
             raise InputError(
                 "quadrature > 1 reads f1 o gamma between the nodes by the chain rule, and "
                 "replaces stretch_quadrature; got "
@@ -273,6 +281,27 @@ class ShapeOptions:
     def resolves(self) -> bool:
         """Whether a shape solve runs levels of working grids (rtol given, grid not)."""
         return self.rtol is not None and self.grid is None
+
+    @property
+    def quadrature_factor(self) -> int:
+        """The quadrature factor q a solve on one working grid integrates by
+        (``quadrature``, 1 when None)."""
+        return 1 if self.quadrature is None else self.quadrature
+
+    @property
+    def level_quadrature(self) -> int:
+        """The quadrature factor q a resolved distance's levels integrate by
+        (``quadrature``; when None, 2 with the chain rule and no stretched cells, else 1)."""
+        if self.quadrature is not None:
+            return self.quadrature
+        return 2 if self.differential == "chain" and self.stretch_quadrature == 0.0 else 1
+
+    def on_level(self, grid: tuple[int, int]) -> ShapeOptions:
+        """The options of a solve on the one working grid ``grid`` (no rtol) that is a
+        level of these options' solve: integrated as the levels are
+        (:attr:`level_quadrature`) when these resolve, else as they are."""
+        quadrature = self.level_quadrature if self.resolves else self.quadrature
+        return self.replace(grid=grid, rtol=None, quadrature=quadrature)
 
     def replace(self, **changes) -> ShapeOptions:
         """A copy with some fields changed (validated again)."""

@@ -205,12 +205,11 @@ def test_a_level_continues_the_registration_and_path_of_the_one_below():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
         res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
-        below = ej.shape_geodesic(
-            f1, f2, METRIC, modulo="rigid", options=OPTIONS.replace(grid=(9, 17))
-        )
+        # A level integrates as the levels do (at the finer nodes): on_level's options.
+        below = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options.on_level((9, 17)))
     np.testing.assert_allclose(res.levels.distances[0], below.distance, rtol=1e-12)
 
-    cfg = OPTIONS.replace(grid=(13, 25))
+    cfg = options.on_level((13, 25))
     units, (g1, g2) = in_units(f1, f2)
     prob = make_problem(METRIC, g1, g2, make_bases(13, 25, cfg, g1.dtype), True, cfg.interpolation)
     gamma = given_start(below, 13, 25, g1.dtype, True)[0][0]

@@ -44,13 +44,14 @@ def _energy(f1, f2, grid, quadrature, gamma=None, coefficients=None):
 def test_the_finer_nodes_reach_the_fine_grids_integral(grid, node_above, fine_below):
     # The same continuous path (the straight line from f1 o gamma, gamma the Moebius
     # map's spline on the working grid) integrated by the working grid's nodes, by the
-    # nodes of the grid 2x finer, and by those of the grid 8x finer. Measured: 13 x 25,
-    # nodes 3.0e-2 off, 2x nodes 1.4e-3; 25 x 49: 1.5e-3 and 2.3e-4.
+    # nodes of the grid 2x finer, and by those of the grid 4x finer (itself within 2e-4
+    # of the 8x grid's at 13 x 25, 4e-5 at 25 x 49). Measured: 13 x 25, nodes 3.0e-2 off,
+    # 2x nodes 1.2e-3; 25 x 49: 1.5e-3 and 1.9e-4.
     f1 = shapes.sample(shapes.bumpy, 25, 49)
     f2 = shapes.sample(shapes.ellipsoid, 25, 49)
     node, gamma, coefficients = _energy(f1, f2, grid, 1)
     finer, _, _ = _energy(f1, f2, grid, 2, coefficients=coefficients)
-    fine = tuple(8 * (k - 1) + 1 for k in grid)
+    fine = tuple(4 * (k - 1) + 1 for k in grid)
     reference, _, _ = _energy(f1, f2, fine, 1, gamma=gamma, coefficients=coefficients)
     assert abs(node - reference) / reference > node_above
     assert abs(finer - reference) / reference < fine_below
@@ -96,6 +97,34 @@ def test_the_spheres_closed_form_and_bounds_hold_on_the_finer_nodes():
 def test_quadrature_options_are_checked(changes, message):
     with pytest.raises(ej.InputError, match=message):
         ej.ShapeOptions(**changes)
+
+
+def test_levels_integrate_at_the_finer_nodes_by_default_and_one_grid_at_its_own():
+    # quadrature=None (the default) is 2 on a resolved distance's levels and 1 on one
+    # working grid. A first level searches its own start as a solve on its grid alone
+    # does: the same distance as quadrature=2 asked for on that grid, to the last bit.
+    # The refinement's grid twice finer is then the rule the solve integrated by:
+    # measured 3.3e-8 from the distance, where the one grid's nodes are 2.2e-3 off.
+    f1 = shapes.sample(shapes.bumpy, 13, 25)
+    f2 = shapes.sample(shapes.ellipsoid, 13, 25, rotation=shapes.random_rotation(4))
+    small = {"degree": 2, "vf_degree": 2, "n_times": 3, "outer_steps": 2}
+
+    def solve(**fields):
+        options = ej.ShapeOptions(**small, **fields)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ej.ConvergenceWarning)
+            res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
+        d = float(res.distance)
+        return d, abs(float(res.refinement.distance_grid) / d - 1.0)
+
+    assert ej.ShapeOptions().quadrature is None
+    levelled, levelled_gap = solve(levels=((13, 25),))
+    assert levelled == solve(grid=(13, 25), quadrature=2)[0]
+    one, one_gap = solve(grid=(13, 25))
+    assert one == solve(grid=(13, 25), quadrature=1)[0]
+    assert levelled_gap < 1e-6 < 5e-4 < one_gap
+    # The grid differential cannot read between the nodes: its levels keep them.
+    assert ej.ShapeOptions(differential="grid").on_level((13, 25)).quadrature == 1
 
 
 def _level_orders(f1, f2, quadrature, levels, **fields):

@@ -49,7 +49,7 @@ def level_solve(
     then searches its own start.
     """
     carried = registration_at(start if below is None else below, grid, f1.dtype, modulo)
-    level = options.replace(rtol=None, grid=grid)
+    level = options.on_level(grid)
     if below is not None and carried is not None:
         carry = (*carried, below.coefficients, below.parametrized_coefficients)
         return one_grid_solve(f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter)

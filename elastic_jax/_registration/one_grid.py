@@ -50,7 +50,9 @@ def _grid_setup(f1: ArrayLike, f2: ArrayLike, metric: SplitMetric, options: Shap
     check_grid_options(options, m, n)
     # One static record per grid and settings, however the grid was asked for (grid=,
     # the inputs' grid, a level of any list of levels): one compiled program for each.
-    options = options.replace(grid=(m, n), rtol=None, levels=_ONE_GRID_LEVELS)
+    options = options.replace(
+        grid=(m, n), rtol=None, levels=_ONE_GRID_LEVELS, quadrature=options.quadrature_factor
+    )
     if options.tol is None:
         options = options.replace(tol=default_tol(f1.dtype))
     # Solve in units of the surfaces' size (see _geometry/units.py): float32 works at any scale.

@@ -326,17 +326,17 @@ def quadrature_gamma(prob: Problem, options: ShapeOptions, gamma: ArrayLike):
     """gamma at the nodes of the energy's quadrature: itself with ``options.quadrature``
     1, else read through its interpolant at the finer grid's points (bases.quad_points):
     gamma stays a function of the working grid, the energy sees it between the nodes."""
-    if options.quadrature == 1:
+    if options.quadrature_factor == 1:
         return gamma
     if options.interpolation == "spline":
-        g = spline_upsample(gamma, options.quadrature)
+        g = spline_upsample(gamma, options.quadrature_factor)
         return g / jnp.linalg.norm(g, axis=-3, keepdims=True)
     return compose(gamma, prob.bases.quad_points, options.interpolation)
 
 
 def path_dframe(prob: Problem, options: ShapeOptions):
     """The path harmonics' differentials ``(K, 2 P)`` on the quadrature's interior nodes."""
-    return prob.bases.dframe if options.quadrature == 1 else prob.bases.quad_dframe
+    return prob.bases.dframe if options.quadrature_factor == 1 else prob.bases.quad_dframe
 
 
 def registered_frame(prob: Problem, options: ShapeOptions, gamma: ArrayLike):
@@ -627,7 +627,7 @@ def make_bases(m: int, n: int, options: ShapeOptions, dtype: DTypeLike) -> _Base
     tables = vector_field_tables_np(m, n, options.vf_degree)
     fine = (2 * m - 1, 2 * n - 1)
     fine_dframe = basis_np(*fine, options.degree)[1] if options.refinement else np.zeros((1, 1))
-    q = options.quadrature
+    q = options.quadrature_factor
     quad = (q * (m - 1) + 1, q * (n - 1) + 1)
     if q == 1:
         quad_points, quad_dframe = np.zeros((3, 1, 1)), np.zeros((1, 1))

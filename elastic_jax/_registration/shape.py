@@ -211,7 +211,7 @@ def _symmetric_solve(
                 grid = tuple(other.gamma.shape[-2:])
                 begin = time.perf_counter()
                 carry = (inverse, other.rotation.T, None)
-                level = resolved.replace(rtol=None, grid=grid)
+                level = resolved.on_level(grid)
                 third = order("f1 -> f2 from f2 -> f1")
                 reporter = None if third is None else Reporter(third)
                 again = one_grid_solve(

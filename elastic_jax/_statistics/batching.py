@@ -348,7 +348,7 @@ def registered_chunk(
     if modulo != "none" and starts is not None:
         grid = tuple(np.shape(starts[0])[-2:])
         if options.resolves or grid != tuple(np.shape(first)[-2:]):
-            options = options.replace(grid=grid, rtol=None)
+            options = options.on_level(grid)
     batch = (first, second) if starts is None else (first, second, *starts)
 
     def batch_call(batch: tuple, mode: str):
@@ -505,7 +505,7 @@ def levelled_chunk(
     def solve(index: int, grid: tuple[int, int], going: list, below: list) -> list:
         # A pair continues its solution below where that registration reads at this
         # grid's points without folding; the others (and the first level) search.
-        level = options.replace(grid=grid, rtol=None)
+        level = options.on_level(grid)
         carried, searched = [], []
         for i, sol in zip(going, below, strict=True):
             read = (

@@ -492,7 +492,7 @@ def _resolved_start(
         key=lambda g: g[0] * g[1],
     )
     grid = (int(grid[0]), int(grid[1]))
-    working = options.replace(grid=grid, rtol=None)
+    working = options.on_level(grid)
     at = on_grid(mean, sphere_points(*grid, mean.dtype), options.interpolation)
     if modulo == "rigid":
         at = center_unchecked(at)

@@ -149,8 +149,10 @@ def log(
         # "rigid"): turned back and moved onto ``base`` it is ``base`` but for rounding.
         path = turned_back(res, base)[::-1].at[0].set(base)
         if options.differential == "chain":
-            # The bases without the finer grid's (refinement): a static resolved.
-            resolved = options.replace(refinement=False, rtol=None, grid=None)
+            # The bases without the finer grid's (refinement): a static resolved. The
+            # frames at the working grid's nodes, whatever the solve integrated by: the
+            # finer nodes include them, and gamma's spline takes its values there.
+            resolved = options.replace(refinement=False, rtol=None, grid=None, quadrature=1)
             solve_frames = _solve_frames(f2, f1, metric, res, resolved, modulo == "rigid")
     t = options.n_times - 1
     velocity = t * (path[1] - path[0])
