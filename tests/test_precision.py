@@ -82,7 +82,7 @@ def test_float32_shape_geodesic_is_float64s_problem():
             res = ej.shape_geodesic(f1.astype(dtype), f2.astype(dtype), METRIC, options=options)
         assert res.distance.dtype == dtype and res.path.dtype == dtype
         d[dtype] = float(res.distance)
-    # Measured 0.52022 against 0.51825 (0.4 %): the same minimum, at float32's resolution.
+    # Measured 0.569328 against 0.569353 (4.4e-5): the same minimum, at float32's resolution.
     assert abs(d[jnp.float32] - d[jnp.float64]) <= 0.01 * d[jnp.float64]
 
 

@@ -32,6 +32,7 @@ from .problem import (
     make_problem,
     path_dframe,
     path_energy_at,
+    refinement_dframe,
     registered_f1,
     registered_frame,
     rotate_surface,
@@ -66,7 +67,7 @@ def _refinement(
         rotate_surface(rotation, a) for a in frame_of(prob.source2, bases.fine_points, options)
     ]
     straight = frames_between(fine_start, fine_end, options.n_times)
-    frames = perturbed_frames(straight, coefficients, bases.fine_dframe)
+    frames = perturbed_frames(straight, coefficients, refinement_dframe(prob, options))
     grid_energy = frame_energy(metric, *frames, options.scheme)
 
     d = jnp.sqrt(energy)

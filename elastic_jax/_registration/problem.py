@@ -67,7 +67,7 @@ class _Bases(NamedTuple):
     field_scale: Array  # (Lbar,)
     ico: Array  # (60, 3, 3)
     fine_points: Array  # (3, 2m - 1, 2n - 1) the refinement grid's points
-    fine_dframe: Array  # (K, 2 P') the path harmonics' differentials there
+    fine_dframe: Array  # (K, 2 P') the path harmonics' differentials there (q != 2)
     quad_points: Array  # (3, M, N) the quadrature's nodes (options.quadrature > 1)
     quad_dframe: Array  # (K, 2 P'') the path harmonics' differentials there
     area_floor: Array  # () least grid area a reparametrization may keep (_resolution_np)
@@ -332,6 +332,12 @@ def quadrature_gamma(prob: Problem, options: ShapeOptions, gamma: ArrayLike):
         g = spline_upsample(gamma, options.quadrature_factor)
         return g / jnp.linalg.norm(g, axis=-3, keepdims=True)
     return compose(gamma, prob.bases.quad_points, options.interpolation)
+
+
+def refinement_dframe(prob: Problem, options: ShapeOptions):
+    """The path harmonics' differentials ``(K, 2 P')`` on the (2m - 1) x (2n - 1) grid's
+    interior nodes (the refinement's grid; the quadrature's own with q = 2)."""
+    return prob.bases.quad_dframe if options.quadrature_factor == 2 else prob.bases.fine_dframe
 
 
 def path_dframe(prob: Problem, options: ShapeOptions):
@@ -626,13 +632,16 @@ def make_bases(m: int, n: int, options: ShapeOptions, dtype: DTypeLike) -> _Base
     values, dframe = basis_np(m, n, options.degree)
     tables = vector_field_tables_np(m, n, options.vf_degree)
     fine = (2 * m - 1, 2 * n - 1)
-    fine_dframe = basis_np(*fine, options.degree)[1] if options.refinement else np.zeros((1, 1))
     q = options.quadrature_factor
     quad = (q * (m - 1) + 1, q * (n - 1) + 1)
     if q == 1:
         quad_points, quad_dframe = np.zeros((3, 1, 1)), np.zeros((1, 1))
     else:
         quad_points, quad_dframe = sphere_points_np(*quad), basis_np(*quad, options.degree)[1]
+    # With q = 2 the refinement's grid is the quadrature's: its table is quad_dframe
+    # (refinement_dframe), not held twice (75 MB at 97 x 193, degree 7).
+    held = options.refinement and q != 2
+    fine_dframe = basis_np(*fine, options.degree)[1] if held else np.zeros((1, 1))
     arrays = _Bases(
         values=values,
         dframe=dframe,
