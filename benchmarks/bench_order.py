@@ -345,12 +345,15 @@ def main() -> None:
         _problem._RESOLUTION_FACTOR = args.floor
     levels = tuple(tuple(int(v) for v in g.split("x")) for g in args.levels.split(","))
     factors = [int(k) for k in args.factors.split(",")]
-    options = ej.ShapeOptions(
-        levels=levels,
-        interpolation=args.interpolation,
-        stretch_quadrature=args.stretch,
-        quadrature=args.quadrature,
-    )
+    try:
+        options = ej.ShapeOptions(
+            levels=levels,
+            interpolation=args.interpolation,
+            stretch_quadrature=args.stretch,
+            quadrature=args.quadrature,
+        )
+    except ej.InputError as error:
+        parser.error(str(error))
     path_only_up_to = tuple(int(v) for v in args.path_only_up_to.split("x"))
     settings = {
         "metric": [1.0, 1.0, 0.1, 0.0],
@@ -363,7 +366,7 @@ def main() -> None:
         "fourier": args.fourier,
         "floor": args.floor if args.floor is not None else _problem._RESOLUTION_FACTOR,
         "stretch_quadrature": args.stretch,
-        "quadrature": args.quadrature,
+        "quadrature": options.level_quadrature,  # what the levels integrated by
     }
     for pair in args.pairs.split(","):
         names = PAIRS[pair]

@@ -217,10 +217,10 @@ class ShapeOptions:
             "saddle_checks": 0,
             "stretch_subdivision": 2,
         }
-        if self.quadrature is not None:
-            ints["quadrature"] = 1
         for name, minimum in ints.items():
             object.__setattr__(self, name, check_int(name, getattr(self, name), minimum))
+        if self.quadrature is not None:  # None: chosen per solve (level_quadrature)
+            object.__setattr__(self, "quadrature", check_int("quadrature", self.quadrature, 1))
         if self.init_candidates > 60:
             raise InputError(
                 f"init_candidates must be at most 60 (the icosahedral rotations); "
