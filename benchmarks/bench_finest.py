@@ -16,7 +16,10 @@ process compiled it first), each phase's seconds, rounds, solver steps, the dist
 the parametrized distance, the result, the energy after each round, and the same
 registration and path evaluated on the 193 x 385 grid (``distance_grid``).
 
-Run: python benchmarks/bench_finest.py [--pairs cats,cat-horse,horse-hand,pial]
+``--level 49x97`` measures that level from 25 x 49 instead (the level at which the
+finer nodes' default resolves the cats).
+
+Run: python benchmarks/bench_finest.py [--pairs cats,cat-horse,horse-hand,pial] [--level 97x193]
      [--variants "default;{'outer_steps': 2}"] [--keep DIR] [--repeat K]
 """
 
@@ -48,14 +51,15 @@ METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 FINEST = (97, 193)
 
 
-def below_level(name: str, f1, f2, keep: pathlib.Path):
-    """The pair's levels up to 49 x 97 (rtol tiny, so that all three run), kept in
-    ``keep``; the 49 x 97 result (numpy leaves) and its levels' record."""
-    path = keep / f"below_{name}.pkl"
+def below_level(name: str, f1, f2, keep: pathlib.Path, finest: tuple = FINEST):
+    """The pair's levels below ``finest`` (rtol tiny, so that all run), kept in
+    ``keep``; the last one's result (numpy leaves) and its levels' record."""
+    levels = ej.ShapeOptions().levels
+    below = levels[: levels.index(tuple(finest))]
+    path = keep / f"below_{name}_{below[-1][0]}x{below[-1][1]}.pkl"
     if path.exists():
         return pickle.loads(path.read_bytes())
-    options = ej.ShapeOptions()
-    options = options.replace(levels=options.levels[:3], rtol=1e-12)
+    options = ej.ShapeOptions().replace(levels=below, rtol=1e-12)
     begin = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
@@ -74,8 +78,9 @@ def below_level(name: str, f1, f2, keep: pathlib.Path):
     return res
 
 
-def finest(name: str, f1, f2, below, variant: str, compiled: bool) -> dict:
-    """The 97 x 193 level from ``below`` under ``variant``: its record."""
+def finest(name: str, f1, f2, below, variant: str, compiled: bool, grid: tuple = FINEST) -> dict:
+    """The level on ``grid`` (97 x 193 by default) from ``below`` under ``variant``: its
+    record."""
     options = ej.ShapeOptions()
     if variant != "default":
         options = options.replace(**ast.literal_eval(variant))
@@ -90,7 +95,7 @@ def finest(name: str, f1, f2, below, variant: str, compiled: bool) -> dict:
             METRIC,
             "rigid",
             options,
-            FINEST,
+            tuple(grid),
             below,
             None,
             reporter,
@@ -105,6 +110,7 @@ def finest(name: str, f1, f2, below, variant: str, compiled: bool) -> dict:
     return {
         "benchmark": "finest_level",
         "pair": name,
+        "grid": list(grid),
         "variant": variant,
         "compiled": compiled,
         "seconds": seconds,
@@ -126,7 +132,13 @@ def main() -> None:
     parser.add_argument("--variants", default="default")
     parser.add_argument("--keep", default=None, help="folder for the 49 x 97 solutions")
     parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument(
+        "--level", default="97x193", help="the level measured (one of the defaults' levels)"
+    )
     args = parser.parse_args()
+    grid = tuple(int(k) for k in args.level.split("x"))
+    if grid not in ej.ShapeOptions().levels[1:]:
+        parser.error(f"--level must be one of the default levels above the first; got {args.level}")
     keep = pathlib.Path(args.keep or tempfile.mkdtemp(prefix="bench-finest-"))
     keep.mkdir(parents=True, exist_ok=True)
     emit({"benchmark": "environment", "environment": environment(), "keep": str(keep)})
@@ -136,11 +148,11 @@ def main() -> None:
         if f1 is None or f2 is None:
             emit({"benchmark": "finest_level", "pair": name, "skipped": "data absent"})
             continue
-        below = below_level(name, f1, f2, keep)
+        below = below_level(name, f1, f2, keep, grid)
         seen: set = set()
         for variant in variants:
             for _ in range(args.repeat):
-                emit(finest(name, f1, f2, below, variant, variant not in seen))
+                emit(finest(name, f1, f2, below, variant, variant not in seen, grid))
                 seen.add(variant)
 
 

@@ -71,6 +71,7 @@ def test_grid_options_are_checked(changes, message):
         OPTIONS.replace(**changes)
 
 
+@pytest.mark.slow  # about 50 s on 2 cores (the default tier keeps the levels' spheres)
 def test_spline_reads_make_the_chain_rule_meet_the_spheres_closed_form():
     """docs/math.md §9: a sphere of radius 2 read through a Moebius map (abs(a) = 0.3) and
     one of radius 3, rotated and translated, modulo rigid at 13 x 25: sqrt(8 pi) (3 - 2).
@@ -187,6 +188,7 @@ def test_levels_are_the_default_and_grid_or_tracers_mean_one_grid():
         jax.jit(lambda g: ej.shape_geodesic(f, g, METRIC, options=options).distance)(2.0 * f)
 
 
+@pytest.mark.slow  # about 100 s on 2 cores: three solves on two grids compile
 def test_a_level_continues_the_registration_and_path_of_the_one_below():
     """Each level after the first starts its rounds where the level below ended: that
     level's gamma read at its points, its rotation and its path's coefficients (the

@@ -277,7 +277,7 @@ def test_recovers_a_rigid_motion_and_a_reparametrization(bumpy_pair):
 
 
 @pytest.mark.data
-@pytest.mark.parametrize("other", ["cat2", "horse0"])
+@pytest.mark.parametrize("other", ["cat2", pytest.param("horse0", marks=pytest.mark.slow)])
 def test_shape_distance_is_below_the_parametrized_one_on_real_shapes(other):
     f1 = ej.resample(load_shape("cat1"), M, N)
     f2 = ej.resample(load_shape(other), M, N)
@@ -709,7 +709,12 @@ def _mirrored(f):
 
 @pytest.mark.data
 @pytest.mark.parametrize(
-    "name, modulo", [("horse0", "diff"), ("horse0", "rigid"), ("cat2", "rigid")]
+    "name, modulo",
+    [
+        pytest.param("horse0", "diff", marks=pytest.mark.slow),
+        pytest.param("horse0", "rigid", marks=pytest.mark.slow),
+        ("cat2", "rigid"),
+    ],
 )
 def test_the_pair_as_given_bounds_the_shape_distance_on_mirror_pairs(name, modulo):
     """A shape and its mirror image, which no reparametrization or rotation maps onto it:

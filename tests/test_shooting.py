@@ -113,6 +113,7 @@ def test_shooting_refuses_what_it_cannot_do():
         shoot(f, f, METRIC, frames=frames)
 
 
+@pytest.mark.slow  # about 75 s on 2 cores, most of it compiling the log's solves
 def test_a_chain_rule_log_shoots_back_from_its_own_frames():
     """Under differential="chain" the registered geodesic's ends' differentials come from
     the chain rule, not from the grid: shot with the log's frames, its path comes back

@@ -32,7 +32,8 @@ def _energy(f1, f2, grid, fraction, gamma=None, coefficients=None, subdivision=4
 
 
 @pytest.mark.parametrize(
-    ("grid", "node_above", "stretched_below"), [((13, 25), 1e-2, 1e-3), ((25, 49), 1e-3, 1e-4)]
+    ("grid", "node_above", "stretched_below"),
+    [((13, 25), 1e-2, 1e-3), pytest.param((25, 49), 1e-3, 1e-4, marks=pytest.mark.slow)],
 )
 def test_integrating_every_cell_finer_reaches_the_fine_grids_integral(
     grid, node_above, stretched_below
