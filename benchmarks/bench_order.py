@@ -38,7 +38,10 @@ sampled 4 times finer, then read by the spline): an interpolant that is smooth b
 the samples where the spline's third derivatives jump at every grid line.
 
 ``--stretch FRACTION``: solve with ``ShapeOptions(stretch_quadrature=FRACTION)`` (that
-fraction of the cells, where gamma stretches most, integrated 4 x 4 finer).
+fraction of the quadrature grid's cells, where gamma stretches most, integrated
+``--subdivision`` times finer in each direction, 4 by default, on top of the finer nodes
+where the levels integrate at them; the package's default when absent, 0.03 on the
+levels; ``--stretch 0`` for the nodes alone).
 
 ``--quadrature Q``: solve with ``ShapeOptions(quadrature=Q)`` (every energy of a level
 integrated at the nodes of the grid Q times finer; the package's default when absent,
@@ -67,7 +70,8 @@ by the package's spherical parametrization, area 4 pi).
 Run: python benchmarks/bench_order.py [--pairs cats,cat-horse,horse-hand,pial]
      [--levels 13x25,25x49,49x97,97x193] [--factors 1,2,4] [--path-only]
      [--path-only-up-to 49x97] [--interpolation spline] [--floor 5] [--balanced]
-     [--turn 0] [--fourier] [--stretch 0] [--down]
+     [--turn 0] [--fourier] [--stretch F] [--subdivision 4] [--down]
+     [--quadrature Q]
 """
 
 from __future__ import annotations
@@ -199,7 +203,12 @@ class Evaluation(NamedTuple):
 
 def evaluation(f1, f2, result, grid, options) -> Evaluation:
     opts = options.replace(
-        grid=grid, rtol=None, refinement=False, tol=default_tol(f1.dtype), quadrature=1
+        grid=grid,
+        rtol=None,
+        refinement=False,
+        tol=default_tol(f1.dtype),
+        quadrature=1,
+        stretch_quadrature=0.0,
     )
     bases = _problem.make_bases(*grid, opts, f1.dtype)
     prob = _problem.make_problem(
@@ -305,7 +314,7 @@ def basin_record(f1, f2, solved, options) -> dict:
             f2,
             METRIC,
             "rigid",
-            options.replace(grid=(m, n), rtol=None),
+            options.on_level((m, n)),
             finest.gamma,
             finest.rotation,
             finest.coefficients,
@@ -337,7 +346,8 @@ def main() -> None:
     parser.add_argument("--balanced", action="store_true")
     parser.add_argument("--turn", type=float, default=0.0)
     parser.add_argument("--fourier", action="store_true")
-    parser.add_argument("--stretch", type=float, default=0.0)
+    parser.add_argument("--stretch", type=float, default=None)
+    parser.add_argument("--subdivision", type=int, default=4)
     parser.add_argument("--down", action="store_true")
     parser.add_argument("--quadrature", type=int, default=None)
     args = parser.parse_args()
@@ -350,6 +360,7 @@ def main() -> None:
             levels=levels,
             interpolation=args.interpolation,
             stretch_quadrature=args.stretch,
+            stretch_subdivision=args.subdivision,
             quadrature=args.quadrature,
         )
     except ej.InputError as error:
@@ -365,7 +376,8 @@ def main() -> None:
         "turn_degrees": args.turn,
         "fourier": args.fourier,
         "floor": args.floor if args.floor is not None else _problem._RESOLUTION_FACTOR,
-        "stretch_quadrature": args.stretch,
+        "stretch_quadrature": options.level_stretch,  # what the levels integrated by
+        "stretch_subdivision": args.subdivision,
         "quadrature": options.level_quadrature,  # what the levels integrated by
     }
     for pair in args.pairs.split(","):

@@ -15,7 +15,7 @@ from .._geodesics.geodesic import solve_path, upsample_coefficients
 from .._geometry.bases import frames_between, path_from_coefficients, perturbed_frames
 from .._geometry.differential import area_element
 from .._geometry.energy import frame_energy
-from .._geometry.grid import integrate_interior
+from .._geometry.grid import integrate_interior, sphere_points
 from .._geometry.metric import SplitMetric
 from .._geometry.numerics import safe_sqrt
 from .._geometry.units import Units
@@ -268,8 +268,30 @@ def shape_finish(
     )
     # A distance that lost its precision (end_phase) is not reported as a number.
     energy = jnp.where(solved.result == RESULTS.below_area_bound, jnp.nan, energy)
+    parametrized_distance = solved.parametrized_distance
+    if options.stretch_fraction > 0.0:
+        # The geodesics' solves integrate by the nodes; the reported distance adds the
+        # stretched cells' finer rule, and so does the parametrized distance it is
+        # bounded by (the pair as given, gamma = id and R = I).
+        e1 = sphere_points(*solved.gamma.shape[-2:], solved.gamma.dtype)
+        _, parametrized_energy = _shape_evaluate(
+            metric,
+            g1,
+            g2,
+            bases,
+            e1,
+            jnp.eye(3, dtype=e1.dtype),
+            jax.lax.stop_gradient(solved.parametrized_coefficients),
+            options=options,
+            rigid=rigid,
+        )
+        parametrized_distance = safe_sqrt(parametrized_energy)
     unit_result = solved._replace(
-        path=path, f1_registered=path[0], energy=energy, distance=safe_sqrt(energy)
+        path=path,
+        f1_registered=path[0],
+        energy=energy,
+        distance=safe_sqrt(energy),
+        parametrized_distance=parametrized_distance,
     )
     return _restore_shape_units(unit_result, units, rigid)
 

@@ -51,7 +51,11 @@ def _grid_setup(f1: ArrayLike, f2: ArrayLike, metric: SplitMetric, options: Shap
     # One static record per grid and settings, however the grid was asked for (grid=,
     # the inputs' grid, a level of any list of levels): one compiled program for each.
     options = options.replace(
-        grid=(m, n), rtol=None, levels=_ONE_GRID_LEVELS, quadrature=options.quadrature_factor
+        grid=(m, n),
+        rtol=None,
+        levels=_ONE_GRID_LEVELS,
+        quadrature=options.quadrature_factor,
+        stretch_quadrature=options.stretch_fraction,
     )
     if options.tol is None:
         options = options.replace(tol=default_tol(f1.dtype))

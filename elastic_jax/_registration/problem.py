@@ -436,7 +436,7 @@ def joint_objective(
     source = gamma_source(options, gamma)
     # The cells integrated finer are those of the round's gamma: fixed within a round,
     # as a quadrature's nodes are.
-    cells = stretched_cells(gamma, options.stretch_quadrature) if _stretched(options) else None
+    cells = _stretched_cells(prob, options, gamma)
 
     def objective(variables: tuple):
         z, y = variables
@@ -454,8 +454,13 @@ def joint_objective(
     return objective
 
 
-def _stretched(options: ShapeOptions) -> bool:
-    return options.stretch_quadrature > 0.0
+def _stretched_cells(prob: Problem, options: ShapeOptions, gamma: ArrayLike):
+    """The quadrature grid's cells where gamma stretches most (stretch.py), None without
+    ``options.stretch_quadrature``: chosen from gamma at the quadrature's nodes, so that
+    with ``options.quadrature`` q > 1 the finer cells are those of the finer grid."""
+    if options.stretch_fraction == 0.0:
+        return None
+    return stretched_cells(quadrature_gamma(prob, options, gamma), options.stretch_fraction)
 
 
 def _frames_energy(
@@ -478,7 +483,7 @@ def _frames_energy(
         prob.source2,
         source_method(options.interpolation),
         options.interpolation,
-        prob.bases.dframe,
+        path_dframe(prob, options),
         gamma,
         rotation,
         coefficients,
@@ -530,7 +535,7 @@ def path_energy_at(
     ``options.stretch_quadrature``, the cells where gamma stretches most integrated
     ``options.stretch_subdivision`` times finer (stretch.py)."""
     frames = path_frames_at(prob, options, gamma, rotation, coefficients)
-    cells = stretched_cells(gamma, options.stretch_quadrature) if _stretched(options) else None
+    cells = _stretched_cells(prob, options, gamma)
     return _frames_energy(prob, options, frames, gamma, rotation, coefficients, cells)
 
 

@@ -32,7 +32,8 @@ from .._geometry.reparam import jacobian_determinant_unchecked, sample_points, s
 
 def stretched_cells(gamma: ArrayLike, fraction: float) -> tuple[Array, Array]:
     """The ``fraction`` of the grid's cells (at least one) whose corners hold the largest
-    J of ``gamma (3, m, n)``: ``(rows, cols)``, each ``(k,)``.
+    J of ``gamma (3, m, n)``, gamma at the nodes of the grid whose cells are meant (the
+    quadrature's): ``(rows, cols)``, each ``(k,)``.
 
     A cell spans interior rows ``r, r + 1`` (grid rows r + 1, r + 2; the cells on a pole
     row are never chosen) and columns ``c, c + 1`` (periodic over the n - 1 distinct ones).
@@ -69,12 +70,15 @@ def stretch_correction(
     """sum over ``cells`` of (the s x s midpoint rule - the node rule's trapezoid share)
     of the path energy (midpoint scheme), s = ``subdivision``.
 
-    ``frames``: the path's interior frames ``(N, 3, m - 2, n - 1)`` as the node rule
-    integrates them (:func:`problem.path_frames_at`); ``coefficients`` ``(N - 2, 3 K)``
-    their perturbation in ``dframe``'s harmonics; ``source1``, ``source2`` read by
-    ``read``; ``gamma (3, m, n)`` read as ``interpolation`` composes it.
+    ``frames``: the path's interior frames ``(N, 3, M - 2, N' - 1)`` as the node rule
+    integrates them (:func:`problem.path_frames_at`), on the quadrature's grid M x N'
+    (the working grid, or the grid q times finer with ``ShapeOptions.quadrature``), whose
+    cells ``cells`` indexes; ``coefficients`` ``(N - 2, 3 K)`` their perturbation in
+    ``dframe``'s harmonics (K, 2 (M - 2) (N' - 1)); ``source1``, ``source2`` read by
+    ``read``; ``gamma`` the working grid's ``(3, m, n)``, read at the sub-points as
+    ``interpolation`` composes it.
     """
-    m, n = gamma.shape[-2:]
+    m, n = frames[0].shape[-2] + 2, frames[0].shape[-1] + 1
     dtype = gamma.dtype
     rows, cols = cells
     dphi, dtheta = np.pi / (m - 1), 2.0 * np.pi / (n - 1)
