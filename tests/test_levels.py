@@ -331,8 +331,10 @@ def test_a_resolved_matrix_is_the_same_side_by_side_and_one_after_another():
     loop, vmap = runs["loop"], runs["vmap"]
     np.testing.assert_allclose(vmap.distances, loop.distances, rtol=1e-8)
     # An estimate is a difference of two levels' distances over one: it inherits their
-    # rounding absolutely (a pair resolved to 1.7e-4 differs by 2.6e-10 between them).
-    np.testing.assert_allclose(vmap.estimate, loop.estimate, rtol=1e-6, atol=1e-8)
+    # rounding absolutely: a pair resolved to 1.7e-4 differs by 2.6e-10 between them; the
+    # pair (0, 2) (levels 0.009399, 0.025107, 0.030364; its changes more than halve, so
+    # no level is solved again) by 1.7e-7 at 0.046586 under the levels' stretched cells.
+    np.testing.assert_allclose(vmap.estimate, loop.estimate, rtol=1e-6, atol=1e-6)
     np.testing.assert_array_equal(vmap.grids, loop.grids)
     np.testing.assert_array_equal(vmap.pairs_converged, loop.pairs_converged)
     # The pair that missed rtol on the finest level says so, as shape_geodesic would.
@@ -344,36 +346,70 @@ def test_one_levels_loop_lets_each_pair_leave_when_it_resolves():
     """run_levels, the loop shape_geodesic's levels and the collections' levelled solves
     share: a pair leaves once two successive levels agree within rtol at a converged
     solve; a non-finite distance ends its levels; the others go on to the next grid,
-    each continuing its own solution from the level below."""
+    each continuing its own solution from the level below. Where three levels' changes
+    turn back or stop halving, the levels below are solved again from the last level's
+    solution, and the change of that minimum decides."""
     from elastic_jax._registration.levels import LevelOutcome, run_levels
 
     levels = ((9, 17), (13, 25), (17, 33), (25, 49))
     # Per pair, per level: (distance, converged). Pair 0 agrees within 3 % at level 2;
     # pair 1 agrees at level 3 but that solve did not converge, so it goes on; pair 2
-    # turns non-finite at level 2; pair 3 never agrees.
+    # turns non-finite at level 2; pair 3 never agrees (changes 1, 1, 1: solved again
+    # below at levels 3 and 4, no closer); pair 4 turns back at level 3 (0.2, -0.2) and
+    # its minimum agrees one level down (0.99 against 1.0); pair 5 turns back too, but
+    # its last gamma folds on the level below: the change stands, and level 4 agrees.
     table = {
         0: [(1.0, True), (1.02, True)],
         1: [(1.0, True), (1.5, True), (1.51, False), (1.52, True)],
         2: [(2.0, True), (np.nan, False)],
         3: [(1.0, True), (2.0, True), (3.0, True), (4.0, True)],
+        4: [(1.0, True), (1.2, True), (1.0, True)],
+        5: [(1.0, True), (1.2, True), (1.0, True), (1.01, True)],
+    }
+    # (pair, finer level, level below) -> (distance, converged), or None: cannot continue.
+    again = {
+        (3, 2, 1): (2.0, True),
+        (3, 2, 0): (1.0, True),
+        (3, 3, 2): (3.0, True),
+        (3, 3, 1): (2.0, True),
+        (3, 3, 0): (1.0, True),
+        (4, 2, 1): (0.99, True),
+        (4, 2, 0): (0.9, True),
+        (5, 2, 1): None,
+        (5, 2, 0): (0.5, True),
     }
     calls = []
 
-    def solve(index, grid, going, below):
-        calls.append((index, grid, list(going)))
-        for i, sol in zip(going, below, strict=True):  # each continues its own solution
-            assert sol == (None if index == 0 else (i, index - 1))
-        return [LevelOutcome(*table[i][index], 10.0, (i, index)) for i in going]
+    def solve(index, grid, going, below, again_=False):
+        calls.append((index, grid, list(going), again_))
+        out = []
+        for i, sol in zip(going, below, strict=True):
+            if again_:  # each from its own finer solution
+                entry = again[(i, sol[1], index)]
+                out.append(None if entry is None else LevelOutcome(*entry, 10.0, "below"))
+            else:  # each continues its own solution
+                assert sol == (None if index == 0 else (i, index - 1))
+                out.append(LevelOutcome(*table[i][index], 10.0, (i, index)))
+        return out
 
-    tracks = run_levels(4, levels, 0.03, [0.0] * 4, solve)
+    tracks = run_levels(6, levels, 0.03, [0.0] * 6, lambda *a, again=False: solve(*a, again))
     assert calls == [
-        (0, (9, 17), [0, 1, 2, 3]),
-        (1, (13, 25), [0, 1, 2, 3]),
-        (2, (17, 33), [1, 3]),
-        (3, (25, 49), [1, 3]),
+        (0, (9, 17), [0, 1, 2, 3, 4, 5], False),
+        (1, (13, 25), [0, 1, 2, 3, 4, 5], False),
+        (2, (17, 33), [1, 3, 4, 5], False),
+        (1, (13, 25), [3, 4, 5], True),
+        (0, (9, 17), [3, 4, 5], True),
+        (3, (25, 49), [1, 3, 5], False),
+        (2, (17, 33), [3], True),
+        (1, (13, 25), [3], True),
+        (0, (9, 17), [3], True),
     ]
-    assert [len(t.distances) for t in tracks] == [2, 4, 2, 4]
+    assert [len(t.distances) for t in tracks] == [2, 4, 2, 4, 3, 4]
     assert tracks[0].estimate == pytest.approx(0.02 / 1.02)
     assert tracks[1].estimate == pytest.approx(0.01 / 1.52)
     assert np.isnan(tracks[2].distances[-1]) and tracks[2].grids[-1] == (13, 25)
     assert tracks[3].estimate == pytest.approx(0.25) and tracks[3].solution == (3, 3)
+    assert tracks[4].distances == [0.9, 0.99, 1.0] and tracks[4].ascent == [1.0, 1.2, 1.0]
+    assert tracks[4].estimate == pytest.approx(0.01) and tracks[4].solution == (4, 2)
+    assert tracks[5].distances == tracks[5].ascent == [1.0, 1.2, 1.0, 1.01]
+    assert tracks[5].estimate == pytest.approx(0.01 / 1.01)

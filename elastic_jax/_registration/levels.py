@@ -69,14 +69,31 @@ class LevelOutcome(NamedTuple):
 
 @dataclasses.dataclass
 class LevelTrack:
-    """One pair's levels so far: the grids solved, their distances and seconds, the
-    last level's solution, and the levels estimate (:func:`level_change`)."""
+    """One pair's levels so far: the grids solved, the distances of the last level's
+    minimum on each (``distances``: the levels below solved again from it where
+    :func:`run_levels` did so, else as first solved), the distances as first solved
+    going up (``ascent``), each level's seconds, the last level's solution, and the
+    levels estimate (:func:`level_change` of ``distances``)."""
 
     grids: list = dataclasses.field(default_factory=list)
     distances: list = dataclasses.field(default_factory=list)
+    ascent: list = dataclasses.field(default_factory=list)
     seconds: list = dataclasses.field(default_factory=list)
     solution: object = None
     estimate: float = np.nan
+
+
+def turns(distances: Sequence[float]) -> bool:
+    """Whether the last three levels' distances are not one minimum refined: the last
+    change reverses the one before, or is more than half its size (an observed order
+    below 1). Levels that continue one another can still end in different minima (the
+    fsaverage5 pial pair: 3.746, 3.832, 3.628 on 13 x 25, 25 x 49, 49 x 97, the finest
+    level's minimum 3.223, 3.568, 3.628 on the same grids), and then their change is
+    the minima's difference, not the discretization's."""
+    if len(distances) < 3:
+        return False
+    before, last = distances[-2] - distances[-3], distances[-1] - distances[-2]
+    return bool(before * last < 0 or abs(last) > 0.5 * abs(before))
 
 
 def run_levels(
@@ -84,20 +101,29 @@ def run_levels(
     levels: Sequence[tuple[int, int]],
     rtol: float,
     noise: Sequence[float],
-    solve: Callable[[int, tuple[int, int], list, list], list],
+    solve: Callable[..., list],
 ) -> list[LevelTrack]:
     """The levels of working grids for ``count`` pairs at once (math §10): the one loop
     every resolved solve runs, a single pair as a batch of one (:func:`levels_solve`)
     and a collection's pairs (``levelled_chunk`` of distance_matrix, fit_metric, log and
     karcher_mean).
 
-    ``solve(index, grid, going, below)`` solves the pairs ``going`` (indices) on
-    ``levels[index]``, each continuing its solution ``below`` from the level before
-    (None on the first level), and returns one :class:`LevelOutcome` per pair. A pair
-    leaves once two successive levels agree within ``rtol`` at a converged solve, or
-    when its distance is not finite (RESULTS.nonfinite ends its levels too); the others
-    go on to the next grid. ``noise[i]``: pair i's :func:`noise_distance`. Each pair's
-    seconds are its level's wall time (the whole group's, when several share it).
+    ``solve(index, grid, going, below, again=False)`` solves the pairs ``going``
+    (indices) on ``levels[index]``, each continuing its solution ``below`` from the
+    level before (None on the first level), and returns one :class:`LevelOutcome` per
+    pair. A pair leaves once two successive levels agree within ``rtol`` at a converged
+    solve, or when its distance is not finite (RESULTS.nonfinite ends its levels too);
+    the others go on to the next grid. ``noise[i]``: pair i's :func:`noise_distance`.
+
+    Where three levels' distances :func:`turns` and the last change misses rtol at a
+    converged solve, the change is two minima's: every level below is solved again
+    from the last level's solution (``again=True``: ``below`` holds that finer
+    solution; an outcome of None where it cannot be continued on that grid, whose
+    distance is then NaN), those distances replace the track's first ones, and the
+    estimate is the change between the last two of the last level's own minimum. The
+    next level continues the last level's solution either way. Each pair's seconds are
+    its level's wall time (the whole group's, when several share it), the levels
+    solved again included.
     """
     tracks = [LevelTrack() for _ in range(count)]
     going = list(range(count))
@@ -107,17 +133,41 @@ def run_levels(
         begin = time.perf_counter()
         outcomes = solve(index, tuple(grid), going, [tracks[i].solution for i in going])
         seconds = time.perf_counter() - begin
-        still = []
+        still, turned, converged = [], [], {}
         for i, outcome in zip(going, outcomes, strict=True):
             track = tracks[i]
             track.grids.append(tuple(grid))
             track.distances.append(float(outcome.distance))
+            track.ascent.append(float(outcome.distance))
             track.seconds.append(seconds)
             track.solution = outcome.solution
             track.estimate = level_change(track.distances, outcome.parametrized, noise[i])
+            converged[i] = (bool(outcome.converged), outcome.parametrized)
             resolved = track.estimate <= rtol and bool(outcome.converged)
             if np.isfinite(track.distances[-1]) and not resolved:
                 still.append(i)
+                if converged[i][0] and turns(track.distances):
+                    turned.append(i)
+        if turned:
+            begin = time.perf_counter()
+            again = {i: [] for i in turned}
+            finer = [tracks[i].solution for i in turned]
+            for lower in range(index - 1, -1, -1):
+                outs = solve(lower, tuple(levels[lower]), turned, finer, again=True)
+                for i, out in zip(turned, outs, strict=True):
+                    again[i].insert(0, out)
+            seconds = time.perf_counter() - begin
+            for i in turned:
+                track, below = tracks[i], again[i][-1]
+                track.seconds[-1] += seconds
+                if below is None or not bool(below.converged):
+                    continue  # no minimum of its own one level down: the change stands
+                track.distances[:-1] = [
+                    np.nan if out is None else float(out.distance) for out in again[i]
+                ]
+                track.estimate = level_change(track.distances, converged[i][1], noise[i])
+                if track.estimate <= rtol:
+                    still.remove(i)
         going = still
     return tracks
 
@@ -162,9 +212,15 @@ def levels_solve(
             raise InputError(f"levels: the {m} x {n} level: {error}") from None
     noise = noise_distance(f1, f2)
 
-    def solve(index: int, grid: tuple[int, int], going: list, below: list) -> list:
+    def solve(
+        index: int, grid: tuple[int, int], going: list, below: list, again: bool = False
+    ) -> list:
+        if again and registration_at(below[0], grid, f1.dtype, modulo) is None:
+            return [None]  # the finer gamma folds between this grid's points
         if reporter is not None:
             reporter.level = {"level": index + 1, "levels": len(options.levels)}
+            if again:
+                reporter.level["again"] = True
         result = level_solve(f1, f2, metric, modulo, options, grid, below[0], start, reporter)
         distance = float(jax.block_until_ready(result.distance))
         converged = bool(result.converged)
@@ -184,7 +240,13 @@ def levels_solve(
     if reporter is not None:
         reporter.level = {}
     result = with_levels(
-        track.solution, track.grids, track.distances, track.seconds, options.rtol, noise
+        track.solution,
+        track.grids,
+        track.distances,
+        track.seconds,
+        options.rtol,
+        noise,
+        ascent=track.ascent,
     )
     warn_unless_converged(result, stacklevel=4)
     return result
@@ -229,16 +291,19 @@ def with_levels(
     seconds: Sequence[float],
     rtol: float,
     noise: float = 0.0,
+    ascent: Sequence[float] | None = None,
 ) -> ShapeGeodesicResult:
     """``result`` (the finest level's) with its :class:`Levels` record; converged when it
     converged and the last change met rtol, ``RESULTS.not_resolved`` when only the
-    tolerance was missed."""
+    tolerance was missed. ``ascent``: the distances as first solved (``distances`` when
+    None)."""
     dtype = result.distance.dtype
     estimate = level_change(distances, result.parametrized_distance, noise)
     met = bool(estimate <= rtol)
     levels = Levels(
         grids=jnp.asarray(grids, jnp.int32),
         distances=jnp.asarray(distances, dtype),
+        ascent=jnp.asarray(distances if ascent is None else ascent, dtype),
         seconds=jnp.asarray(seconds, dtype),
         estimate=jnp.asarray(estimate, dtype),
         rtol=jnp.asarray(rtol, dtype),

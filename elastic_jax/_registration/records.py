@@ -48,9 +48,18 @@ class Levels(NamedTuple):
 
     Attributes:
         grids: ``(L, 2)`` each level's working grid (m, n).
-        distances: ``(L,)`` each level's distance.
-        seconds: ``(L,)`` each level's wall-clock time (its first call compiles).
-        estimate: ``()`` the relative change of the distance between the last two
+        distances: ``(L,)`` the distance of the last level's minimum on each level:
+            each level's own where the levels continued one minimum, else the levels
+            below solved again from the last one (its registration and path) when the
+            last three levels' changes turned back or stopped halving (an observed
+            order below 1) and the last change missed rtol: the change of levels that
+            ended in different minima is the minima's, not the grid's (NaN where the
+            last gamma folds between a coarser grid's points).
+        ascent: ``(L,)`` each level's distance as first solved, going up (equal to
+            ``distances`` unless the levels below were solved again).
+        seconds: ``(L,)`` each level's wall-clock time (its first call compiles; the
+            levels below solved again count in the level that asked for them).
+        estimate: ``()`` the relative change of ``distances`` between the last two
             levels, abs(d_L - d_{L-1}) / max(d_L, 0.05 p_L) with p_L the last level's
             parametrized distance (near-equal shapes, whose distance is near zero, are
             resolved to that absolute size): the stated resolution of the answer (NaN
@@ -60,6 +69,7 @@ class Levels(NamedTuple):
 
     grids: Int[Array, "L 2"]
     distances: Float[Array, " L"]
+    ascent: Float[Array, " L"]
     seconds: Float[Array, " L"]
     estimate: Float[Array, ""]
     rtol: Float[Array, ""]

@@ -221,12 +221,14 @@ def _symmetric_solve(
                     # The levels that found this basin (the other order's), the last
                     # distance and time this solve's.
                     levels = other.levels
-                    distances = np.asarray(levels.distances).tolist()[:-1] + [float(again.distance)]
+                    last = [float(again.distance)]
+                    distances = np.asarray(levels.distances).tolist()[:-1] + last
+                    ascent = np.asarray(levels.ascent).tolist()[:-1] + last
                     seconds = np.asarray(levels.seconds).tolist()
                     seconds[-1] += time.perf_counter() - begin
                     noise = noise_distance(f1, f2)
                     again = with_levels(
-                        again, levels.grids, distances, seconds, resolved.rtol, noise
+                        again, levels.grids, distances, seconds, resolved.rtol, noise, ascent
                     )
                 if float(again.distance) < float(best.distance):
                     best = again

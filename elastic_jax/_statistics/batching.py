@@ -427,7 +427,8 @@ class LevelledPairs(NamedTuple):
     ``num_steps`` (over all levels) are ``(b,)``, the first five of a distance chunk;
     ``estimate`` ``(b,)`` the last two levels' relative change (NaN after one level);
     ``grid`` ``(b, 2)`` the finest grid each pair reached; ``level_distances`` ``(b, L)``
-    each level's distance (NaN past the level where a pair resolved); ``gamma``
+    each level's distance (of the last level's minimum, as :class:`Levels` ``distances``;
+    NaN past the level where a pair resolved); ``gamma``
     ``(b, 3, m, n)`` on that finest grid when every pair reached the same one, else a
     list; ``rotation`` ``(b, 3, 3)``, ``coefficients`` ``(b, N - 2, L')``.
     """
@@ -502,9 +503,13 @@ def levelled_chunk(
             batch = (*batch, *starts)
         return _solve_chunk(batch_call, single_call, batch, mode, size)
 
-    def solve(index: int, grid: tuple[int, int], going: list, below: list) -> list:
+    def solve(
+        index: int, grid: tuple[int, int], going: list, below: list, again: bool = False
+    ) -> list:
         # A pair continues its solution below where that registration reads at this
-        # grid's points without folding; the others (and the first level) search.
+        # grid's points without folding; the others (and the first level) search. Solved
+        # again from a finer level (again=True), a pair that cannot continue it has no
+        # outcome: a search would find another minimum.
         level = options.on_level(grid)
         carried, searched = [], []
         for i, sol in zip(going, below, strict=True):
@@ -515,7 +520,7 @@ def levelled_chunk(
             )
             (searched if read is None else carried).append((i, read, sol))
         groups = []
-        if searched:
+        if searched and not again:
             groups.append(([i for i, *_ in searched], None))
         if carried:
             starts = (
@@ -535,8 +540,9 @@ def levelled_chunk(
                 outcomes[i] = LevelOutcome(d, ok, float(sol.parametrized_distance), sol)
                 if report is not None:
                     info = {"level": index + 1, "levels": len(levels), "grid": tuple(grid)}
+                    info.update({"again": True} if again else {})
                     report(i, {"stage": "level", **info, "distance": d, "converged": ok})
-        return [outcomes[i] for i in going]
+        return [outcomes.get(i) for i in going]
 
     tracks = run_levels(count, levels, options.rtol, noise, solve)
     solutions = [t.solution for t in tracks]

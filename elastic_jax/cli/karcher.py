@@ -48,7 +48,8 @@ def solve_karcher(args, progress: Progress):
                 state = "converged" if info["converged"] else "not converged"
                 progress(
                     f"first solves, shape {info['shape'] + 1}/{info['shapes']}: level "
-                    f"{info['level']}/{info['levels']} ({info['grid'][0]} x {info['grid'][1]}) "
+                    f"{info['level']}/{info['levels']} ({info['grid'][0]} x {info['grid'][1]})"
+                    f"{' again' if info.get('again') else ''} "
                     f"distance {info['distance']:.6g} ({state}), {info['seconds']:.0f} s"
                 )
             return

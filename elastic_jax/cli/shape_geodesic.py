@@ -31,6 +31,8 @@ def solve_reporter(progress: Progress):
     def report(r: dict) -> None:
         grid = "{} x {}".format(*r["grid"])
         where = f"level {r['level']}/{r['levels']} ({grid})" if "level" in r else grid
+        if r.get("again"):  # a coarser level solved again from a finer level's minimum
+            where += " again"
         if r["stage"] == "level":
             state = "converged" if r["converged"] else "not converged"
             progress(f"{where}: distance {r['distance']:.6g} ({state})")
