@@ -162,9 +162,10 @@ def test_a_smooth_pair_converges_at_second_order_on_the_finer_nodes():
 @pytest.mark.slow  # about 6 minutes on 2 cores
 def test_the_cats_levels_converge_at_second_order_on_the_finer_nodes(cats):
     # cat1 -> cat2 at the defaults (quadrature 2 with the 3 % most stretched cells 4 x 4
-    # finer), modulo rigid, levels 13 x 25, 25 x 49, 49 x 97. Measured 2.0088, 2.2122,
-    # 2.2140: order 6.75, estimate 0.09 %. The finer nodes alone 1.9414, 2.1631, 2.2247
-    # (order 1.85, 2.8 %); by the nodes 1.502, 1.911, 2.164 (order 0.70).
+    # finer), modulo rigid, levels 13 x 25, 25 x 49, 49 x 97. Measured 2.0432, 2.2095,
+    # 2.2182: order 4.27, estimate 0.38 % (2.0088, 2.2122, 2.2140 before the stretched
+    # cells read R f2 through the identity's interpolant). The finer nodes alone 1.9414,
+    # 2.1631, 2.2247 (order 1.85, 2.8 %); by the nodes 1.502, 1.911, 2.164 (order 0.70).
     f1, f2 = cats
     d, orders, res = _level_orders(f1, f2, 2, ((13, 25), (25, 49), (49, 97)))
     assert orders[0] >= 1.7

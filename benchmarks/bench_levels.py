@@ -1,0 +1,87 @@
+"""A resolved distance's levels through the package's own loop, at its defaults.
+
+For each pair, modulo rigid motion, metric (1, 1, 0.1, 0), float64, ``shape_geodesic``
+with ``ShapeOptions(rtol=..., levels=...)`` and nothing else changed: one record per pair
+with the levels' grids, ``distances`` (the last level's minimum on each grid: where the
+levels going up turned back or stopped halving, the coarser grids solved again from the
+last level), ``ascent`` (the levels as first solved), seconds, the estimate, the result's
+name and the total time (compiling included), next to the settings and the machine.
+
+Pairs: those of bench_order.py (``cats``, ``cat-horse``, ``horse-cat``, ``horse-hand``,
+``pial``) or any two of the authors' surfaces as ``first:second`` (``cat2:horse0``).
+``--turn D`` reads f1 through a rotation of its parameter sphere by D degrees about
+(1, 2, 3) (bench_order.turned: at 99 x 197 by its spline), f2 as given.
+
+Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
+     [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from bench_order import METRIC, PAIRS, load, turned  # noqa: E402
+
+import elastic_jax as ej  # noqa: E402
+
+from _common import emit, environment  # noqa: E402
+
+
+def run_pair(name: str, options: ej.ShapeOptions, turn: float) -> dict | None:
+    first, second = PAIRS[name] if name in PAIRS else name.split(":")
+    f1, f2 = load(first), load(second)
+    if f1 is None or f2 is None:
+        return None
+    if turn:
+        f1 = turned(f1, turn)
+    begin = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        res = ej.shape_geodesic(
+            jnp.asarray(f1), jnp.asarray(f2), METRIC, modulo="rigid", options=options
+        )
+    levels = res.levels
+    return {
+        "benchmark": "levels",
+        "pair": name,
+        "turn": turn,
+        "distance": float(res.distance),
+        "converged": bool(res.converged),
+        "result": str(res.result).split("<")[-1].split(":")[0].rstrip(">"),
+        "grids": np.asarray(levels.grids).tolist(),
+        "distances": np.asarray(levels.distances).tolist(),
+        "ascent": np.asarray(levels.ascent).tolist(),
+        "seconds": np.asarray(levels.seconds).tolist(),
+        "estimate": float(levels.estimate),
+        "total_s": time.perf_counter() - begin,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pairs", default="cats,cat-horse,pial")
+    parser.add_argument("--turn", type=float, default=0.0)
+    parser.add_argument("--rtol", type=float, default=ej.ShapeOptions().rtol)
+    parser.add_argument(
+        "--levels", default=",".join(f"{m}x{n}" for m, n in ej.ShapeOptions().levels)
+    )
+    args = parser.parse_args()
+    levels = tuple(tuple(int(k) for k in grid.split("x")) for grid in args.levels.split(","))
+    options = ej.ShapeOptions(rtol=args.rtol, levels=levels)
+    settings = {"rtol": args.rtol, "levels": [list(g) for g in levels], "dtype": "float64"}
+    for name in args.pairs.split(","):
+        record = run_pair(name, options, args.turn)
+        if record is not None:
+            emit({**record, "settings": settings, "environment": environment()})
+
+
+if __name__ == "__main__":
+    main()
