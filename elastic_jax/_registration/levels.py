@@ -133,7 +133,7 @@ def run_levels(
         begin = time.perf_counter()
         outcomes = solve(index, tuple(grid), going, [tracks[i].solution for i in going])
         seconds = time.perf_counter() - begin
-        still, turned, converged = [], [], {}
+        still, turned, parametrized = [], [], {}
         for i, outcome in zip(going, outcomes, strict=True):
             track = tracks[i]
             track.grids.append(tuple(grid))
@@ -142,11 +142,11 @@ def run_levels(
             track.seconds.append(seconds)
             track.solution = outcome.solution
             track.estimate = level_change(track.distances, outcome.parametrized, noise[i])
-            converged[i] = (bool(outcome.converged), outcome.parametrized)
+            parametrized[i] = outcome.parametrized
             resolved = track.estimate <= rtol and bool(outcome.converged)
             if np.isfinite(track.distances[-1]) and not resolved:
                 still.append(i)
-                if converged[i][0] and turns(track.distances):
+                if bool(outcome.converged) and turns(track.distances):
                     turned.append(i)
         if turned:
             begin = time.perf_counter()
@@ -165,7 +165,7 @@ def run_levels(
                 track.distances[:-1] = [
                     np.nan if out is None else float(out.distance) for out in again[i]
                 ]
-                track.estimate = level_change(track.distances, converged[i][1], noise[i])
+                track.estimate = level_change(track.distances, parametrized[i], noise[i])
                 if track.estimate <= rtol:
                     still.remove(i)
         going = still

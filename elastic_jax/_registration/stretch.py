@@ -93,10 +93,13 @@ def stretch_correction(
     east = jnp.stack([-st, ct, jnp.zeros_like(st)])
     south = jnp.stack([cp * ct, cp * st, -sp])
 
-    identity = sphere_points(*gamma.shape[-2:], dtype=dtype)
+    with jax.ensure_compile_time_eval():  # a constant of the program, not per evaluation
+        identity = sphere_points(*gamma.shape[-2:], dtype=dtype)
+        if interpolation == "spline":
+            identity = spline_coefficients(identity)
     sources, gamma_read = (gamma, identity), interpolation
     if interpolation == "spline":
-        sources, gamma_read = tuple(spline_coefficients(g) for g in sources), "coefficients"
+        sources, gamma_read = (spline_coefficients(gamma), identity), "coefficients"
 
     def through(source: Array, g_source: Array, p: Array):
         g = sample_points(g_source, p, gamma_read)
