@@ -98,6 +98,7 @@ def test_spline_reads_make_the_chain_rule_meet_the_spheres_closed_form():
     assert errors["spline"] < 0.2 * errors["bicubic"]
 
 
+@pytest.mark.slow  # about 60 s on 2 cores (the default tier keeps the resolved matrix)
 def test_levels_resolve_the_concentric_spheres():
     """Spheres of radii 1 and 2 (the second rotated, on a finer grid than the first) at
     the default rtol and levels: the levels' distances approach the closed form
@@ -288,6 +289,18 @@ def test_a_resolved_matrix_is_its_pairs_resolved_distances():
     assert d[0, 2] == pytest.approx(float(single.distance), rel=1e-8)
     assert estimate[0, 2] == pytest.approx(float(single.levels.estimate), rel=1e-8)
     np.testing.assert_array_equal(single.levels.grids[-1], res.grids[0, 2])
+    # The estimate is the levels' change less the energy comparison's rounding (a
+    # distance of eps^(1/4) x the surfaces' scale), relative to the last level.
+    levels = np.asarray(single.levels.distances)
+    noise = noise_distance(spheres[0], spheres[2])
+    assert levels[0] < levels[1] < np.sqrt(8 * np.pi) * 2  # from below
+    np.testing.assert_allclose(
+        single.levels.estimate, (abs(levels[1] - levels[0]) - noise) / levels[1], rtol=1e-12
+    )
+    assert single.result == ej.RESULTS.successful and float(single.distance) == levels[-1]
+    assert_area_bound(single.distance, spheres[0], spheres[2], METRIC, slack=0.03)
+    assert float(single.distance) <= float(single.parametrized_distance)
+    assert "levels=Levels(" in repr(single) and len(repr(single)) <= 2000
 
 
 def test_a_matrix_on_one_grid_has_no_estimate():

@@ -98,36 +98,51 @@ def test_quadrature_options_are_checked(changes, message):
         ej.ShapeOptions(**changes)
 
 
+def _small_solve(f1, f2, **fields):
+    """The distance and its refinement's relative gap on the grid twice finer."""
+    options = ej.ShapeOptions(degree=2, vf_degree=2, n_times=3, outer_steps=2, **fields)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
+    d = float(res.distance)
+    return d, abs(float(res.refinement.distance_grid) / d - 1.0)
+
+
+def _small_pair():
+    f1 = shapes.sample(shapes.bumpy, 13, 25)
+    f2 = shapes.sample(shapes.ellipsoid, 13, 25, rotation=shapes.random_rotation(4))
+    return f1, f2
+
+
 def test_levels_integrate_at_the_finer_nodes_by_default_and_one_grid_at_its_own():
     # quadrature=None and stretch_quadrature=None (the defaults) are 2 and 0.03 on a
     # resolved distance's levels, 1 and 0 on one working grid. A first level searches
     # its own start as a solve on its grid alone does: the same distance as those
-    # options asked for on that grid, to the last bit. With the finer nodes alone the
-    # refinement's grid twice finer is the rule the solve integrated by: measured
-    # 3.3e-8 from the distance, where the one grid's nodes are 2.2e-3 off.
-    f1 = shapes.sample(shapes.bumpy, 13, 25)
-    f2 = shapes.sample(shapes.ellipsoid, 13, 25, rotation=shapes.random_rotation(4))
-    small = {"degree": 2, "vf_degree": 2, "n_times": 3, "outer_steps": 2}
-
-    def solve(**fields):
-        options = ej.ShapeOptions(**small, **fields)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ej.ConvergenceWarning)
-            res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
-        d = float(res.distance)
-        return d, abs(float(res.refinement.distance_grid) / d - 1.0)
-
+    # options asked for on that grid, to the last bit.
+    f1, f2 = _small_pair()
     assert ej.ShapeOptions().quadrature is None
     assert ej.ShapeOptions().stretch_quadrature is None
-    levelled = solve(levels=((13, 25),))[0]
-    assert levelled == solve(grid=(13, 25), quadrature=2, stretch_quadrature=0.03)[0]
-    finer_gap = solve(grid=(13, 25), quadrature=2, stretch_quadrature=0.0)[1]
-    one, one_gap = solve(grid=(13, 25))
-    assert one == solve(grid=(13, 25), quadrature=1, stretch_quadrature=0.0)[0]
-    assert finer_gap < 1e-6 < 5e-4 < one_gap
+    levelled = _small_solve(f1, f2, levels=((13, 25),))[0]
+    assert levelled == _small_solve(f1, f2, grid=(13, 25), quadrature=2, stretch_quadrature=0.03)[0]
+    one_grid = ej.ShapeOptions(grid=(13, 25))
+    assert (one_grid.quadrature_factor, one_grid.stretch_fraction) == (1, 0.0)
+    level = ej.ShapeOptions().on_level((13, 25))
+    assert (level.quadrature, level.stretch_quadrature) == (2, 0.03)
     # The grid differential cannot read between the nodes: its levels keep them.
     on_level = ej.ShapeOptions(differential="grid").on_level((13, 25))
     assert (on_level.quadrature, on_level.stretch_quadrature) == (1, 0.0)
+
+
+@pytest.mark.slow  # about 80 s on 2 cores: three more programs compile
+def test_the_finer_nodes_are_the_rule_the_refinement_reads():
+    # With the finer nodes alone the refinement's grid twice finer is the rule the solve
+    # integrated by: measured 3.3e-8 from the distance, where the one grid's nodes are
+    # 2.2e-3 off; one grid's default is the node rule to the last bit.
+    f1, f2 = _small_pair()
+    finer_gap = _small_solve(f1, f2, grid=(13, 25), quadrature=2, stretch_quadrature=0.0)[1]
+    one, one_gap = _small_solve(f1, f2, grid=(13, 25))
+    assert one == _small_solve(f1, f2, grid=(13, 25), quadrature=1, stretch_quadrature=0.0)[0]
+    assert finer_gap < 1e-6 < 5e-4 < one_gap
 
 
 def _level_orders(f1, f2, quadrature, levels, **fields):

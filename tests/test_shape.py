@@ -713,7 +713,7 @@ def _mirrored(f):
     [
         pytest.param("horse0", "diff", marks=pytest.mark.slow),
         pytest.param("horse0", "rigid", marks=pytest.mark.slow),
-        ("cat2", "rigid"),
+        pytest.param("cat2", "rigid", marks=pytest.mark.slow),  # about 50 s on 2 cores
     ],
 )
 def test_the_pair_as_given_bounds_the_shape_distance_on_mirror_pairs(name, modulo):
