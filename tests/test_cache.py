@@ -461,7 +461,7 @@ def test_warmup_compiles_every_program_a_later_solve_on_one_grid_runs():
     assert res.path.shape[-2:] == (7, 13) and res.levels is None
 
 
-@pytest.mark.slow  # about 100 s on 2 cores: every program of two levels compiles
+@pytest.mark.slow  # about 130 s on 2 cores: every program of two levels compiles
 def test_warmup_compiles_every_program_a_later_solve_runs():
     """After warmup (levels 7 x 13 and 9 x 17, inputs on 9 x 17), a resolved solve of
     another pair on the same settings compiles nothing, and warmup again compiles

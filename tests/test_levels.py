@@ -71,7 +71,7 @@ def test_grid_options_are_checked(changes, message):
         OPTIONS.replace(**changes)
 
 
-@pytest.mark.slow  # about 50 s on 2 cores (the default tier keeps the levels' spheres)
+@pytest.mark.slow  # about 50 s on 2 cores (the default tier: the spheres' resolved matrix)
 def test_spline_reads_make_the_chain_rule_meet_the_spheres_closed_form():
     """docs/math.md §9: a sphere of radius 2 read through a Moebius map (abs(a) = 0.3) and
     one of radius 3, rotated and translated, modulo rigid at 13 x 25: sqrt(8 pi) (3 - 2).
@@ -98,7 +98,7 @@ def test_spline_reads_make_the_chain_rule_meet_the_spheres_closed_form():
     assert errors["spline"] < 0.2 * errors["bicubic"]
 
 
-@pytest.mark.slow  # about 60 s on 2 cores (the default tier keeps the resolved matrix)
+@pytest.mark.slow  # about 140 s on 2 cores (the default tier keeps the resolved matrix)
 def test_levels_resolve_the_concentric_spheres():
     """Spheres of radii 1 and 2 (the second rotated, on a finer grid than the first) at
     the default rtol and levels: the levels' distances approach the closed form

@@ -133,7 +133,7 @@ def test_levels_integrate_at_the_finer_nodes_by_default_and_one_grid_at_its_own(
     assert (on_level.quadrature, on_level.stretch_quadrature) == (1, 0.0)
 
 
-@pytest.mark.slow  # about 80 s on 2 cores: three more programs compile
+@pytest.mark.slow  # about 70 s on 2 cores: three more programs compile
 def test_the_finer_nodes_are_the_rule_the_refinement_reads():
     # With the finer nodes alone the refinement's grid twice finer is the rule the solve
     # integrated by: measured 3.3e-8 from the distance, where the one grid's nodes are
