@@ -12,8 +12,10 @@ Pairs: those of bench_order.py (``cats``, ``cat-horse``, ``horse-cat``, ``horse-
 ``--turn D`` reads f1 through a rotation of its parameter sphere by D degrees about
 (1, 2, 3) (bench_order.turned: at 99 x 197 by its spline), f2 as given.
 
+``--times N`` sets the path's time points (default: ``ShapeOptions().n_times``).
+
 Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
-     [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193]
+     [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193] [--times 13]
 """
 
 from __future__ import annotations
@@ -73,10 +75,15 @@ def main() -> None:
     parser.add_argument(
         "--levels", default=",".join(f"{m}x{n}" for m, n in ej.ShapeOptions().levels)
     )
+    parser.add_argument("--times", type=int, default=ej.ShapeOptions().n_times)
     args = parser.parse_args()
     levels = tuple(tuple(int(k) for k in grid.split("x")) for grid in args.levels.split(","))
-    options = ej.ShapeOptions(rtol=args.rtol, levels=levels)
+    try:
+        options = ej.ShapeOptions(rtol=args.rtol, levels=levels, n_times=args.times)
+    except ValueError as err:
+        parser.error(str(err))
     settings = {"rtol": args.rtol, "levels": [list(g) for g in levels], "dtype": "float64"}
+    settings["n_times"] = args.times
     for name in args.pairs.split(","):
         record = run_pair(name, options, args.turn)
         if record is not None:
