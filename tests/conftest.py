@@ -13,9 +13,9 @@ import tempfile
 # cores: 117 s of compiling -> 91 s, the call 88 s -> 73 s, its distance moved by 1e-6
 # (relative). Set before JAX starts its backend; an XLA_FLAGS that sets it wins, and the
 # command line's subprocesses inherit it (their programs are the in-process ones).
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    _flags = os.environ.get("XLA_FLAGS", "")
-    os.environ["XLA_FLAGS"] = f"{_flags} --xla_backend_optimization_level=1".strip()
+_FLAGS = os.environ.get("XLA_FLAGS", "")
+if "xla_backend_optimization_level" not in _FLAGS:
+    os.environ["XLA_FLAGS"] = f"{_FLAGS} --xla_backend_optimization_level=1".strip()
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402

@@ -433,7 +433,7 @@ def _tiny_levels():
     )
 
 
-def _warmup_then_solve(options, grids, seed):
+def _warmup_then_solve(options, grids):
     """warmup on inputs at 9 x 17, then a solve of another pair on the same settings:
     the solve and a second warmup compile nothing; the report names the grids."""
     import elastic_jax as ej
@@ -444,7 +444,7 @@ def _warmup_then_solve(options, grids, seed):
     assert report.grids == grids and report.input_grid == (9, 17)
     assert report.programs > 0
     f1 = shapes.sample(shapes.bumpy, 9, 17)
-    f2 = 1.2 * shapes.sample(shapes.bumpy, 9, 17, rotation=shapes.random_rotation(seed))
+    f2 = 1.2 * shapes.sample(shapes.bumpy, 9, 17, rotation=shapes.random_rotation(3))
     with CompileCounter() as counter, warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
         res = ej.shape_geodesic(f1, f2, ej.SplitMetric(1.0, 0.5, 0.2, 0.0), options=options)
@@ -457,7 +457,7 @@ def test_warmup_compiles_every_program_a_later_solve_on_one_grid_runs():
     # One working grid: the programs of
     # test_the_phases_compiled_concurrently_are_the_jitted_phases.
     options = _tiny_levels().replace(grid=(7, 13), rtol=None)
-    res = _warmup_then_solve(options, ((7, 13),), seed=3)
+    res = _warmup_then_solve(options, ((7, 13),))
     assert res.path.shape[-2:] == (7, 13) and res.levels is None
 
 
@@ -466,7 +466,7 @@ def test_warmup_compiles_every_program_a_later_solve_runs():
     """After warmup (levels 7 x 13 and 9 x 17, inputs on 9 x 17), a resolved solve of
     another pair on the same settings compiles nothing, and warmup again compiles
     nothing; the report names the grids."""
-    res = _warmup_then_solve(_tiny_levels(), ((7, 13), (9, 17)), seed=3)
+    res = _warmup_then_solve(_tiny_levels(), ((7, 13), (9, 17)))
     assert res.levels.grids.tolist() == [[7, 13], [9, 17]]
 
 

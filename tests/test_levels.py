@@ -293,7 +293,7 @@ def test_a_resolved_matrix_is_its_pairs_resolved_distances():
     # distance of eps^(1/4) x the surfaces' scale), relative to the last level.
     levels = np.asarray(single.levels.distances)
     noise = noise_distance(spheres[0], spheres[2])
-    assert levels[0] < levels[1] < np.sqrt(8 * np.pi) * 2  # from below
+    assert levels[0] < levels[1] < closed[0, 2]  # from below
     np.testing.assert_allclose(
         single.levels.estimate, (abs(levels[1] - levels[0]) - noise) / levels[1], rtol=1e-12
     )
