@@ -13,9 +13,15 @@ Pairs: those of bench_order.py (``cats``, ``cat-horse``, ``horse-cat``, ``horse-
 (1, 2, 3) (bench_order.turned: at 99 x 197 by its spline), f2 as given.
 
 ``--times N`` sets the path's time points (default: ``ShapeOptions().n_times``).
+``--calls K`` solves each pair K times in one process (default 1): the first call
+compiles, the later ones are warm. Each record has ``call`` (1, 2, ...) and ``phases``:
+for each level, in order, the seconds of each of its phases as shape_geodesic's
+progress reports them (start search, coarse registration or the registration carried
+from the level below, registration rounds, geodesics, checks, and the result after
+them; levels solved again are marked ``again``).
 
 Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
-     [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193] [--times 13]
+     [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193] [--times 13] [--calls 1]
 """
 
 from __future__ import annotations
@@ -37,21 +43,50 @@ import elastic_jax as ej  # noqa: E402
 from _common import emit, environment  # noqa: E402
 
 
-def run_pair(name: str, options: ej.ShapeOptions, turn: float) -> dict | None:
+def phase_seconds(events: list[dict]) -> list[dict]:
+    """Each level's phases with their seconds, from shape_geodesic's progress events
+    (each event's time less the one before it)."""
+    levels, before = [], 0.0
+    for event in events:
+        seconds, before = event["seconds"] - before, event["seconds"]
+        # The level's own event closes it: the time after its checks (the result's
+        # energy evaluated again, differentiably) is its "result".
+        stage = "result" if event["stage"] == "level" else event["stage"]
+        key = (event.get("level"), bool(event.get("again", False)), tuple(event["grid"]))
+        if not levels or levels[-1]["key"] != key:
+            levels.append({"key": key, "phases": {}})
+        phases = levels[-1]["phases"]
+        phases[stage] = phases.get(stage, 0.0) + seconds
+    return [
+        {"grid": list(grid), "again": again, "phases": level["phases"]}
+        for level in levels
+        for _, again, grid in [level["key"]]
+    ]
+
+
+def run_pair(name: str, options: ej.ShapeOptions, turn: float, call: int = 1) -> dict | None:
     first, second = PAIRS[name] if name in PAIRS else name.split(":")
     f1, f2 = load(first), load(second)
     if f1 is None or f2 is None:
         return None
     if turn:
         f1 = turned(f1, turn)
+    events: list[dict] = []
     begin = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
         res = ej.shape_geodesic(
-            jnp.asarray(f1), jnp.asarray(f2), METRIC, modulo="rigid", options=options
+            jnp.asarray(f1),
+            jnp.asarray(f2),
+            METRIC,
+            modulo="rigid",
+            options=options,
+            progress=events.append,
         )
     levels = res.levels
     return {
+        "call": call,
+        "phases": phase_seconds(events),
         "benchmark": "levels",
         "pair": name,
         "turn": turn,
@@ -76,7 +111,10 @@ def main() -> None:
         "--levels", default=",".join(f"{m}x{n}" for m, n in ej.ShapeOptions().levels)
     )
     parser.add_argument("--times", type=int, default=ej.ShapeOptions().n_times)
+    parser.add_argument("--calls", type=int, default=1)
     args = parser.parse_args()
+    if args.calls < 1:
+        parser.error(f"--calls must be at least 1; got {args.calls}")
     levels = tuple(tuple(int(k) for k in grid.split("x")) for grid in args.levels.split(","))
     try:
         options = ej.ShapeOptions(rtol=args.rtol, levels=levels, n_times=args.times)
@@ -85,9 +123,10 @@ def main() -> None:
     settings = {"rtol": args.rtol, "levels": [list(g) for g in levels], "dtype": "float64"}
     settings["n_times"] = args.times
     for name in args.pairs.split(","):
-        record = run_pair(name, options, args.turn)
-        if record is not None:
-            emit({**record, "settings": settings, "environment": environment()})
+        for call in range(1, args.calls + 1):
+            record = run_pair(name, options, args.turn, call)
+            if record is not None:
+                emit({**record, "settings": settings, "environment": environment()})
 
 
 if __name__ == "__main__":

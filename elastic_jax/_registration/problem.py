@@ -41,7 +41,7 @@ from .._geometry.so3 import icosahedral_np, so3_exp_unchecked
 from .._geometry.srnf import center_unchecked
 from .._options import ShapeOptions
 from .._runtime.cache import cached
-from .stretch import stretch_correction, stretched_cells
+from .stretch import chosen_cells, stretch_correction
 
 # Shrink factors tried for a reparametrization step, largest first; 0 keeps gamma.
 _STEP_SCALES = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.0)
@@ -448,19 +448,28 @@ def joint_objective(
         coefficients = scaling.coefficients(z)
         frames = perturbed_frames(straight, coefficients, path_dframe(prob, options))
         turned = r_step @ rotation
-        energy = _frames_energy(prob, options, frames, stepped, turned, coefficients, cells)
+        energy = _frames_energy(prob, options, frames, stepped, turned, cells)
         return energy / scaling.energy_scale
 
     return objective
 
 
 def _stretched_cells(prob: Problem, options: ShapeOptions, gamma: ArrayLike):
-    """The quadrature grid's cells where gamma stretches most (stretch.py), None without
-    ``options.stretch_quadrature``: chosen from gamma at the quadrature's nodes, so that
-    with ``options.quadrature`` q > 1 the finer cells are those of the finer grid."""
+    """The quadrature grid's cells where gamma stretches most, with R f2's sub-frames
+    there (stretch.chosen_cells), None without ``options.stretch_quadrature``: chosen
+    from gamma at the quadrature's nodes, so that with ``options.quadrature`` q > 1 the
+    finer cells are those of the finer grid."""
     if options.stretch_fraction == 0.0:
         return None
-    return stretched_cells(quadrature_gamma(prob, options, gamma), options.stretch_fraction)
+    return chosen_cells(
+        quadrature_gamma(prob, options, gamma),
+        options.stretch_fraction,
+        prob.source2,
+        source_method(options.interpolation),
+        options.interpolation,
+        working_grid(prob.bases),
+        options.stretch_subdivision,
+    )
 
 
 def _frames_energy(
@@ -469,7 +478,6 @@ def _frames_energy(
     frames: tuple,
     gamma: ArrayLike,
     rotation: ArrayLike,
-    coefficients: ArrayLike,
     cells: tuple | None,
 ):
     """The energy of the path with these frames: the node rule, plus the stretched
@@ -480,13 +488,10 @@ def _frames_energy(
     return energy + stretch_correction(
         prob.metric,
         prob.source1,
-        prob.source2,
         source_method(options.interpolation),
         options.interpolation,
-        path_dframe(prob, options),
         gamma,
         rotation,
-        coefficients,
         frames,
         cells,
         options.stretch_subdivision,
@@ -536,7 +541,7 @@ def path_energy_at(
     ``options.stretch_subdivision`` times finer (stretch.py)."""
     frames = path_frames_at(prob, options, gamma, rotation, coefficients)
     cells = _stretched_cells(prob, options, gamma)
-    return _frames_energy(prob, options, frames, gamma, rotation, coefficients, cells)
+    return _frames_energy(prob, options, frames, gamma, rotation, cells)
 
 
 def matching_criterion(prob: Problem, options: ShapeOptions, weight: ArrayLike):

@@ -22,6 +22,8 @@ piecewise constant in gamma, like a quadrature's nodes.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -55,18 +57,89 @@ def _sub_offsets(subdivision: int) -> tuple[np.ndarray, np.ndarray]:
     return uu.reshape(-1), vv.reshape(-1)
 
 
-def stretch_correction(
-    metric,
-    source1: ArrayLike,
+class Cells(NamedTuple):
+    """The stretched cells of a round (:func:`chosen_cells`) and what stays fixed while
+    the round's solver runs: their sub-points' angles and R f2's frames there before the
+    rotation (R f2 is read at the identity, so only R changes within a round)."""
+
+    rows: Array  # (k,) the cells' first interior row
+    cols: Array  # (k,) the cells' first column
+    sin_phi: Array  # (k, s^2) sin(phi) at the sub-points, for the quadrature's weights
+    end_frame: tuple[Array, Array]  # each (3, k, s^2): f2's sub-frames before the rotation
+
+
+def _sub_points(rows: Array, cols: Array, m: int, n: int, subdivision: int, dtype):
+    """The sub-cells' midpoints of the cells (rows, cols) of an m x n grid, and the
+    directions of math §2's frame there (a1 = f_theta / sin(phi), a2 = f_phi):
+    (points, east, south, sin_phi), each vector ``(3, k, s^2)``, sin_phi ``(k, s^2)``."""
+    dphi, dtheta = np.pi / (m - 1), 2.0 * np.pi / (n - 1)
+    u, v = (jnp.asarray(x, dtype) for x in _sub_offsets(subdivision))
+    phi = ((rows + 1).astype(dtype)[:, None] + u[None]) * dphi
+    theta = (cols.astype(dtype)[:, None] + v[None]) * dtheta
+    sp, cp, st, ct = jnp.sin(phi), jnp.cos(phi), jnp.sin(theta), jnp.cos(theta)
+    points = jnp.stack([sp * ct, sp * st, cp])
+    east = jnp.stack([-st, ct, jnp.zeros_like(st)])
+    south = jnp.stack([cp * ct, cp * st, -sp])
+    return points, east, south, sp
+
+
+def _reads(interpolation: str, read: str, working: tuple[int, int], dtype):
+    """(through, identity): ``through(source, g_source, p)`` reads a source at g(p), g
+    given by ``g_source`` (an interpolant of the working grid's gamma, or ``identity``,
+    the identity's), as the nodes read f o gamma."""
+    with jax.ensure_compile_time_eval():  # a constant of the program, not per evaluation
+        identity = sphere_points(*working, dtype=dtype)
+        if interpolation == "spline":
+            identity = spline_coefficients(identity)
+    gamma_read = "coefficients" if interpolation == "spline" else interpolation
+
+    def through(source: Array, g_source: Array, p: Array):
+        g = sample_points(g_source, p, gamma_read)
+        return sample_points(source, g / jnp.linalg.norm(g, axis=0, keepdims=True), read)
+
+    return through, identity
+
+
+def _sub_frame(read_at, points: Array, east: Array, south: Array) -> list[Array]:
+    """The frame (a1, a2) of p -> read_at(p) at the sub-points: its derivatives along
+    east and south."""
+    return [jax.jvp(read_at, (points,), (d,))[1] for d in (east, south)]
+
+
+def chosen_cells(
+    gamma_at_nodes: ArrayLike,
+    fraction: float,
     source2: ArrayLike,
     read: str,
     interpolation: str,
-    dframe: ArrayLike,
+    working: tuple[int, int],
+    subdivision: int,
+) -> Cells:
+    """The stretched cells of ``gamma_at_nodes (3, M, N')`` (gamma at the quadrature's
+    nodes, :func:`stretched_cells`) with what a round holds fixed on them: R f2's frames
+    at the sub-points before the rotation, read as f1 o gamma is at the identity (the
+    nodes' rule for the end's frame, problem.rotated_end_frame: identical inputs,
+    identical sub-frames; the identity's interpolant is not the identity between the
+    points: d(f, f) was 2.4e-6 at 25 x 49). ``source2`` is read by ``read``; ``working``
+    is the working grid (m, n) whose gamma ``interpolation`` composes."""
+    m, n = gamma_at_nodes.shape[-2:]
+    dtype = gamma_at_nodes.dtype
+    rows, cols = stretched_cells(gamma_at_nodes, fraction)
+    points, east, south, sin_phi = _sub_points(rows, cols, m, n, subdivision, dtype)
+    through, identity = _reads(interpolation, read, working, dtype)
+    end = _sub_frame(lambda p: through(source2, identity, p), points, east, south)
+    return Cells(rows, cols, sin_phi, tuple(end))
+
+
+def stretch_correction(
+    metric,
+    source1: ArrayLike,
+    read: str,
+    interpolation: str,
     gamma: ArrayLike,
     rotation: ArrayLike,
-    coefficients: ArrayLike,
     frames: tuple[Array, Array],
-    cells: tuple[Array, Array],
+    cells: Cells,
     subdivision: int,
 ) -> Array:
     """sum over ``cells`` of (the s x s midpoint rule - the node rule's trapezoid share)
@@ -75,68 +148,44 @@ def stretch_correction(
     ``frames``: the path's interior frames ``(N, 3, M - 2, N' - 1)`` as the node rule
     integrates them (:func:`problem.path_frames_at`), on the quadrature's grid M x N'
     (the working grid, or the grid q times finer with ``ShapeOptions.quadrature``), whose
-    cells ``cells`` indexes; ``coefficients`` ``(N - 2, 3 K)`` their perturbation in
-    ``dframe``'s harmonics (K, 2 (M - 2) (N' - 1)); ``source1``, ``source2`` read by
-    ``read``; ``gamma`` the working grid's ``(3, m, n)``, read at the sub-points as
-    ``interpolation`` composes it.
+    cells ``cells`` (:func:`chosen_cells`) indexes: the straight line between their
+    first and last time plus the path's perturbation, which is read bilinearly from each
+    cell's corners; ``source1`` read by ``read``; ``gamma`` the working grid's
+    ``(3, m, n)``, read at the sub-points as ``interpolation`` composes it; ``rotation``
+    turns f2's sub-frames.
     """
     m, n = frames[0].shape[-2] + 2, frames[0].shape[-1] + 1
     dtype = gamma.dtype
-    rows, cols = cells
+    rows, cols = cells.rows, cells.cols
     dphi, dtheta = np.pi / (m - 1), 2.0 * np.pi / (n - 1)
-    u, v = (jnp.asarray(x, dtype) for x in _sub_offsets(subdivision))
-    phi = ((rows + 1).astype(dtype)[:, None] + u[None]) * dphi
-    theta = (cols.astype(dtype)[:, None] + v[None]) * dtheta
-    sp, cp, st, ct = jnp.sin(phi), jnp.cos(phi), jnp.sin(theta), jnp.cos(theta)
-    points = jnp.stack([sp * ct, sp * st, cp])
-    # math §2's frame: a1 = f_theta / sin(phi), a2 = f_phi, derivatives along these.
-    east = jnp.stack([-st, ct, jnp.zeros_like(st)])
-    south = jnp.stack([cp * ct, cp * st, -sp])
-
-    with jax.ensure_compile_time_eval():  # a constant of the program, not per evaluation
-        identity = sphere_points(*gamma.shape[-2:], dtype=dtype)
-        if interpolation == "spline":
-            identity = spline_coefficients(identity)
-    sources, gamma_read = (gamma, identity), interpolation
-    if interpolation == "spline":
-        sources, gamma_read = (spline_coefficients(gamma), identity), "coefficients"
-
-    def through(source: Array, g_source: Array, p: Array):
-        g = sample_points(g_source, p, gamma_read)
-        return sample_points(source, g / jnp.linalg.norm(g, axis=0, keepdims=True), read)
-
-    def start(p: Array):
-        return through(source1, sources[0], p)
-
-    def end(p: Array):
-        # R f2 read as f1 o gamma is at the identity (the nodes' rule for the end's frame,
-        # problem.rotated_end_frame): identical inputs, identical sub-frames; the identity's
-        # interpolant is not the identity between the points (d(f, f) was 2.4e-6 at 25 x 49).
-        return jnp.einsum("ij,j...->i...", rotation, through(source2, sources[1], p))
-
-    start_frame = [jax.jvp(start, (points,), (d,))[1] for d in (east, south)]
-    end_frame = [jax.jvp(end, (points,), (d,))[1] for d in (east, south)]
+    points, east, south, _ = _sub_points(rows, cols, m, n, subdivision, dtype)
+    through, _ = _reads(interpolation, read, gamma.shape[-2:], dtype)
+    source = spline_coefficients(gamma) if interpolation == "spline" else gamma
+    start_frame = _sub_frame(lambda p: through(source1, source, p), points, east, south)
+    end_frame = [jnp.einsum("ij,j...->i...", rotation, a) for a in cells.end_frame]
     n_times = frames[0].shape[0]
     t = jnp.linspace(0.0, 1.0, n_times, dtype=dtype).reshape(n_times, 1, 1, 1)
     sub = [a[None] + t * (b - a)[None] for a, b in zip(start_frame, end_frame, strict=True)]
 
-    k = dframe.shape[0]
-    perturbation = (coefficients.reshape(-1, k) @ dframe).reshape(n_times - 2, 3, 2, m - 2, n - 1)
+    # The four corners of every cell in one gather per frame (its transpose one scatter).
     right = (cols + 1) % (n - 1)
-    corners = ((rows, cols), (rows + 1, cols), (rows, right), (rows + 1, right))
-    bilinear = ((1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v)
+    corner_rows = jnp.stack([rows, rows + 1, rows, rows + 1], axis=-1)
+    corner_cols = jnp.stack([cols, cols, right, right], axis=-1)
+    flat = corner_rows * (n - 1) + corner_cols
+    at_corners = [a.reshape(*a.shape[:2], -1)[:, :, flat] for a in frames]
+    u, v = (jnp.asarray(x, dtype) for x in _sub_offsets(subdivision))
+    bilinear = jnp.stack([(1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v], axis=-1)
     for axis in range(2):
-        inside = sum(
-            perturbation[:, :, axis][:, :, r, c][..., None] * w[None, None, None]
-            for (r, c), w in zip(corners, bilinear, strict=True)
-        )
-        sub[axis] = sub[axis].at[1:-1].add(inside)
-    sub_weights = sp * dphi * dtheta / subdivision**2
+        # The perturbation at the corners is the frames' departure from the straight
+        # line between their own ends (it vanishes at both ends): read from the frames,
+        # not multiplied out again over the whole grid for a few percent of its cells.
+        a = at_corners[axis]
+        departure = a[1:-1] - (a[:1] + t[1:-1] * (a[-1:] - a[:1]))
+        sub[axis] = sub[axis].at[1:-1].add(jnp.einsum("tikc,sc->tiks", departure, bilinear))
+    sub_weights = cells.sin_phi * dphi * dtheta / subdivision**2
     density, weights = pointwise_speeds2(metric, *sub, "midpoint")
     fine = jnp.einsum("tks,ks,t->", density, sub_weights, weights)
 
-    at_corners = [jnp.stack([a[:, :, r, c] for r, c in corners], axis=-1) for a in frames]
-    corner_rows = jnp.stack([rows, rows + 1, rows, rows + 1], axis=-1)
     corner_weights = jnp.sin((corner_rows + 1).astype(dtype) * dphi) * dphi * dtheta / 4.0
     density, weights = pointwise_speeds2(metric, *at_corners, "midpoint")
     coarse = jnp.einsum("tks,ks,t->", density, corner_weights, weights)
