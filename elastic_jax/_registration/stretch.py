@@ -59,11 +59,15 @@ def _sub_offsets(subdivision: int) -> tuple[np.ndarray, np.ndarray]:
 
 class Cells(NamedTuple):
     """The stretched cells of a round (:func:`chosen_cells`) and what stays fixed while
-    the round's solver runs: their sub-points' angles and R f2's frames there before the
-    rotation (R f2 is read at the identity, so only R changes within a round)."""
+    the round's solver runs: their sub-points, the frame's directions there and R f2's
+    frames there before the rotation (R f2 is read at the identity, so only R changes
+    within a round)."""
 
     rows: Array  # (k,) the cells' first interior row
     cols: Array  # (k,) the cells' first column
+    points: Array  # (3, k, s^2) the sub-points
+    east: Array  # (3, k, s^2) the directions of math §2's frame there
+    south: Array  # (3, k, s^2)
     sin_phi: Array  # (k, s^2) sin(phi) at the sub-points, for the quadrature's weights
     end_frame: tuple[Array, Array]  # each (3, k, s^2): f2's sub-frames before the rotation
 
@@ -83,21 +87,17 @@ def _sub_points(rows: Array, cols: Array, m: int, n: int, subdivision: int, dtyp
     return points, east, south, sp
 
 
-def _reads(interpolation: str, read: str, working: tuple[int, int], dtype):
-    """(through, identity): ``through(source, g_source, p)`` reads a source at g(p), g
-    given by ``g_source`` (an interpolant of the working grid's gamma, or ``identity``,
-    the identity's), as the nodes read f o gamma."""
-    with jax.ensure_compile_time_eval():  # a constant of the program, not per evaluation
-        identity = sphere_points(*working, dtype=dtype)
-        if interpolation == "spline":
-            identity = spline_coefficients(identity)
+def _through(interpolation: str, read: str):
+    """``through(source, g_source, p)``: a source read at g(p), g given by ``g_source``
+    (an interpolant of the working grid's gamma, or of the identity), as the nodes read
+    f o gamma."""
     gamma_read = "coefficients" if interpolation == "spline" else interpolation
 
     def through(source: Array, g_source: Array, p: Array):
         g = sample_points(g_source, p, gamma_read)
         return sample_points(source, g / jnp.linalg.norm(g, axis=0, keepdims=True), read)
 
-    return through, identity
+    return through
 
 
 def _sub_frame(read_at, points: Array, east: Array, south: Array) -> list[Array]:
@@ -126,9 +126,13 @@ def chosen_cells(
     dtype = gamma_at_nodes.dtype
     rows, cols = stretched_cells(gamma_at_nodes, fraction)
     points, east, south, sin_phi = _sub_points(rows, cols, m, n, subdivision, dtype)
-    through, identity = _reads(interpolation, read, working, dtype)
+    with jax.ensure_compile_time_eval():  # a constant of the program, not per evaluation
+        identity = sphere_points(*working, dtype=dtype)
+        if interpolation == "spline":
+            identity = spline_coefficients(identity)
+    through = _through(interpolation, read)
     end = _sub_frame(lambda p: through(source2, identity, p), points, east, south)
-    return Cells(rows, cols, sin_phi, tuple(end))
+    return Cells(rows, cols, points, east, south, sin_phi, tuple(end))
 
 
 def stretch_correction(
@@ -158,10 +162,11 @@ def stretch_correction(
     dtype = gamma.dtype
     rows, cols = cells.rows, cells.cols
     dphi, dtheta = np.pi / (m - 1), 2.0 * np.pi / (n - 1)
-    points, east, south, _ = _sub_points(rows, cols, m, n, subdivision, dtype)
-    through, _ = _reads(interpolation, read, gamma.shape[-2:], dtype)
+    through = _through(interpolation, read)
     source = spline_coefficients(gamma) if interpolation == "spline" else gamma
-    start_frame = _sub_frame(lambda p: through(source1, source, p), points, east, south)
+    start_frame = _sub_frame(
+        lambda p: through(source1, source, p), cells.points, cells.east, cells.south
+    )
     end_frame = [jnp.einsum("ij,j...->i...", rotation, a) for a in cells.end_frame]
     n_times = frames[0].shape[0]
     t = jnp.linspace(0.0, 1.0, n_times, dtype=dtype).reshape(n_times, 1, 1, 1)
