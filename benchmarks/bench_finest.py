@@ -59,7 +59,9 @@ def below_level(name: str, f1, f2, keep: pathlib.Path, finest: tuple = FINEST):
     path = keep / f"below_{name}_{below[-1][0]}x{below[-1][1]}.pkl"
     if path.exists():
         return pickle.loads(path.read_bytes())
-    options = ej.ShapeOptions().replace(levels=below, rtol=1e-12)
+    # Every level runs (rtol tiny), each stopping its rounds as the defaults' levels do.
+    default = ej.ShapeOptions()
+    options = default.replace(levels=below, rtol=1e-12, rounds_tol=default.level_rounds_tol)
     begin = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)

@@ -222,6 +222,12 @@ def test_a_level_continues_the_registration_and_path_of_the_one_below():
     )
     history = np.asarray(res.energy_history)
     np.testing.assert_allclose(history[1], carried, rtol=1e-10)
+    # The rounds stopped at the first round that changed the energy by at most the
+    # level's stop (the floor's tol^2 E_0 term is below 1e-6 E here).
+    taken = history[1 : int(res.rounds) + 2]
+    changes = -np.diff(taken) / taken[1:]
+    stop = cfg.round_stop
+    assert np.all(changes[:-1] > stop) and changes[-1] <= stop * (1 + 1e-3)
     assert float(res.energy) <= history[1] * (1 + 1e-12)
     assert abs(float(carried) - float(below.energy)) > 1e-4 * float(below.energy)  # another grid
     # The level's parametrized geodesic starts from the level below's: the same minimum

@@ -69,6 +69,28 @@ def test_fast_kernel_equals_the_decomposition(alpha, xi, eta, abcd):
     assert abs(float(ej.split_inner(metric, alpha, xi, eta)) - reference) <= 1e-11 * scale + 1e-200
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    alpha=matrices.filter(_well_conditioned),
+    xi=matrices,
+    abcd=st.tuples(*[st.floats(0.0, 3.0)] * 4).filter(any),
+)
+def test_the_residuals_square_to_each_part_of_the_decomposition(alpha, xi, abcd):
+    from elastic_jax._geometry.metric import split_residuals
+
+    metric = ej.SplitMetric(*abcd)
+    columns = [jnp.asarray(m[:, k, None, None]) for m in (alpha, xi) for k in range(2)]
+    r2 = [float(r[0, 0]) ** 2 for r in split_residuals(metric, *columns)]
+    # Residuals: shear twice, volume, rotation, the normal part twice; the parts of
+    # split_parts: (m, vol, perp, 0) with coefficients (a, b, c, d).
+    by_part = [r2[0] + r2[1], r2[2], r2[4] + r2[5], r2[3]]
+    scale = max(float(np.abs(xi).max()), 1e-300)
+    norm2 = float(ej.base_inner(alpha, xi / scale, xi / scale)) * scale**2
+    for k, part, squares in zip(abcd, ej.split_parts(alpha, xi), by_part, strict=True):
+        reference = k * float(ej.base_inner(alpha, part, part))
+        assert abs(squares - reference) <= 1e-11 * max(abcd) * norm2 + 1e-200
+
+
 @pytest.mark.parametrize("sine", [1e-2, 1e-3, 1e-4])
 def test_float32_kernel_on_nearly_degenerate_frames(sine):
     """G_alpha(xi, xi) in float32 where alpha's columns are nearly parallel (the sine of

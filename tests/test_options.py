@@ -152,3 +152,19 @@ def test_an_agreeing_keyword_beside_the_record_is_accepted():
     # Without a record a keyword sets that field of the default one.
     assert options_with("f", None, {"degree": 5}) == ej.ShapeOptions(degree=5)
     assert options_with("f", FAST, {}) is FAST
+
+
+def test_the_levels_stop_their_rounds_at_a_fifth_of_rtol():
+    # A level's distance is asked to rtol; rounds that change the energy by less than
+    # rtol / 5 no longer move it at that scale (docs/guides/settings.md).
+    default = ej.ShapeOptions()
+    assert default.round_stop == default.outer_tol == 1e-3
+    level = default.on_level((25, 49))
+    assert level.rounds_tol == pytest.approx(0.03 / 5) and level.round_stop == level.rounds_tol
+    assert level.outer_tol == default.outer_tol  # the coarse rounds and checks keep theirs
+    assert ej.ShapeOptions(rtol=1e-4).on_level((25, 49)).round_stop == 1e-3
+    assert ej.ShapeOptions(rounds_tol=2e-3).on_level((25, 49)).round_stop == 2e-3
+    one_grid = ej.ShapeOptions(grid=(25, 49))
+    assert one_grid.on_level((25, 49)).round_stop == 1e-3
+    with pytest.raises(ej.InputError, match="rounds_tol must be a positive finite number"):
+        ej.ShapeOptions(rounds_tol=0.0)

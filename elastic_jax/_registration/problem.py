@@ -432,13 +432,34 @@ def joint_objective(
     scaling,
 ):
     """Energy / scale as a function of (whitened path coefficients z, registration step y)."""
-    end_frame = rotated_end_frame(prob, options, rotation)
-    source = gamma_source(options, gamma)
+    frames_of_variables = joint_frames(prob, options, rigid, gamma, rotation, scaling)
     # The cells integrated finer are those of the round's gamma: fixed within a round,
     # as a quadrature's nodes are.
-    cells = _stretched_cells(prob, options, gamma)
+    cells = stretched_cells_of(prob, options, gamma)
 
     def objective(variables: tuple):
+        frames, stepped, turned = frames_of_variables(variables)
+        energy = _frames_energy(prob, options, frames, stepped, turned, cells)
+        return energy / scaling.energy_scale
+
+    return objective
+
+
+def joint_frames(
+    prob: Problem,
+    options: ShapeOptions,
+    rigid: bool,
+    gamma: ArrayLike,
+    rotation: ArrayLike,
+    scaling,
+):
+    """The rounds' variables (whitened path coefficients z, registration step y) ->
+    (the path's interior frames on the quadrature's nodes, the stepped gamma, the turned
+    R): what :func:`joint_objective` integrates."""
+    end_frame = rotated_end_frame(prob, options, rotation)
+    source = gamma_source(options, gamma)
+
+    def frames_of_variables(variables: tuple):
         z, y = variables
         x, r_step = registration_variables(prob, y, rigid)
         stepped = stepped_gamma(prob, options, source, x)
@@ -447,14 +468,12 @@ def joint_objective(
         straight = frames_between(start, end, options.n_times)
         coefficients = scaling.coefficients(z)
         frames = perturbed_frames(straight, coefficients, path_dframe(prob, options))
-        turned = r_step @ rotation
-        energy = _frames_energy(prob, options, frames, stepped, turned, cells)
-        return energy / scaling.energy_scale
+        return frames, stepped, r_step @ rotation
 
-    return objective
+    return frames_of_variables
 
 
-def _stretched_cells(prob: Problem, options: ShapeOptions, gamma: ArrayLike):
+def stretched_cells_of(prob: Problem, options: ShapeOptions, gamma: ArrayLike):
     """The quadrature grid's cells where gamma stretches most, with R f2's sub-frames
     there (stretch.chosen_cells), None without ``options.stretch_quadrature``: chosen
     from gamma at the quadrature's nodes, so that with ``options.quadrature`` q > 1 the
@@ -540,7 +559,7 @@ def path_energy_at(
     ``options.stretch_quadrature``, the cells where gamma stretches most integrated
     ``options.stretch_subdivision`` times finer (stretch.py)."""
     frames = path_frames_at(prob, options, gamma, rotation, coefficients)
-    cells = _stretched_cells(prob, options, gamma)
+    cells = stretched_cells_of(prob, options, gamma)
     return _frames_energy(prob, options, frames, gamma, rotation, cells)
 
 

@@ -149,11 +149,10 @@ def rounds_phase(
     straight0 = straight_line_energy(prob, options, *identity_frames(prob, options))
 
     def small_change(before: ArrayLike, after: ArrayLike):
-        # Relative to the current energy, with a floor at outer_tol times the straight
-        # line's: near a perfect match the energy is interpolation noise.
-        return jnp.abs(before - after) <= options.outer_tol * (
-            after + options.outer_tol * straight0
-        )
+        # Relative to the current energy, with a floor at the tolerance times the
+        # straight line's: near a perfect match the energy is interpolation noise.
+        stop = options.round_stop
+        return jnp.abs(before - after) <= stop * (after + stop * straight0)
 
     state, history, *carried = coarse
     parametrized = carried[0] if carried else jnp.zeros_like(state.coefficients)

@@ -135,8 +135,7 @@ def chosen_cells(
     return Cells(rows, cols, points, east, south, sin_phi, tuple(end))
 
 
-def stretch_correction(
-    metric,
+def cell_frames(
     source1: ArrayLike,
     read: str,
     interpolation: str,
@@ -145,19 +144,12 @@ def stretch_correction(
     frames: tuple[Array, Array],
     cells: Cells,
     subdivision: int,
-) -> Array:
-    """sum over ``cells`` of (the s x s midpoint rule - the node rule's trapezoid share)
-    of the path energy (midpoint scheme), s = ``subdivision``.
-
-    ``frames``: the path's interior frames ``(N, 3, M - 2, N' - 1)`` as the node rule
-    integrates them (:func:`problem.path_frames_at`), on the quadrature's grid M x N'
-    (the working grid, or the grid q times finer with ``ShapeOptions.quadrature``), whose
-    cells ``cells`` (:func:`chosen_cells`) indexes: the straight line between their
-    first and last time plus the path's perturbation, which is read bilinearly from each
-    cell's corners; ``source1`` read by ``read``; ``gamma`` the working grid's
-    ``(3, m, n)``, read at the sub-points as ``interpolation`` composes it; ``rotation``
-    turns f2's sub-frames.
-    """
+) -> tuple[list[Array], Array, list[Array], Array, Array]:
+    """What :func:`stretch_correction` integrates: the path's frames at the cells'
+    sub-points ``(N, 3, k, s^2)`` each, with their weights ``(k, s^2)``, and at the
+    cells' corners ``(N, 3, k, 4)`` each, with the node rule's trapezoid share ``(k, 4)``
+    and the corners' flat indices into the quadrature grid's interior ``(k, 4)``
+    (arguments as there)."""
     m, n = frames[0].shape[-2] + 2, frames[0].shape[-1] + 1
     dtype = gamma.dtype
     rows, cols = cells.rows, cells.cols
@@ -188,10 +180,41 @@ def stretch_correction(
         departure = a[1:-1] - (a[:1] + t[1:-1] * (a[-1:] - a[:1]))
         sub[axis] = sub[axis].at[1:-1].add(jnp.einsum("tikc,sc->tiks", departure, bilinear))
     sub_weights = cells.sin_phi * dphi * dtheta / subdivision**2
+    corner_weights = jnp.sin((corner_rows + 1).astype(dtype) * dphi) * dphi * dtheta / 4.0
+    return sub, sub_weights, at_corners, corner_weights, flat
+
+
+def stretch_correction(
+    metric,
+    source1: ArrayLike,
+    read: str,
+    interpolation: str,
+    gamma: ArrayLike,
+    rotation: ArrayLike,
+    frames: tuple[Array, Array],
+    cells: Cells,
+    subdivision: int,
+) -> Array:
+    """sum over ``cells`` of (the s x s midpoint rule - the node rule's trapezoid share)
+    of the path energy (midpoint scheme), s = ``subdivision``.
+
+    ``frames``: the path's interior frames ``(N, 3, M - 2, N' - 1)`` as the node rule
+    integrates them (:func:`problem.path_frames_at`), on the quadrature's grid M x N'
+    (the working grid, or the grid q times finer with ``ShapeOptions.quadrature``), whose
+    cells ``cells`` (:func:`chosen_cells`) indexes: the straight line between their
+    first and last time plus the path's perturbation, which is read bilinearly from each
+    cell's corners; ``source1`` read by ``read``; ``gamma`` the working grid's
+    ``(3, m, n)``, read at the sub-points as ``interpolation`` composes it; ``rotation``
+    turns f2's sub-frames.
+
+    A node's trapezoid shares over the chosen cells around it add up to at most its own
+    weight, so the corrected rule is still a sum of squares with weights >= 0.
+    """
+    sub, sub_weights, at_corners, corner_weights, _ = cell_frames(
+        source1, read, interpolation, gamma, rotation, frames, cells, subdivision
+    )
     density, weights = pointwise_speeds2(metric, *sub, "midpoint")
     fine = jnp.einsum("tks,ks,t->", density, sub_weights, weights)
-
-    corner_weights = jnp.sin((corner_rows + 1).astype(dtype) * dphi) * dphi * dtheta / 4.0
     density, weights = pointwise_speeds2(metric, *at_corners, "midpoint")
     coarse = jnp.einsum("tks,ks,t->", density, corner_weights, weights)
     return fine - coarse

@@ -142,7 +142,9 @@ def warmup(
         )
     grids = working_grids(resolved, (m, n))
     if resolved.resolves:
-        resolved = resolved.replace(rtol=_EVERY_LEVEL)
+        # Every level, with the rounds' stop the job's rtol gives its levels (a static
+        # setting of their programs).
+        resolved = resolved.replace(rtol=_EVERY_LEVEL, rounds_tol=resolved.level_rounds_tol)
     f1, f2 = _pair(m, n, dtype)
     metric = SplitMetric(1.0, 1.0, 0.1, 0.0)
     counter = CompileCounter()
