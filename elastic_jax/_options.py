@@ -73,7 +73,9 @@ class ShapeOptions:
             perturbation held, then the path).
         vf_degree: degree of the vector fields of a Diff step.
         outer_steps: most registration rounds; the loop stops earlier once a round
-            changes the energy by at most outer_tol (E + outer_tol E_0).
+            changes the energy by at most outer_tol (E + outer_tol E_0), or, for the
+            rounds with the whole path, once that round's change and the one before,
+            continued as a geometric series, leave at most that much.
         outer_tol: that relative change (E_0: the parametrized energy); also the coarse
             rounds' and the parametrized geodesic's comparisons.
         rounds_tol: the registration rounds' own stop, in place of outer_tol for the

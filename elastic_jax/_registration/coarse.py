@@ -81,7 +81,7 @@ def _straight_rounds(
     current = criterion(state.gamma, state.rotation)
     floor = criterion(prob.e1, jnp.eye(3, dtype=prob.f1.dtype))
 
-    def small(before: ArrayLike, after: ArrayLike):
+    def small(before: ArrayLike, after: ArrayLike, _earlier: ArrayLike):
         return jnp.abs(before - after) <= options.outer_tol * (after + options.outer_tol * floor)
 
     state, _, _, _ = iterate(

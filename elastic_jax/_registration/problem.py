@@ -590,6 +590,9 @@ def iterate(
 ):
     """Rounds until one changes the energy little, or max_rounds; never a rising energy.
 
+    ``small_change(before, after, earlier)`` is given the energies before and after the
+    round and the one before the round before (inf in the first round).
+
     Returns (state, history, rounds taken, whether the last round met small_change or
     was refused); ``state.shrunk`` says whether the last round's step had to shrink.
     ``history`` (optional) gets each round's energy at index 2 + round.
@@ -598,11 +601,11 @@ def iterate(
         history = jnp.zeros((max_rounds + 2,), state.energy.dtype)
 
     def keep_going(carry: tuple):
-        _, _, k, done = carry
+        _, _, k, done, _ = carry
         return (k < max_rounds) & ~done
 
     def body(carry: tuple):
-        state, history, k, _ = carry
+        state, history, k, _, earlier = carry
         new = round_fn(state)
         # A round whose step had to shrink can end higher: keep the better registration
         # (no round may raise the energy), and stop there.
@@ -611,11 +614,12 @@ def iterate(
         # The last round's shrink is kept whether or not the round was: rounds that end
         # shrunk ended at the edge of what the grid resolves, not at a minimum.
         kept = kept._replace(steps=new.steps, shrunk=new.shrunk)
-        done = ~better | small_change(state.energy, kept.energy)
-        return kept, history.at[k + 2].set(kept.energy), k + 1, done
+        done = ~better | small_change(state.energy, kept.energy, earlier)
+        return kept, history.at[k + 2].set(kept.energy), k + 1, done, state.energy
 
-    start = (state, history, jnp.zeros((), jnp.int32), jnp.asarray(max_rounds == 0))
-    return jax.lax.while_loop(keep_going, body, start)
+    inf = jnp.full((), jnp.inf, state.energy.dtype)
+    start = (state, history, jnp.zeros((), jnp.int32), jnp.asarray(max_rounds == 0), inf)
+    return jax.lax.while_loop(keep_going, body, start)[:4]
 
 
 def zero_coefficients(prob: Problem, options: ShapeOptions):

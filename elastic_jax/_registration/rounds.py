@@ -135,6 +135,26 @@ class Rounds(NamedTuple):
     parametrized: Array
 
 
+def rest_of_rounds(earlier: ArrayLike, before: ArrayLike, after: ArrayLike) -> Array:
+    """What the rounds after this one would still lower the energy by, were their
+    changes to fall as the last two did: d r / (1 - r) with d = before - after and
+    r = d / (earlier - before), the tail of a geometric series; inf where the changes
+    do not fall (r >= 1) or there is no round before (``earlier`` inf).
+
+    The rounds' energies fall about geometrically: continuing a lower level, the cats'
+    49 x 97 rounds changed it by 11.6, 2.1, 0.41 and 0.15 % (ratios 0.18, 0.20, 0.37),
+    cat1 -> horse0's by 17.5, 4.5, 0.31 and 0.12 % (0.26, 0.07, 0.39), and the cats'
+    97 x 193 rounds by 15.3, 5.8, 1.3 and 0.02 % (0.38, 0.23, 0.02). The tail after the
+    second of the cats' 49 x 97 rounds is 0.46 %, where the rounds that followed took
+    0.57 %.
+    """
+    earlier, before, after = (jnp.asarray(e) for e in (earlier, before, after))
+    d = before - after
+    r = d / (earlier - before)
+    falling = jnp.isfinite(earlier) & (r >= 0) & (r < 1)
+    return jnp.where(falling, d * r / (1 - r), jnp.inf)
+
+
 def rounds_phase(
     metric: SplitMetric,
     f1: ArrayLike,
@@ -148,11 +168,14 @@ def rounds_phase(
     prob = make_problem(metric, f1, f2, bases, rigid, options.interpolation)
     straight0 = straight_line_energy(prob, options, *identity_frames(prob, options))
 
-    def small_change(before: ArrayLike, after: ArrayLike):
+    def small_change(before: ArrayLike, after: ArrayLike, earlier: ArrayLike):
         # Relative to the current energy, with a floor at the tolerance times the
         # straight line's: near a perfect match the energy is interpolation noise.
         stop = options.round_stop
-        return jnp.abs(before - after) <= stop * (after + stop * straight0)
+        within = stop * (after + stop * straight0)
+        return (jnp.abs(before - after) <= within) | (
+            rest_of_rounds(earlier, before, after) <= within
+        )
 
     state, history, *carried = coarse
     parametrized = carried[0] if carried else jnp.zeros_like(state.coefficients)
