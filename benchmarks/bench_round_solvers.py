@@ -44,26 +44,15 @@ from bench_order import PAIRS, load  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
 from elastic_jax._geodesics.solvers import minimize  # noqa: E402
+from elastic_jax._geometry.energy import step_frames  # noqa: E402
 from elastic_jax._geometry.grid import interior_weights  # noqa: E402
 from elastic_jax._geometry.metric import split_residuals  # noqa: E402
 from elastic_jax._registration import problem as P  # noqa: E402
 from elastic_jax._registration.one_grid import _grid_setup  # noqa: E402
 from elastic_jax._registration.starts import given_start  # noqa: E402
-from elastic_jax._registration.stretch import cell_frames  # noqa: E402
+from elastic_jax._registration.stretch import cell_corners, cell_frames  # noqa: E402
 
 from _common import emit, environment  # noqa: E402
-
-
-def _midpoint(a1, a2):
-    """The midpoint scheme's bases, velocities and time weight (energy.pointwise_speeds2)."""
-    t = a1.shape[0] - 1
-    return (
-        0.5 * (a1[1:] + a1[:-1]),
-        0.5 * (a2[1:] + a2[:-1]),
-        t * (a1[1:] - a1[:-1]),
-        t * (a2[1:] - a2[:-1]),
-        1.0 / t,
-    )
 
 
 def joint_residuals(prob, options, rigid, gamma, rotation, scaling):
@@ -77,23 +66,13 @@ def joint_residuals(prob, options, rigid, gamma, rotation, scaling):
     if cells is not None:
         # The corrected rule's node weights: each node's weight less its trapezoid shares
         # over the chosen cells around it (>= 0).
-        blank = [jnp.zeros((options.n_times, 3, m - 2, n - 1), gamma.dtype)] * 2
-        *_, shares, flat = cell_frames(
-            prob.source1,
-            read,
-            options.interpolation,
-            gamma,
-            rotation,
-            blank,
-            cells,
-            options.stretch_subdivision,
-        )
+        flat, shares = cell_corners(cells, m, n, gamma.dtype)
         weights = weights.reshape(-1).at[flat.reshape(-1)].add(-shares.reshape(-1))
         weights = jnp.maximum(weights.reshape(m - 2, n - 1), 0.0)
 
     def pieces(frames, point_weights):
-        b1, b2, v1, v2, dt = _midpoint(*frames)
-        root = jnp.sqrt(point_weights * dt / scaling.energy_scale)
+        b1, b2, v1, v2, dt = step_frames(*frames, "midpoint")
+        root = jnp.sqrt(point_weights * dt[:, None, None] / scaling.energy_scale)
         return [(r * root).reshape(-1) for r in split_residuals(prob.metric, b1, b2, v1, v2)]
 
     def residuals(variables):

@@ -90,19 +90,10 @@ def frame_speeds2(metric: SplitMetric, a1: Array, a2: Array, scheme: str) -> tup
     return integrate_interior(density), weights
 
 
-def pointwise_speeds2(
-    metric: SplitMetric, a1: Array, a2: Array, scheme: str
-) -> tuple[Array, Array]:
-    """G_b(v, v) of each step at each point, ``(..., T', p, q)``, and the time weights.
-
-    ``a1, a2 (..., N, 3, m-2, n-1)`` are the columns of df_k (see ``interior_frame``);
-    the differential is linear, so d(f_{k+1} - f_k) = df_{k+1} - df_k.
-    forward: v_k = T (f_{k+1} - f_k) at f_k, k = 0..T-1, weights 1/T.
-    central: v_k = T (f_{k+1} - f_{k-1}) / 2 at interior k, one-sided at the two ends,
-    trapezoid weights (1/2, 1, ..., 1, 1/2) / T: symmetric under reversing the path.
-    midpoint: v_k = T (f_{k+1} - f_k) at (f_k + f_{k+1}) / 2, weights 1/T: the midpoint
-    rule for the energy of the piecewise-linear path through the frames.
-    """
+def step_frames(a1: Array, a2: Array, scheme: str) -> tuple[Array, Array, Array, Array, Array]:
+    """Each time step's base frame and velocity under ``scheme`` and the time weights:
+    (base1, base2, v1, v2) ``(..., T', 3, p, q)`` each and ``(T',)``, what
+    :func:`pointwise_speeds2` evaluates the metric at (schemes as there)."""
     n_times = a1.shape[-4]
     t = n_times - 1
     if scheme in ("forward", "midpoint"):
@@ -125,6 +116,23 @@ def pointwise_speeds2(
         base1, base2, v1, v2 = a1, a2, central(a1), central(a2)
         weights = jnp.full((n_times,), 1.0 / t, dtype=a1.dtype)
         weights = weights.at[0].mul(0.5).at[-1].mul(0.5)
+    return base1, base2, v1, v2, weights
+
+
+def pointwise_speeds2(
+    metric: SplitMetric, a1: Array, a2: Array, scheme: str
+) -> tuple[Array, Array]:
+    """G_b(v, v) of each step at each point, ``(..., T', p, q)``, and the time weights.
+
+    ``a1, a2 (..., N, 3, m-2, n-1)`` are the columns of df_k (see ``interior_frame``);
+    the differential is linear, so d(f_{k+1} - f_k) = df_{k+1} - df_k.
+    forward: v_k = T (f_{k+1} - f_k) at f_k, k = 0..T-1, weights 1/T.
+    central: v_k = T (f_{k+1} - f_{k-1}) / 2 at interior k, one-sided at the two ends,
+    trapezoid weights (1/2, 1, ..., 1, 1/2) / T: symmetric under reversing the path.
+    midpoint: v_k = T (f_{k+1} - f_k) at (f_k + f_{k+1}) / 2, weights 1/T: the midpoint
+    rule for the energy of the piecewise-linear path through the frames.
+    """
+    base1, base2, v1, v2, weights = step_frames(a1, a2, scheme)
     return speed_density(metric, base1, base2, v1, v2), weights
 
 

@@ -101,7 +101,8 @@ class ShapeGeodesicResult(NamedTuple):
         converged: ``()`` the final geodesic solve converged (a minimum, not a saddle, when
             saddle_checks >= 1) and the last round changed the
             energy by at most the rounds' stop (``ShapeOptions.round_stop``: rounds_tol,
-            else outer_tol; times E + that tolerance E_0) (always true when outer_steps=0
+            else outer_tol; times E + that tolerance E_0), or its change and the one before,
+            continued geometrically, leave at most that (always true when outer_steps=0
             asks for no rounds) or was refused, and that round's step did not have to shrink
             to stay resolved.
         result: an ``elastic_jax.RESULTS`` code: the final solve's failure if it failed, else

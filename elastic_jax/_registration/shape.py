@@ -76,7 +76,8 @@ def shape_geodesic(
        grid point and keeps the area the grid can resolve (:ref:`math §9 <math-9>`); rounds
        never raise the energy and stop when one changes it by at most rounds_tol
        (outer_tol on one working grid, ``max(outer_tol, rtol / 5)`` on the levels), or
-       after outer_steps.
+       when the last two rounds' changes, continued geometrically, leave at most that,
+       or after outer_steps.
        Rounds whose last step had to shrink stopped at that edge, not at a minimum:
        ``RESULTS.resolution_limited``, not converged.
     4. The final geodesic, its status, and the refinement check (:class:`Refinement`).

@@ -27,6 +27,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike
 
 from .._geometry.energy import pointwise_speeds2
@@ -135,6 +136,20 @@ def chosen_cells(
     return Cells(rows, cols, points, east, south, sin_phi, tuple(end))
 
 
+def cell_corners(cells: Cells, m: int, n: int, dtype: DTypeLike) -> tuple[Array, Array]:
+    """The four corners of each of ``cells`` on the m x n quadrature grid: their flat
+    indices into its interior ``(k, 4)`` and the node rule's trapezoid share of each
+    ``(k, 4)`` (what :func:`stretch_correction` takes back from the nodes)."""
+    rows, cols = cells.rows, cells.cols
+    dphi, dtheta = np.pi / (m - 1), 2.0 * np.pi / (n - 1)
+    right = (cols + 1) % (n - 1)
+    corner_rows = jnp.stack([rows, rows + 1, rows, rows + 1], axis=-1)
+    corner_cols = jnp.stack([cols, cols, right, right], axis=-1)
+    flat = corner_rows * (n - 1) + corner_cols
+    shares = jnp.sin((corner_rows + 1).astype(dtype) * dphi) * dphi * dtheta / 4.0
+    return flat, shares
+
+
 def cell_frames(
     source1: ArrayLike,
     read: str,
@@ -152,7 +167,6 @@ def cell_frames(
     (arguments as there)."""
     m, n = frames[0].shape[-2] + 2, frames[0].shape[-1] + 1
     dtype = gamma.dtype
-    rows, cols = cells.rows, cells.cols
     dphi, dtheta = np.pi / (m - 1), 2.0 * np.pi / (n - 1)
     through = _through(interpolation, read)
     source = spline_coefficients(gamma) if interpolation == "spline" else gamma
@@ -165,10 +179,7 @@ def cell_frames(
     sub = [a[None] + t * (b - a)[None] for a, b in zip(start_frame, end_frame, strict=True)]
 
     # The four corners of every cell in one gather per frame (its transpose one scatter).
-    right = (cols + 1) % (n - 1)
-    corner_rows = jnp.stack([rows, rows + 1, rows, rows + 1], axis=-1)
-    corner_cols = jnp.stack([cols, cols, right, right], axis=-1)
-    flat = corner_rows * (n - 1) + corner_cols
+    flat, corner_weights = cell_corners(cells, m, n, dtype)
     at_corners = [a.reshape(*a.shape[:2], -1)[:, :, flat] for a in frames]
     u, v = (jnp.asarray(x, dtype) for x in _sub_offsets(subdivision))
     bilinear = jnp.stack([(1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v], axis=-1)
@@ -180,7 +191,6 @@ def cell_frames(
         departure = a[1:-1] - (a[:1] + t[1:-1] * (a[-1:] - a[:1]))
         sub[axis] = sub[axis].at[1:-1].add(jnp.einsum("tikc,sc->tiks", departure, bilinear))
     sub_weights = cells.sin_phi * dphi * dtheta / subdivision**2
-    corner_weights = jnp.sin((corner_rows + 1).astype(dtype) * dphi) * dphi * dtheta / 4.0
     return sub, sub_weights, at_corners, corner_weights, flat
 
 
