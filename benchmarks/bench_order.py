@@ -57,7 +57,7 @@ may leave its basin); the values in one basin show the discretization's order al
 One JSON record per level and per pair, then a summary per pair (the level changes and
 the observed orders log2(change_(L-1) / change_L)). ``--interpolation`` is passed to
 ShapeOptions, and ``--floor`` changes the registration's resolution floor (the module
-constant ``_RESOLUTION_FACTOR``, 5) for a diagnostic run. ``--path-only`` re-solves the
+constant ``RESOLUTION_FACTOR``, 5) for a diagnostic run. ``--path-only`` re-solves the
 path on the levels up to ``--path-only-up-to`` (default 49 x 97: on 193 x 385 one path
 solve takes minutes).
 
@@ -91,10 +91,13 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
-from elastic_jax._geodesics.solvers import default_tol  # noqa: E402
+from elastic_jax._geometry import bases as _bases  # noqa: E402
+from elastic_jax._geometry.bases import make_bases  # noqa: E402
+from elastic_jax._geometry.composition import compose  # noqa: E402
 from elastic_jax._geometry.differential import area_element, interior_frame  # noqa: E402
 from elastic_jax._geometry.energy import speed_density  # noqa: E402
 from elastic_jax._geometry.grid import interior_weights_np, sphere_points  # noqa: E402
+from elastic_jax._geometry.numerics import default_tol  # noqa: E402
 from elastic_jax._geometry.reparam import jacobian_determinant_unchecked  # noqa: E402
 from elastic_jax._registration import levels as _levels  # noqa: E402
 from elastic_jax._registration import one_grid as _one_grid  # noqa: E402
@@ -210,13 +213,13 @@ def evaluation(f1, f2, result, grid, options) -> Evaluation:
         quadrature=1,
         stretch_quadrature=0.0,
     )
-    bases = _problem.make_bases(*grid, opts, f1.dtype)
+    bases = make_bases(*grid, opts, f1.dtype)
     prob = _problem.make_problem(
         METRIC, jnp.asarray(f1), jnp.asarray(f2), bases, True, opts.interpolation
     )
     gamma = jnp.asarray(result.gamma)
     if gamma.shape[-2:] != tuple(grid):
-        gamma = _problem.compose(gamma, sphere_points(*grid, gamma.dtype), opts.interpolation)
+        gamma = compose(gamma, sphere_points(*grid, gamma.dtype), opts.interpolation)
     return Evaluation(prob, opts, gamma)
 
 
@@ -352,7 +355,7 @@ def main() -> None:
     parser.add_argument("--quadrature", type=int, default=None)
     args = parser.parse_args()
     if args.floor is not None:
-        _problem._RESOLUTION_FACTOR = args.floor
+        _bases.RESOLUTION_FACTOR = args.floor
     levels = tuple(tuple(int(v) for v in g.split("x")) for g in args.levels.split(","))
     factors = [int(k) for k in args.factors.split(",")]
     try:
@@ -375,7 +378,7 @@ def main() -> None:
         "balanced": args.balanced,
         "turn_degrees": args.turn,
         "fourier": args.fourier,
-        "floor": args.floor if args.floor is not None else _problem._RESOLUTION_FACTOR,
+        "floor": args.floor if args.floor is not None else _bases.RESOLUTION_FACTOR,
         "stretch_quadrature": options.level_stretch,  # what the levels integrated by
         "stretch_subdivision": args.subdivision,
         "quadrature": options.level_quadrature,  # what the levels integrated by

@@ -66,11 +66,10 @@ import numpy as np  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
 from elastic_jax import shapes  # noqa: E402
-from elastic_jax._geodesics.solvers import default_tol  # noqa: E402
-from elastic_jax._geometry.numerics import constant  # noqa: E402
+from elastic_jax._geometry.bases import make_bases  # noqa: E402
+from elastic_jax._geometry.numerics import constant, default_tol  # noqa: E402
 from elastic_jax._geometry.units import in_units  # noqa: E402
 from elastic_jax._registration import phases as _phases  # noqa: E402
-from elastic_jax._registration.problem import make_bases  # noqa: E402
 
 from _common import emit, environment, shape  # noqa: E402
 

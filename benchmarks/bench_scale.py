@@ -262,11 +262,11 @@ print(json.dumps({{"distance": d, "rss_mb": rss_mb()}}))
 
 COMPILE = r"""
 import re
-from elastic_jax._geodesics.solvers import default_tol
+from elastic_jax._geometry.numerics import default_tol
 from elastic_jax._geometry.numerics import constant
 from elastic_jax._geometry.units import in_units
 from elastic_jax._registration import phases as _phases
-from elastic_jax._registration.problem import make_bases
+from elastic_jax._geometry.bases import make_bases
 m, n = {grid}
 f1, f2 = cats(m, n)
 cfg = ej.ShapeOptions(degree={degree}, vf_degree={vf_degree}, n_times={n_times})

@@ -264,8 +264,8 @@ def test_the_shape_solve_phases_are_rebuilt_with_their_own_structures():
     """The skeletons that rebuild an exported phase's result have the structure the phase
     returns (leaf count and node types: a mismatch would scramble the fields)."""
     import elastic_jax as ej
+    from elastic_jax._geometry.bases import make_bases
     from elastic_jax._registration import phases as _phases
-    from elastic_jax._registration.problem import make_bases
 
     f1 = ej.sphere_points(7, 13)
     cfg = ej.ShapeOptions(degree=2, vf_degree=2, n_times=3, tol=1e-6, outer_steps=1, rtol=None)
@@ -299,8 +299,8 @@ def test_the_solve_in_phases_is_the_solve_in_one_program():
 
     import elastic_jax as ej
     from elastic_jax import shapes
+    from elastic_jax._geometry.bases import make_bases
     from elastic_jax._registration import phases as _phases
-    from elastic_jax._registration.problem import make_bases
     from elastic_jax._runtime import cache as _cache
 
     m, n = 9, 17
@@ -343,9 +343,9 @@ def test_around_the_solve_a_first_call_compiles_one_program_on_each_side(monkeyp
 
     import elastic_jax as ej
     from elastic_jax import shapes
+    from elastic_jax._geometry.bases import make_bases
     from elastic_jax._registration import one_grid as _one_grid
     from elastic_jax._registration import phases as _phases
-    from elastic_jax._registration.problem import make_bases
 
     m, n = 9, 15  # a grid no other test uses: nothing is compiled for it yet
     f1 = np.asarray(shapes.sample(shapes.bumpy, m, n))
@@ -499,8 +499,8 @@ def test_the_phases_compiled_concurrently_are_the_jitted_phases():
 
     import elastic_jax as ej
     from elastic_jax import shapes
+    from elastic_jax._geometry.bases import make_bases
     from elastic_jax._registration import phases as _phases
-    from elastic_jax._registration.problem import make_bases
     from elastic_jax._runtime.cache import CompileCounter
 
     # The one-grid warmup test's options (its programs, when that ran first).

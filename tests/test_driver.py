@@ -1,7 +1,7 @@
-"""One driver for the collection jobs (issue 53, item 2): Karcher means, distance matrices
-and metric fits are iterations (init / step / terminate) run by one loop, ``run``, which
-owns the checkpoint, the progress reports, the pool and the warning; the six keywords of
-how a job runs are one record, ``JobOptions``.
+"""One driver for the collection jobs: Karcher means, distance matrices and metric fits
+are iterations (init / step / terminate) run by one loop, ``run``, which owns the pool,
+the checkpoint, the progress reports, the step limit, the non-finite stop and the
+warning; the six keywords of how a job runs are one record, ``JobOptions``.
 
 The driver is tested here on a job of its own (a counter, no solves), so that what the
 loop promises is checked apart from any solver: a kill between two steps loses nothing
@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 import elastic_jax as ej
-from elastic_jax._statistics.driver import run
+from elastic_jax._statistics.driver import Job, run
 
 PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "elastic_jax"
 JOB_KEYWORDS = {"batch_size", "strategy", "checkpoint", "resume", "progress", "client"}
@@ -37,15 +37,20 @@ class _Record(NamedTuple):
     total: int
     converged: np.ndarray
     steps: int
+    result: object
 
 
 class _Counter(NamedTuple):
-    """Adds 1, 2, 3, ... until the sum reaches ``goal`` or ``max_steps`` steps ran."""
+    """Adds 1, 2, 3, ... until the sum reaches ``goal`` (the driver stops it at its
+    ``max_steps``); its value turns NaN once the sum passes ``poison``."""
 
     goal: int
-    max_steps: int
     fingerprint: str = "counter"
     pool: object = None
+    poison: float = np.inf
+
+    def pool_inputs(self):
+        return ()
 
     def restore(self, saved):
         return (int(saved["total"]), int(saved["steps"]))
@@ -57,11 +62,14 @@ class _Counter(NamedTuple):
         total, steps = state
         return (total + steps + 1, steps + 1), True
 
+    def steps(self, state):
+        return state[1]
+
+    def value(self, state):
+        return np.nan if state[0] > self.poison else float(state[0])
+
     def terminate(self, state):
-        total, steps = state
-        if total >= self.goal:
-            return "successful"
-        return "nonlinear_max_steps_reached" if steps >= self.max_steps else None
+        return ej.RESULTS.successful if state[0] >= self.goal else None
 
     def arrays(self, state):
         return {"total": state[0], "steps": state[1]}
@@ -70,7 +78,7 @@ class _Counter(NamedTuple):
         return {"total": state[0], "steps": state[1]}
 
     def result(self, state, code):
-        return _Record(state[0], np.asarray(code == "successful"), state[1])
+        return _Record(state[0], np.asarray(code == ej.RESULTS.successful), state[1], code)
 
     def warning(self, record):
         return f"counter: stopped at {record.total}"
@@ -78,40 +86,62 @@ class _Counter(NamedTuple):
 
 def test_a_killed_job_resumes_from_its_last_report(tmp_path):
     path = tmp_path / "counter.npz"
-    whole = run(_Counter(goal=20, max_steps=10))
+    whole = run(_Counter(goal=20), max_steps=10)
     assert (whole.total, whole.steps) == (21, 6)  # 1 + 2 + ... + 6
+    assert whole.result == ej.RESULTS.successful
 
     def kill_at_three(info):
         if info["steps"] == 3:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        run(_Counter(goal=20, max_steps=10), path, progress=kill_at_three)
+        run(_Counter(goal=20), ej.JobOptions(checkpoint=path, progress=kill_at_three), 10)
     saved = np.load(path)
     # The state the last report told of is on disk: nothing reported is lost.
     assert (int(saved["total"]), int(saved["steps"])) == (6, 3)
     reports = []
-    resumed = run(_Counter(goal=20, max_steps=10), path, resume=True, progress=reports.append)
-    assert resumed == whole
+    options = ej.JobOptions(checkpoint=path, resume=True, progress=reports.append)
+    resumed = run(_Counter(goal=20), options, max_steps=10)
+    assert resumed[:3] == whole[:3] and resumed.result == whole.result
     # A resumed job reports the steps it takes, not the ones restored.
     assert [r["steps"] for r in reports] == [4, 5, 6]
     assert all(r["seconds"] >= 0 for r in reports)
     with pytest.raises(ej.InputError, match="other shapes or settings"):
-        run(_Counter(goal=20, max_steps=10, fingerprint="another"), path, resume=True)
+        run(_Counter(goal=20, fingerprint="another"), ej.JobOptions(checkpoint=path, resume=True))
 
 
 def test_an_unconverged_job_warns_at_the_callers_line():
-    def public():  # the public function's frame: the warning names its caller's line
-        return run(_Counter(goal=100, max_steps=2))
-
+    # The warning names the first line outside the package that led to it: here this
+    # call (a user's call of karcher_mean, past the public wrapper and the job module).
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         line = inspect.currentframe().f_lineno + 1
-        record = public()
+        record = run(_Counter(goal=100), max_steps=2)
     assert (record.total, record.steps, bool(record.converged)) == (3, 2, False)
+    assert ej.RESULTS.name(record.result) == "nonlinear_max_steps_reached"
     assert len(caught) == 1 and issubclass(caught[0].category, ej.ConvergenceWarning)
     assert str(caught[0].message) == "counter: stopped at 3"
     assert (caught[0].filename, caught[0].lineno) == (__file__, line)
+
+
+def test_the_driver_stops_a_non_finite_job_and_refuses_what_is_not_a_job():
+    # 1, 3, 6, 10: the value turns NaN after the fourth step, before the goal (21) and
+    # before the step limit.
+    with pytest.warns(ej.ConvergenceWarning, match="stopped at 10"):
+        record = run(_Counter(goal=20, poison=8), max_steps=10)
+    assert (record.total, record.steps) == (10, 4)
+    assert ej.RESULTS.name(record.result) == "nonfinite"
+    # Without a value that turns, the limit stops it, and before the goal.
+    with pytest.warns(ej.ConvergenceWarning, match="stopped at 6"):
+        assert run(_Counter(goal=20), max_steps=3).steps == 3
+
+    class Partial(NamedTuple):
+        fingerprint: str = "partial"
+        pool: object = None
+
+    assert not isinstance(Partial(), Job) and isinstance(_Counter(goal=1), Job)
+    with pytest.raises(TypeError, match=r"not a Job .*'init'.*'terminate'"):
+        run(Partial())
 
 
 @pytest.mark.parametrize(

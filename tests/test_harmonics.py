@@ -79,8 +79,9 @@ def test_the_diff_steps_separable_sum_is_the_dense_one():
     limit of an odd-sized grid too."""
     import jax
 
+    from elastic_jax._geometry.bases import make_bases
     from elastic_jax._geometry.harmonics import vector_fields_np
-    from elastic_jax._registration.problem import _step_field, make_bases
+    from elastic_jax._registration.problem import _step_field
 
     for m, n, degree in [(7, 13, 2), (12, 25, 5), (25, 49, 8)]:
         bases = make_bases(m, n, ej.ShapeOptions(vf_degree=degree, degree=2), jnp.float64)

@@ -578,8 +578,10 @@ def test_errors():
         ej.distance_matrix(coll, METRIC, job=ej.JobOptions(strategy="threads"))
     with pytest.raises(ValueError, match=r"\(K, 3, m, n\) with K >= 2"):
         ej.karcher_mean(coll[:1], METRIC)
-    with pytest.raises(TypeError, match="options must be a ShapeOptions"):
-        ej.karcher_mean(coll, METRIC, options={"degree": 3})
+    # A wrong options record is an InputError, as in every function that takes one.
+    for function in (ej.karcher_mean, ej.distance_matrix, ej.fit_metric):
+        with pytest.raises(ej.InputError, match=f"{function.__name__}: options must be an"):
+            function(coll, METRIC, options={"degree": 3})
     with pytest.raises(TypeError, match="degree"):
         ej.karcher_mean(coll, METRIC, degree=3)  # inner options travel in `options` only
     with pytest.raises(ValueError, match="vf_degree=30 is too high"):

@@ -1,6 +1,7 @@
 """Inputs on grids of their own and resolved distances by levels of working grids
 (docs/math.md §10)."""
 
+import inspect
 import warnings
 
 import jax.numpy as jnp
@@ -136,11 +137,20 @@ def test_levels_that_run_out_say_so():
     f1 = shapes.sample(shapes.sphere, 13, 25, radius=1.0)
     f2 = shapes.sample(shapes.sphere, 13, 25, radius=2.0)
     options = OPTIONS.replace(rtol=1e-4, levels=((9, 17), (13, 25)))
-    with pytest.warns(ej.ConvergenceWarning, match=r"levels 9 x 17: [\d.]+, 13 x 25"):
+    with pytest.warns(ej.ConvergenceWarning, match=r"levels 9 x 17: [\d.]+, 13 x 25") as caught:
+        line = inspect.currentframe().f_lineno + 1
         res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
+    assert (caught[0].filename, caught[0].lineno) == (__file__, line)
     assert res.result == ej.RESULTS.not_resolved and not bool(res.converged)
     assert float(res.levels.estimate) > 1e-4
     assert "levels ran out" in res.message
+    # The package's own callers solve without the warning, to the same numbers.
+    from elastic_jax._registration.shape import solve_shapes
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        quiet = solve_shapes(f1, f2, METRIC, "rigid", options)
+    assert quiet.result == res.result and float(quiet.distance) == float(res.distance)
 
 
 def test_levels_check_a_start_before_solving():
@@ -230,8 +240,9 @@ def test_a_level_continues_the_registration_and_path_of_the_one_below():
     same spherical harmonics on every grid), with no new start search or coarse rounds.
     Its first energy is then that path's energy on the finer grid, computed here
     independently from the coarser level's result; its rounds only lower it."""
+    from elastic_jax._geometry.bases import make_bases
     from elastic_jax._geometry.units import in_units
-    from elastic_jax._registration.problem import make_bases, make_problem, path_energy_at
+    from elastic_jax._registration.problem import make_problem, path_energy_at
     from elastic_jax._registration.starts import given_start
 
     f1 = shapes.sample(shapes.bumpy, 13, 25)

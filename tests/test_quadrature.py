@@ -8,6 +8,8 @@ import pytest
 
 import elastic_jax as ej
 from elastic_jax import shapes
+from elastic_jax._geometry.bases import make_bases
+from elastic_jax._geometry.composition import compose
 from elastic_jax._geometry.reparam import moebius
 from elastic_jax._registration import problem as P
 
@@ -18,7 +20,7 @@ METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 
 def _problem(f1, f2, grid, quadrature):
     options = ej.ShapeOptions(grid=grid, rtol=None, quadrature=quadrature)
-    bases = P.make_bases(*grid, options, f1.dtype)
+    bases = make_bases(*grid, options, f1.dtype)
     prob = P.make_problem(METRIC, f1, f2, bases, rigid=False, interpolation=options.interpolation)
     return prob, options
 
@@ -31,7 +33,7 @@ def _energy(f1, f2, grid, quadrature, gamma=None, coefficients=None):
     if gamma is None:
         gamma = moebius(prob.e1, jnp.asarray([0.55, 0.3, 0.1]))
     else:
-        gamma = P.compose(P.gamma_source(options, gamma), prob.e1, "coefficients")
+        gamma = compose(P.gamma_source(options, gamma), prob.e1, "coefficients")
     if coefficients is None:
         coefficients = P.zero_coefficients(prob, options)
     energy = P.path_energy_at(prob, options, gamma, jnp.eye(3), coefficients)

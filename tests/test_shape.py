@@ -7,9 +7,9 @@ import pytest
 
 import elastic_jax as ej
 from elastic_jax import shapes
+from elastic_jax._geometry.bases import make_bases, resolution_np
+from elastic_jax._geometry.composition import compose as _compose
 from elastic_jax._geometry.grid import interior_weights
-from elastic_jax._registration.problem import _resolution_np
-from elastic_jax._registration.problem import compose as _compose
 
 from .conftest import assert_area_bound, load_shape
 
@@ -194,14 +194,14 @@ def test_self_recovery_on_cat1(phi):
 @pytest.mark.slow
 def test_a_reparametrization_the_grid_cannot_resolve_is_not_called_converged():
     # docs/math.md §9: d(f, f o phi) = 0. At 13 x 25 the grid resolves Moebius maps up to |a| =
-    # 0.65 (_resolution_np); past that the registration stops at the area floor with the
+    # 0.65 (resolution_np); past that the registration stops at the area floor with the
     # distance far from 0, and must say so instead of reporting a converged minimum. The
     # inputs are sampled at 49 x 97, finer than the map's stretch (math §10): sampled at
     # 13 x 25 the map's input is a coarser surface, which the chain rule sees (5.7 % of
     # the parametrized distance; 0.61 % from the finer samples).
     m, n = 13, 25
     options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5, grid=(m, n))
-    floor, max_boost = _resolution_np(m, n)
+    floor, max_boost = resolution_np(m, n)
     f = shapes.sample(shapes.bumpy, 49, 97)
     within = shapes.sample(shapes.bumpy, 49, 97, moebius=0.5 * DIRECTION)
     res = ej.shape_geodesic(f, within, METRIC, options=options)
@@ -342,7 +342,7 @@ def test_batched_candidates_equal_the_scanned_ones():
     metric = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
     cfg = ej.ShapeOptions(degree=3, vf_degree=3, n_times=4, grid=(m, n), rtol=None)
     cfg = cfg.replace(tol=1e-6)
-    bases = problem.make_bases(m, n, cfg, jnp.float64)
+    bases = make_bases(m, n, cfg, jnp.float64)
     starts = jax.jit(starts_phase, static_argnums=(4, 5))(metric, f1, f2, bases, cfg, True)
     assert starts[0].shape[0] == cfg.init_candidates  # candidates to batch
     prob = problem.make_problem(metric, f1, f2, bases, True, cfg.interpolation)
@@ -372,7 +372,7 @@ def test_errors(bumpy_pair):
         ej.shape_geodesic(f1, f2, METRIC, options=OPTIONS.replace(grid=(9, 17)))
     with pytest.raises(TypeError, match="no field"):
         ej.shape_geodesic(f1, f2, METRIC, degrees=3)
-    with pytest.raises(TypeError, match="options must be a ShapeOptions"):
+    with pytest.raises(ej.InputError, match="options must be an elastic_jax.ShapeOptions"):
         ej.shape_geodesic(f1, f2, METRIC, options={"degree": 3})
     with pytest.raises(ValueError, match="progress must be a callable"):
         ej.shape_geodesic(f1, f2, METRIC, progress="stderr")
@@ -529,8 +529,8 @@ def test_the_chain_rule_differential_converges_where_grid_differences_cut_corner
     # sampled on its own grid. Measured errors (chain / grid differences): 13 x 25
     # 4.9 % / 9.8 %, 25 x 49 1.25 % / 3.1 %, 49 x 97 0.32 % / 0.83 %: both second order,
     # the chords 2-2.6 times farther off.
+    from elastic_jax._geometry.composition import chain_frame as _chain_frame
     from elastic_jax._geometry.differential import interior_frame
-    from elastic_jax._registration.problem import _chain_frame
 
     # With the splines of f and gamma (interpolation="spline"): 0.56 %, 0.028 %, 0.0022 %,
     # fourth order.
@@ -742,7 +742,7 @@ def test_a_registration_above_the_pair_as_given_is_replaced_by_it():
     of the parameter sphere between identical surfaces): the result is the parametrized
     geodesic (distance 0), with the identity registration and RESULTS.not_registered."""
     from elastic_jax._registration.final import end_phase, geodesics_phase
-    from elastic_jax._registration.problem import State, make_bases
+    from elastic_jax._registration.problem import State
     from elastic_jax._registration.rounds import Rounds
 
     m, n = 13, 25
@@ -772,7 +772,7 @@ def test_a_distance_below_the_area_bound_is_not_reported_as_a_number():
     converged, and shape_finish reports a NaN distance, never the number."""
     from elastic_jax._geometry.units import in_units
     from elastic_jax._registration.final import end_phase, geodesics_phase, shape_finish
-    from elastic_jax._registration.problem import State, make_bases
+    from elastic_jax._registration.problem import State
     from elastic_jax._registration.rounds import Rounds
 
     m, n = 13, 25

@@ -11,7 +11,6 @@ plus the energy kernel, and the energy of the returned path equals path_energy e
 from __future__ import annotations
 
 import functools
-import warnings
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -30,7 +29,7 @@ from .._checks import (
     is_concrete,
     real_array,
 )
-from .._errors import ConvergenceWarning, InputError
+from .._errors import ConvergenceWarning, InputError, warn_user
 from .._geometry.bases import (
     basis_np,
     frames_between,
@@ -43,7 +42,7 @@ from .._geometry.grid import integrate_interior
 from .._geometry.harmonics import check_degree
 from .._geometry.interp import resample
 from .._geometry.metric import SplitMetric, split_bilinear
-from .._geometry.numerics import constant, safe_sqrt, sqrt_inverse_pair
+from .._geometry.numerics import constant, default_tol, safe_sqrt, sqrt_inverse_pair
 from .._geometry.units import Units, in_units
 from .._geometry.validation import check_pair
 from .._options import (
@@ -56,7 +55,7 @@ from .._options import (
 )
 from .._results import RESULTS, status_record
 from .._runtime.cache import solver_jit
-from .solvers import Minimum, default_tol, lanczos_smallest, minimize
+from .solvers import Minimum, lanczos_smallest, minimize
 
 
 @status_record
@@ -491,6 +490,51 @@ def geodesic(
         >>> bool(res.energy < res.straight_energy)
         True
     """
+    result, failure = _geodesic_and_failure(
+        f1,
+        f2,
+        metric,
+        degree=degree,
+        n_times=n_times,
+        solver=solver,
+        max_steps=max_steps,
+        tol=tol,
+        init=init,
+        scheme=scheme,
+        schedule=schedule,
+        saddle_checks=saddle_checks,
+        options=options,
+    )
+    if failure is not None:
+        warn_user(failure, ConvergenceWarning)
+    return result
+
+
+def solve_geodesic(f1: ArrayLike, f2: ArrayLike, metric: SplitMetric, **keywords) -> GeodesicResult:
+    """:func:`geodesic` (the same keywords, checks and result) without its
+    ConvergenceWarning: the package's own callers (collections, logs, coarse schedule
+    levels) report each solve's status in their records instead."""
+    return _geodesic_and_failure(f1, f2, metric, **keywords)[0]
+
+
+def _geodesic_and_failure(
+    f1: Float[ArrayLike, "3 m n"],
+    f2: Float[ArrayLike, "3 m n"],
+    metric: SplitMetric,
+    *,
+    degree: int | FromOptions = FROM_OPTIONS,
+    n_times: int | FromOptions = FROM_OPTIONS,
+    solver: str | FromOptions = FROM_OPTIONS,
+    max_steps: int | FromOptions = FROM_OPTIONS,
+    tol: float | None | FromOptions = FROM_OPTIONS,
+    init: Float[ArrayLike, "K L"] | None = None,
+    scheme: str | FromOptions = FROM_OPTIONS,
+    schedule: Sequence[tuple[int, ...]] = (),
+    saddle_checks: int | None | FromOptions = FROM_OPTIONS,
+    options: ShapeOptions | None = None,
+) -> tuple[GeodesicResult, str | None]:
+    """:func:`geodesic`'s solve, and the ConvergenceWarning's text when it did not
+    converge (None when it did, or when the result is traced)."""
     settings = settings_from(
         "geodesic",
         options,
@@ -519,7 +563,7 @@ def geodesic(
         init = np.zeros((n_times - 2, size), f1.dtype)
         for level_degree, level_times, *grid in levels:
             h1, h2 = (g1, g2) if not grid else (resample(g, *grid) for g in (g1, g2))
-            coarse = geodesic(
+            coarse = solve_geodesic(
                 h1,
                 h2,
                 metric,
@@ -566,17 +610,14 @@ def geodesic(
     result = _finish(
         metric, g1, g2, f1, f2, solved, units, values, dframe, n_times=n_times, scheme=scheme
     )
+    failure = None
     if is_concrete(result.converged, result.num_steps) and not bool(result.converged):
         if RESULTS.name(result.result) == "saddle_point":
             reason = f"and {saddle_checks} saddle escapes: {result.message}"
         else:
             reason = f"without meeting tol={tol:g}: {result.message}"
-        warnings.warn(
-            f"geodesic: {solver} stopped after {int(result.num_steps)} steps {reason}",
-            ConvergenceWarning,
-            stacklevel=2,
-        )
-    return result
+        failure = f"geodesic: {solver} stopped after {int(result.num_steps)} steps {reason}"
+    return result, failure
 
 
 @functools.partial(jax.jit, static_argnames=("n_times", "scheme"))

@@ -21,7 +21,6 @@ odd-even mode, and shooting refuses it.
 from __future__ import annotations
 
 import functools
-import warnings
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -31,7 +30,7 @@ from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_choice, check_finite, check_int, check_positive, is_concrete, real_array
-from .._errors import ConvergenceWarning, InputError
+from .._errors import ConvergenceWarning, InputError, warn_user
 from .._geometry.bases import basis_np
 from .._geometry.differential import interior_frame
 from .._geometry.energy import frame_energy, frame_speeds2
@@ -451,7 +450,7 @@ def shoot(
         num_steps=jnp.sum(newton_steps),
     )
     if is_concrete(converged) and not bool(converged):
-        warnings.warn(_failure_message(result, tol, max_newton), ConvergenceWarning, stacklevel=2)
+        warn_user(_failure_message(result, tol, max_newton), ConvergenceWarning)
     return result
 
 

@@ -8,7 +8,6 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import optimistix as optx
-from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, PyTree
 
 from .._checks import check_choice
@@ -282,12 +281,3 @@ def lanczos_smallest(
     theta, y = jnp.linalg.eigh(tridiagonal)
     vector = basis[:k].T @ y[:, 0]
     return theta[0], (vector / jnp.linalg.norm(vector)).reshape(shape)
-
-
-def default_tol(dtype: DTypeLike) -> float:
-    """The inner solves' default tolerance on the scaled gradient's 2-norm: 1e-6 in
-    float64; 3e-3 in float32, whose rounding floor there is 7e-4 to 8e-4 (sphere-like pair
-    at degree 7, N = 13 on 25 x 49 and 50 x 99; the floor grows like the square root of
-    the number of coefficients). With Hessian ~2 I the energy is then within tol^2 / 4
-    of the minimum, relative: 2e-6 in float32."""
-    return 1e-6 if jnp.dtype(dtype) == jnp.float64 else 3e-3

@@ -14,7 +14,6 @@ centred (area-weighted centroid at the origin, :func:`elastic_jax.center`).
 from __future__ import annotations
 
 import functools
-import warnings
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -32,7 +31,7 @@ from .._checks import (
     is_concrete,
     real_array,
 )
-from .._errors import ConvergenceWarning, InputError
+from .._errors import ConvergenceWarning, InputError, warn_user
 from .._geometry.bases import basis_np
 from .._geometry.differential import cross, dot, interior_frame
 from .._geometry.grid import integrate_interior, interior_weights_np, sphere_points_np
@@ -309,10 +308,9 @@ def _check_srnf(q) -> Array:
 def _warn_unconverged(where: str, solver: str, tol: float, converged, message) -> None:
     # message is a callable: the result code can be read only outside jit and vmap.
     if is_concrete(converged) and not bool(np.all(np.asarray(converged))):
-        warnings.warn(
+        warn_user(
             f"{where}: {solver} stopped without meeting tol={tol:g}: {message()}",
             ConvergenceWarning,
-            stacklevel=3,
         )
 
 

@@ -34,7 +34,6 @@ direction and the basis) is lost; the norm does not show it.
 
 from __future__ import annotations
 
-import warnings
 from typing import NamedTuple
 
 import jax
@@ -42,7 +41,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._checks import check_choice, check_int, check_positive, is_concrete
-from .._errors import ConvergenceWarning, InputError
+from .._errors import ConvergenceWarning, InputError, warn_user
 from .._geometry.bases import basis_np
 from .._geometry.differential import interior_frame
 from .._geometry.energy import as_path
@@ -414,12 +413,11 @@ def parallel_transport(
     vectors, norms = vectors * s, norms * s
     converged = n_valid == path.shape[0]
     if is_concrete(converged) and not bool(converged):
-        warnings.warn(
+        warn_user(
             f"parallel_transport: rung {int(n_valid)} of {path.shape[0] - 1} did not solve "
             f"(Newton: {max_newton} iterations, step still {float(jnp.nanmax(residuals)):.3g}, "
             f"tol={tol:g}); its vector and the later ones are NaN",
             ConvergenceWarning,
-            stacklevel=2,
         )
     return TransportResult(
         vector=vectors[-1],

@@ -8,9 +8,18 @@ from jaxtyping import Array
 
 from .._checks import check_grid_shape, extents, grid_array, is_concrete, item_suffix
 from .._errors import InputError
+from .._options import ShapeOptions
 from .differential import area_element, interior_frame
+from .harmonics import check_degree
 
-__all__ = ["as_surface", "check_grid_shape", "check_pair", "validate_surface", "well_formed"]
+__all__ = [
+    "as_surface",
+    "check_grid_options",
+    "check_grid_shape",
+    "check_pair",
+    "validate_surface",
+    "well_formed",
+]
 
 
 def as_surface(f, name: str, *, check_immersion: bool = True) -> jax.Array:
@@ -123,3 +132,14 @@ def check_pair(f1, f2, same_grid: bool = True) -> tuple[Array, Array]:
             f"{f1.shape} {f1.dtype} and {f2.shape} {f2.dtype}"
         )
     return f1, f2
+
+
+def check_grid_options(options: ShapeOptions, m: int, n: int) -> None:
+    """The grid-dependent limits of ``options`` on an m x n grid: ``degree`` and
+    ``vf_degree`` each at most :func:`~elastic_jax._geometry.harmonics.max_degree` (m, n).
+
+    Raises:
+        InputError: naming the option, its value and the grid's limit.
+    """
+    check_degree(options.degree, m, n)
+    check_degree(options.vf_degree, m, n, "vf_degree")

@@ -6,7 +6,6 @@ frame, the grid's triangulation, and the way from a grid back to the input's ver
 from __future__ import annotations
 
 import operator
-import warnings
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
@@ -15,7 +14,7 @@ import numpy as np
 import trimesh
 
 from .._checks import check_bool, check_choice, check_finite, check_grid_shape
-from .._errors import FrameWarning, InputError
+from .._errors import FrameWarning, InputError, warn_user
 from .._geometry.grid import distinct_points, from_distinct, grid_directions
 from .._geometry.reparam import METHODS as INTERPOLATIONS
 from .._geometry.reparam import reparametrize_unchecked
@@ -169,12 +168,11 @@ def _grid_frame(vertices: np.ndarray, faces: np.ndarray, frame) -> MeshFrame:
     if frame is None:
         if not found.undetermined:
             return found
-        warnings.warn(
+        warn_user(
             f"the mesh's principal frame is undetermined ({found.undetermined}); the grid "
             "uses the input's coordinate axes, so it does not follow rigid motions of this "
             "mesh (a symmetric mesh: pass frame='input' to choose this, or a rotation)",
             FrameWarning,
-            stacklevel=3,
         )
         return found._replace(axes=np.eye(3))
     axes = np.asarray(frame, dtype=np.float64)
@@ -279,10 +277,9 @@ def spherical_parametrization(
     """
     if max_iter is not None:
         # Every step limit of the package is called max_steps.
-        warnings.warn(
+        warn_user(
             "spherical_parametrization: max_iter is now called max_steps",
             DeprecationWarning,
-            stacklevel=2,
         )
         max_steps = max_iter
     mesh = as_trimesh(mesh)

@@ -39,7 +39,6 @@ a rigidly moved or scaled copy gets the same one.
 from __future__ import annotations
 
 import time
-import warnings
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -52,7 +51,7 @@ import scipy.sparse.linalg
 import scipy.spatial
 
 from .._checks import check_grid_shape, check_int, check_positive
-from .._errors import ConvergenceWarning, InputError
+from .._errors import ConvergenceWarning, InputError, warn_user
 from .._geometry.grid import from_distinct, grid_directions
 from .._results import RESULTS, status_record
 from .._runtime.cache import cached
@@ -663,12 +662,11 @@ def parametrize(
             flipped,
         )
     if not converged:
-        warnings.warn(
+        warn_user(
             f"spherical parametrization: not converged after max_steps={max_steps} iterations "
             f"(energy {final:.6g}, still falling by more than rtol={rtol:g} per round of "
             f"{_ROUND}); the map has no folds but is not the energy's minimizer: raise max_steps",
             ConvergenceWarning,
-            stacklevel=3,
         )
     return _record(vertices, faces, sphere, final, iterations, converged, start)
 

@@ -10,6 +10,7 @@ from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike
 
 from .._geodesics.solvers import minimize
+from .._geometry.composition import kabsch
 from .._geometry.metric import SplitMetric
 from .._options import ShapeOptions
 from .problem import (
@@ -18,7 +19,6 @@ from .problem import (
     State,
     gamma_source,
     iterate,
-    kabsch,
     make_problem,
     matching_criterion,
     path_energy_at,

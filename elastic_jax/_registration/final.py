@@ -13,6 +13,7 @@ from jaxtyping import ArrayLike
 
 from .._geodesics.geodesic import solve_path, upsample_coefficients
 from .._geometry.bases import frames_between, path_from_coefficients, perturbed_frames
+from .._geometry.composition import compose, rotate_surface
 from .._geometry.differential import area_element
 from .._geometry.energy import frame_energy
 from .._geometry.grid import integrate_interior, sphere_points
@@ -24,7 +25,6 @@ from .._results import RESULTS
 from .problem import (
     Problem,
     State,
-    compose,
     frame_of,
     geodesic_options,
     identity_frames,
@@ -35,7 +35,6 @@ from .problem import (
     refinement_dframe,
     registered_f1,
     registered_frame,
-    rotate_surface,
     rotated_end_frame,
     scaling_at,
     zero_registration,

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
@@ -17,14 +16,15 @@ from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike
 
 from .._checks import is_concrete
-from .._errors import ConvergenceWarning, InputError
+from .._errors import InputError
 from .._geometry.metric import SplitMetric
 from .._geometry.units import in_units
+from .._geometry.validation import check_grid_options
 from .._options import ShapeOptions
 from .._results import RESULTS
-from .one_grid import check_grid_options, one_grid_solve
+from .one_grid import one_grid_solve
 from .phases import Reporter
-from .records import Levels, ShapeGeodesicResult, warn_unless_converged
+from .records import Levels, ShapeGeodesicResult
 from .starts import given_start
 
 
@@ -234,9 +234,7 @@ def levels_solve(
             )
         return [LevelOutcome(distance, converged, result.parametrized_distance, result)]
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        (track,) = run_levels(1, options.levels, options.rtol, [noise], solve)
+    (track,) = run_levels(1, options.levels, options.rtol, [noise], solve)
     if reporter is not None:
         reporter.level = {}
     result = with_levels(
@@ -248,7 +246,6 @@ def levels_solve(
         noise,
         ascent=track.ascent,
     )
-    warn_unless_converged(result, stacklevel=4)
     return result
 
 

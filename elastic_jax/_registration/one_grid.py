@@ -9,17 +9,16 @@ import jax.numpy as jnp
 from jaxtyping import ArrayLike
 
 from .._checks import is_concrete
-from .._geodesics.solvers import default_tol
-from .._geometry.harmonics import check_degree
+from .._geometry.bases import make_bases
 from .._geometry.metric import SplitMetric
-from .._geometry.numerics import constant
+from .._geometry.numerics import constant, default_tol
 from .._geometry.units import in_units
+from .._geometry.validation import check_grid_options
 from .._options import ShapeOptions
 from .._results import RESULTS
 from .coarse import given_only_starts
 from .final import shape_finish
 from .phases import Reporter, solve_in_phases
-from .problem import make_bases
 from .records import ShapeGeodesicResult
 from .starts import given_start
 
@@ -34,12 +33,6 @@ def working_grid_of(options: ShapeOptions, f1: ArrayLike, f2: ArrayLike) -> tupl
         return options.grid
     grids = [tuple(f.shape[-2:]) for f in (f1, f2)]
     return max(grids, key=lambda grid: grid[0] * grid[1])
-
-
-def check_grid_options(options: ShapeOptions, m: int, n: int) -> None:
-    """The grid-dependent limits of ``options`` (degrees) on an m x n grid."""
-    check_degree(options.degree, m, n)
-    check_degree(options.vf_degree, m, n, "vf_degree")
 
 
 def _grid_setup(f1: ArrayLike, f2: ArrayLike, metric: SplitMetric, options: ShapeOptions):

@@ -17,61 +17,28 @@ from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike
 
 from .._geodesics.geodesic import solve_path, solver_scaling
-from .._geometry.bases import basis_np, frames_between, perturbed_frames
-from .._geometry.differential import area_element, interior_frame
+from .._geometry.bases import Bases, frames_between, perturbed_frames
+from .._geometry.composition import chain_frame, compose, on_grid, rotate_surface
+from .._geometry.differential import interior_frame
 from .._geometry.energy import frame_energy
 from .._geometry.grid import (
     interior_weights,
-    interior_weights_np,
     sphere_points,
-    sphere_points_np,
 )
-from .._geometry.harmonics import harmonics_np, vector_field_tables_np
 from .._geometry.metric import SplitMetric
 from .._geometry.reparam import (
-    directional_derivatives,
     jacobian_determinant_unchecked,
     reparametrize_unchecked,
-    sample_points,
     spline_coefficients,
-    spline_frame,
     spline_upsample,
 )
-from .._geometry.so3 import icosahedral_np, so3_exp_unchecked
+from .._geometry.so3 import so3_exp_unchecked
 from .._geometry.srnf import center_unchecked
 from .._options import ShapeOptions
-from .._runtime.cache import cached
 from .stretch import chosen_cells, stretch_correction
 
 # Shrink factors tried for a reparametrization step, largest first; 0 keeps gamma.
 _STEP_SCALES = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.0)
-
-
-@cached
-def _field_scale_np(m: int, n: int, degree: int) -> np.ndarray:
-    """1 / sqrt(l(l+1)) per vector field: differentials grow like l; this evens the Hessian."""
-    ls = harmonics_np(m, n, degree).degrees[1:]
-    return np.repeat(1.0 / np.sqrt(ls * (ls + 1.0)), 2)
-
-
-class _Bases(NamedTuple):
-    """The arrays a solve needs besides the surfaces (precomputed per grid and degree)."""
-
-    values: Array  # (K, m n) path harmonics
-    dframe: Array  # (K, 2 P) their differentials
-    field_rows: Array  # (2, m, Lbar) the Diff-step vector fields (harmonics.FieldTables)
-    field_select: Array  # (2, Lbar, G)
-    field_trig: Array  # (G, n)
-    field_frames: Array  # (2, 3, m, n)
-    field_poles: Array  # (Lbar, 3, 2, n)
-    field_scale: Array  # (Lbar,)
-    ico: Array  # (60, 3, 3)
-    fine_points: Array  # (3, 2m - 1, 2n - 1) the refinement grid's points
-    fine_dframe: Array  # (K, 2 P') the path harmonics' differentials there (q != 2)
-    quad_points: Array  # (3, M, N) the quadrature's nodes (options.quadrature > 1)
-    quad_dframe: Array  # (K, 2 P'') the path harmonics' differentials there
-    area_floor: Array  # () least grid area a reparametrization may keep (_resolution_np)
-    max_boost: Array  # () largest |a| of a Moebius map the grid resolves
 
 
 def into_ball(b: Array, radius: Array) -> Array:
@@ -83,59 +50,11 @@ def into_ball(b: Array, radius: Array) -> Array:
     return radius * b * jnp.where(small, 1.0 - t2 / 3.0, jnp.tanh(t) / t)
 
 
-# A reparametrization is resolved by the grid when the unit sphere it reparametrizes keeps
-# its discrete area to within this many times the area the grid already loses for the
-# identity (0.71 % at 25 x 49): a Moebius map with |a| = 0.6 needs 2.6-3.2 times, and the
-# bounded boost search below must reach it well inside its bound.
-_RESOLUTION_FACTOR = 5.0
-
-
 # BFGS steps per round of the L2 matching of every start.
 MATCH_STEPS = 30
 
 
-def _grid_area_np(gamma: np.ndarray) -> float:
-    """Discrete area of the unit sphere reparametrized by gamma: the integral of its J."""
-    a1, a2 = interior_frame(gamma)
-    m, n = gamma.shape[-2:]
-    signed = np.sum(np.cross(a2, a1, axis=0) * gamma[:, 1:-1, :-1], axis=0)
-    return float(np.sum(signed * interior_weights_np(m, n)))
-
-
-@cached
-def _resolution_np(m: int, n: int) -> tuple[float, float]:
-    """(area floor, largest resolved Moebius |a|) of the m x n grid.
-
-    Where a reparametrization stretches a region beyond what the grid resolves, finite
-    differences of f o gamma lose area (chords for arcs), and a registration that wants a
-    smaller start surface gains by it: the radius-3 sphere registered to a unit sphere
-    came out at 40 % of the distance before this floor. A gamma may keep no less than
-    (1 - 5 eps_id) of the identity's discrete area, eps_id = 1 - A_grid(e1) / (4 pi); the
-    boost |a| of the initial Moebius search is bounded to where a Moebius map keeps it.
-    """
-    e1 = sphere_points_np(m, n)
-    area_id = _grid_area_np(e1)
-    floor = area_id * (1.0 - _RESOLUTION_FACTOR * (1.0 - area_id / (4.0 * np.pi)))
-    # A direction that no grid symmetry favours; moebius() written out in numpy, because
-    # this runs while callers (karcher_mean) trace their jitted batches.
-    direction = np.array([0.36, 0.48, 0.8]) / np.linalg.norm([0.36, 0.48, 0.8])
-    low, high = 0.0, 0.99
-    for _ in range(30):
-        mid = 0.5 * (low + high)
-        a = mid * direction[:, None, None]
-        d = e1 - a
-        gamma = (1.0 - mid * mid) * d / np.sum(d * d, axis=0) - a
-        low, high = (mid, high) if _grid_area_np(gamma) >= floor else (low, mid)
-    return floor, low
-
-
-def compose(gamma: ArrayLike, step: ArrayLike, interpolation: str):
-    """gamma o step: read gamma's coordinates at the points of step, back onto the sphere."""
-    g = reparametrize_unchecked(gamma, step, method=interpolation)
-    return g / jnp.linalg.norm(g, axis=-3, keepdims=True)
-
-
-def _step_field(y: ArrayLike, bases: _Bases, e1: ArrayLike):
+def _step_field(y: ArrayLike, bases: Bases, e1: ArrayLike):
     """Proj(Id + sum_k y_k s_k v_k) (math §6), s_k = 1 / sqrt(l(l+1)).
 
     The sum in the fields' separable form (harmonics.FieldTables): value and gradient of
@@ -150,29 +69,11 @@ def _step_field(y: ArrayLike, bases: _Bases, e1: ArrayLike):
     return w / jnp.linalg.norm(w, axis=-3, keepdims=True)
 
 
-def rotate_surface(r: ArrayLike, f: ArrayLike):
-    return jnp.einsum("ij,j...->i...", r, f)
-
-
-def kabsch(source: ArrayLike, target: ArrayLike):
-    """The rotation R minimizing the area-weighted sum |R source - target|^2 (centered)."""
-    m, n = target.shape[-2:]
-    weights = area_element(*interior_frame(target)) * interior_weights(m, n, target.dtype)
-    x, y = source[:, 1:-1, :-1], target[:, 1:-1, :-1]
-    total = jnp.sum(weights)
-    x = x - jnp.sum(x * weights[None], axis=(1, 2), keepdims=True) / total
-    y = y - jnp.sum(y * weights[None], axis=(1, 2), keepdims=True) / total
-    h = jnp.einsum("imn,jmn,mn->ij", x, y, weights)
-    u, _, vt = jnp.linalg.svd(h)
-    d = jnp.sign(jnp.linalg.det(vt.T @ u.T))
-    return vt.T @ jnp.diag(jnp.asarray([1.0, 1.0, 1.0], h.dtype).at[2].set(d)) @ u.T
-
-
 def are_resolved(gammas: ArrayLike, floor: ArrayLike):
     """Whether each of ``gammas (..., 3, m, n)`` is a diffeomorphism the grid resolves.
 
     J > 0 at every grid point, and the discrete area of the reparametrized unit sphere
-    (the integral of J) at least ``floor`` (:func:`_resolution_np`).
+    (the integral of J) at least ``floor`` (:func:`~elastic_jax._geometry.bases.resolution_np`).
     """
     jac = jacobian_determinant_unchecked(gammas)
     m, n = gammas.shape[-2:]
@@ -226,7 +127,7 @@ class Problem(NamedTuple):
     f1: Array
     f2: Array
     e1: Array
-    bases: _Bases
+    bases: Bases
     source1: Array
     source2: Array
 
@@ -265,61 +166,13 @@ def stepped_gamma(prob: Problem, options: ShapeOptions, source: ArrayLike, x: Ar
     return compose(source, step, source_method(options.interpolation))
 
 
-@cached
-def _chord_correction_np(m: int, n: int) -> tuple[float, float]:
-    """h / sin(h) per grid direction: central differences of the identity (and of any
-    rotation) are chords of great circles, shorter than its tangents by sin(h) / h."""
-    dtheta, dphi = 2.0 * np.pi / (n - 1), np.pi / (m - 1)
-    return dtheta / np.sin(dtheta), dphi / np.sin(dphi)
-
-
-def _chain_frame(f: ArrayLike, gamma: ArrayLike, interpolation: str, read: str | None = None):
-    """The differential of f o gamma on the interior points by the chain rule (math §2's
-    frame): (df at gamma) applied to gamma's frame.
-
-    df is the exact derivative of f's interpolant (at grid points, for bicubic, the
-    central difference); gamma's frame is its central differences with the chords of a
-    rotation made exact. Central differences of f o gamma itself are chords across
-    gamma(p +- h), which on a real shape cut corners wherever gamma stretches: they lower
-    the energy, and a registration minimizing it learns to under-sample f. ``read`` is
-    how f is read (default ``interpolation``; a Problem's sources: source_method).
-    """
-    read = interpolation if read is None else read
-    m, n = gamma.shape[-2:]
-    points = gamma[:, 1:-1, :-1]
-    if interpolation == "spline":
-        g1, g2 = _spline_frame(gamma)
-    else:
-        g1, g2 = interior_frame(gamma)
-        c1, c2 = _chord_correction_np(m, n)
-        g1, g2 = g1 * c1, g2 * c2
-
-    if read != "bilinear":
-        return directional_derivatives(f, points, (g1, g2), read)
-
-    def along(direction: ArrayLike):
-        return jax.jvp(lambda p: sample_points(f, p, read), (points,), (direction,))[1]
-
-    return along(g1), along(g2)
-
-
-def _spline_frame(gamma: ArrayLike):
-    """gamma's frame on the interior points from the derivative of its cubic spline,
-    projected on the tangent plane at gamma: fourth order, where central differences
-    are second order (f o phi_a at abs(a) = 0.5: 0.03 % against 1.2 % at 25 x 49). At
-    the grid's own points that derivative is a Fourier multiplier (spline_frame): two
-    FFTs, which compile in a fraction of a derivative through the spline's evaluation."""
-    at = gamma[:, 1:-1, :-1]
-    return tuple(v - at * jnp.sum(v * at, axis=0)[None] for v in spline_frame(gamma))
-
-
 def frame_of(f: ArrayLike, gamma: ArrayLike, options: ShapeOptions):
     """The differential of f o gamma on gamma's interior points (options.differential), for a
     Problem's source f (read by source_method)."""
     read = source_method(options.interpolation)
     if options.differential == "grid":
         return interior_frame(reparametrize_unchecked(f, gamma, method=read))
-    return _chain_frame(f, gamma, options.interpolation, read)
+    return chain_frame(f, gamma, options.interpolation, read)
 
 
 def quadrature_gamma(prob: Problem, options: ShapeOptions, gamma: ArrayLike):
@@ -626,18 +479,7 @@ def zero_coefficients(prob: Problem, options: ShapeOptions):
     return jnp.zeros((options.n_times - 2, prob.bases.dframe.shape[0] * 3), prob.f1.dtype)
 
 
-def on_grid(f: ArrayLike, points: ArrayLike, interpolation: str):
-    """f read at a grid's ``points (3, m, n)`` (its interpolant), with the grid's layout
-    made exact: one value per pole row, the seam column equal to the first (math §1);
-    ``f`` itself when it is on that grid already."""
-    if f.shape[-2:] == points.shape[-2:]:
-        return f
-    g = reparametrize_unchecked(f, points, method=interpolation)
-    g = g.at[:, 0, :].set(g[:, 0, :1]).at[:, -1, :].set(g[:, -1, :1])
-    return g.at[:, :, -1].set(g[:, :, 0])
-
-
-def working_grid(bases: _Bases) -> tuple[int, int]:
+def working_grid(bases: Bases) -> tuple[int, int]:
     """The working grid (m, n) of a solve: the grid of its bases."""
     return tuple(bases.field_frames.shape[-2:])
 
@@ -646,7 +488,7 @@ def make_problem(
     metric: SplitMetric,
     f1: ArrayLike,
     f2: ArrayLike,
-    bases: _Bases,
+    bases: Bases,
     rigid: bool,
     interpolation: str = "bicubic",
 ) -> Problem:
@@ -659,37 +501,3 @@ def make_problem(
     if interpolation == "spline":
         f1, f2 = spline_coefficients(f1), spline_coefficients(f2)
     return Problem(metric, w1, w2, e1, bases, f1, f2)
-
-
-def make_bases(m: int, n: int, options: ShapeOptions, dtype: DTypeLike) -> _Bases:
-    values, dframe = basis_np(m, n, options.degree)
-    tables = vector_field_tables_np(m, n, options.vf_degree)
-    fine = (2 * m - 1, 2 * n - 1)
-    q = options.quadrature_factor
-    quad = (q * (m - 1) + 1, q * (n - 1) + 1)
-    if q == 1:
-        quad_points, quad_dframe = np.zeros((3, 1, 1)), np.zeros((1, 1))
-    else:
-        quad_points, quad_dframe = sphere_points_np(*quad), basis_np(*quad, options.degree)[1]
-    # With q = 2 the refinement's grid is the quadrature's: its table is quad_dframe
-    # (refinement_dframe), not held twice (75 MB at 97 x 193, degree 7).
-    held = options.refinement and q != 2
-    fine_dframe = basis_np(*fine, options.degree)[1] if held else np.zeros((1, 1))
-    arrays = _Bases(
-        values=values,
-        dframe=dframe,
-        field_rows=tables.rows,
-        field_select=tables.select,
-        field_trig=tables.trig,
-        field_frames=tables.frames,
-        field_poles=tables.poles,
-        field_scale=_field_scale_np(m, n, options.vf_degree),
-        ico=icosahedral_np(),
-        fine_points=sphere_points_np(*fine),
-        fine_dframe=fine_dframe,
-        quad_points=quad_points,
-        quad_dframe=quad_dframe,
-        area_floor=np.asarray(_resolution_np(m, n)[0]),
-        max_boost=np.asarray(_resolution_np(m, n)[1]),
-    )
-    return _Bases(*(jnp.asarray(a, dtype) for a in arrays))

@@ -4,7 +4,6 @@ path turned back onto the caller's second surface.
 
 from __future__ import annotations
 
-import warnings
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -12,7 +11,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._checks import is_concrete
-from .._errors import ConvergenceWarning
+from .._errors import ConvergenceWarning, warn_user
 from .._results import RESULTS, record_repr, status_record
 
 MODULI = ("diff", "rigid")
@@ -168,7 +167,7 @@ def turned_back(res, end):
     return back + (end - back[-1]).mean(axis=(-2, -1), keepdims=True)[None]
 
 
-def warn_unless_converged(result: ShapeGeodesicResult, stacklevel: int = 3) -> None:
+def warn_unless_converged(result: ShapeGeodesicResult) -> None:
     """ConvergenceWarning for a concrete result that did not converge."""
     if is_concrete(result.converged, result.energy_history, result.rounds) and not bool(
         result.converged
@@ -188,10 +187,9 @@ def warn_unless_converged(result: ShapeGeodesicResult, stacklevel: int = 3) -> N
                 )
             )
             advice += f"; levels {steps} (estimate {float(result.levels.estimate):.3g})"
-        warnings.warn(
+        warn_user(
             f"shape_geodesic: not converged after {int(result.rounds)} registration rounds "
             f"({result.message}; energies {history[np.isfinite(history)].round(6).tolist()})"
             f"{advice}",
             ConvergenceWarning,
-            stacklevel=stacklevel,
         )

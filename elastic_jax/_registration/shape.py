@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import functools
 import time
-import warnings
 from collections.abc import Callable
 
 import jax.numpy as jnp
@@ -19,7 +18,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._checks import check_progress, is_concrete
-from .._errors import ConvergenceWarning, InputError
+from .._errors import InputError
 from .._geometry.metric import SplitMetric
 from .._geometry.reparam import jacobian_determinant_unchecked
 from .._geometry.validation import check_pair
@@ -29,17 +28,6 @@ from .one_grid import one_grid_solve
 from .phases import Reporter
 from .records import MODULI, ShapeGeodesicResult, warn_unless_converged
 from .starts import inverse_gamma
-
-
-def resolve_options(
-    options: ShapeOptions | None, changes: dict, function: str = "shape_geodesic"
-) -> ShapeOptions:
-    """``options`` (default ShapeOptions()) with the keywords ``changes`` under the one
-    rule of :func:`elastic_jax._options.options_with`: beside a record a keyword must
-    agree with it (an InputError otherwise); without one it sets that field."""
-    if options is not None and not isinstance(options, ShapeOptions):
-        raise TypeError(f"options must be a ShapeOptions; got {type(options).__name__}")
-    return options_with(function, options, changes)
 
 
 def shape_geodesic(
@@ -159,18 +147,34 @@ def shape_geodesic(
         >>> bool(res.distance < 0.1 * res.parametrized_distance)
         True
     """
-    check_choice("modulo", modulo, MODULI)
-    check_progress(progress)
-    resolved = resolve_options(options, changes)
-    f1, f2 = check_pair(f1, f2, same_grid=False)
-    if symmetric:
-        return _symmetric_solve(f1, f2, metric, modulo, resolved, start, progress)
-    reporter = None if progress is None else Reporter(progress)
-    if resolved.resolves:
-        return levels_solve(f1, f2, metric, modulo, resolved, start, reporter)
-    result = one_grid_solve(f1, f2, metric, modulo, resolved, start, reporter=reporter)
+    resolved = options_with("shape_geodesic", options, changes)
+    result = solve_shapes(f1, f2, metric, modulo, resolved, start, symmetric, progress)
     warn_unless_converged(result)
     return result
+
+
+def solve_shapes(
+    f1: ArrayLike,
+    f2: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    start: object = None,
+    symmetric: bool = False,
+    progress: Callable[[dict], None] | None = None,
+) -> ShapeGeodesicResult:
+    """:func:`shape_geodesic` at the record ``options``, without its ConvergenceWarning:
+    the package's own callers (collections, logs, both orders, warmup) report each
+    solve's status in their records instead. The same checks and the same result."""
+    check_choice("modulo", modulo, MODULI)
+    check_progress(progress)
+    f1, f2 = check_pair(f1, f2, same_grid=False)
+    if symmetric:
+        return _symmetric_solve(f1, f2, metric, modulo, options, start, progress)
+    reporter = None if progress is None else Reporter(progress)
+    if options.resolves:
+        return levels_solve(f1, f2, metric, modulo, options, start, reporter)
+    return one_grid_solve(f1, f2, metric, modulo, options, start, reporter=reporter)
 
 
 def _symmetric_solve(
@@ -189,7 +193,7 @@ def _symmetric_solve(
             "symmetric=True compares whole solves: it needs concrete inputs, not tracers "
             "(call it outside jax.jit and jax.vmap)"
         )
-    solve = functools.partial(shape_geodesic, metric=metric, modulo=modulo, options=resolved)
+    solve = functools.partial(solve_shapes, metric=metric, modulo=modulo, options=resolved)
     begin = time.perf_counter()
 
     def order(name: str):  # the order's reports, timed from this call's beginning
@@ -197,42 +201,36 @@ def _symmetric_solve(
             return None
         return lambda r: progress({**r, "order": name, "seconds": time.perf_counter() - begin})
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        best = solve(f1, f2, start=start, progress=order("f1 -> f2"))
-        other = solve(f2, f1, progress=order("f2 -> f1"))
-        if float(other.distance) < float(best.distance):
-            inverse, residual = inverse_gamma(other.gamma)
-            tol = 10.0 * float(np.sqrt(np.finfo(np.dtype(inverse.dtype)).eps))
-            if (
-                float(residual) <= tol
-                and float(jnp.min(jacobian_determinant_unchecked(inverse))) > 0
-            ):
-                # A continuation: the coarse rounds would re-register on the L2
-                # mismatch and leave the inverted registration's basin.
-                grid = tuple(other.gamma.shape[-2:])
-                begin = time.perf_counter()
-                carry = (inverse, other.rotation.T, None)
-                level = resolved.on_level(grid)
-                third = order("f1 -> f2 from f2 -> f1")
-                reporter = None if third is None else Reporter(third)
-                again = one_grid_solve(
-                    f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter
+    best = solve(f1, f2, start=start, progress=order("f1 -> f2"))
+    other = solve(f2, f1, progress=order("f2 -> f1"))
+    if float(other.distance) < float(best.distance):
+        inverse, residual = inverse_gamma(other.gamma)
+        tol = 10.0 * float(np.sqrt(np.finfo(np.dtype(inverse.dtype)).eps))
+        if float(residual) <= tol and float(jnp.min(jacobian_determinant_unchecked(inverse))) > 0:
+            # A continuation: the coarse rounds would re-register on the L2
+            # mismatch and leave the inverted registration's basin.
+            grid = tuple(other.gamma.shape[-2:])
+            begin = time.perf_counter()
+            carry = (inverse, other.rotation.T, None)
+            level = resolved.on_level(grid)
+            third = order("f1 -> f2 from f2 -> f1")
+            reporter = None if third is None else Reporter(third)
+            again = one_grid_solve(
+                f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter
+            )
+            if other.levels is not None:
+                # The levels that found this basin (the other order's), the last
+                # distance and time this solve's.
+                levels = other.levels
+                last = [float(again.distance)]
+                distances = np.asarray(levels.distances).tolist()[:-1] + last
+                ascent = np.asarray(levels.ascent).tolist()[:-1] + last
+                seconds = np.asarray(levels.seconds).tolist()
+                seconds[-1] += time.perf_counter() - begin
+                noise = noise_distance(f1, f2)
+                again = with_levels(
+                    again, levels.grids, distances, seconds, resolved.rtol, noise, ascent
                 )
-                if other.levels is not None:
-                    # The levels that found this basin (the other order's), the last
-                    # distance and time this solve's.
-                    levels = other.levels
-                    last = [float(again.distance)]
-                    distances = np.asarray(levels.distances).tolist()[:-1] + last
-                    ascent = np.asarray(levels.ascent).tolist()[:-1] + last
-                    seconds = np.asarray(levels.seconds).tolist()
-                    seconds[-1] += time.perf_counter() - begin
-                    noise = noise_distance(f1, f2)
-                    again = with_levels(
-                        again, levels.grids, distances, seconds, resolved.rtol, noise, ascent
-                    )
-                if float(again.distance) < float(best.distance):
-                    best = again
-    warn_unless_converged(best)
+            if float(again.distance) < float(best.distance):
+                best = again
     return best

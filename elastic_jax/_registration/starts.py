@@ -14,6 +14,7 @@ from jaxtyping import Array, ArrayLike
 from .._checks import check_finite, check_grid_shape, is_concrete, real_array
 from .._errors import InputError
 from .._geodesics.solvers import minimize
+from .._geometry.composition import compose, kabsch, rotate_surface
 from .._geometry.grid import sphere_points
 from .._geometry.metric import SplitMetric
 from .._geometry.reparam import (
@@ -26,15 +27,12 @@ from .._options import ShapeOptions
 from .problem import (
     Problem,
     are_resolved,
-    compose,
     identity_frames,
     into_ball,
-    kabsch,
     l2_mismatch,
     make_problem,
     registered_f1,
     registered_frame,
-    rotate_surface,
     rotated_end_frame,
     straight_line_energy,
 )

@@ -9,7 +9,6 @@ persistent cache on, stores) every program a job's pairs will run.
 from __future__ import annotations
 
 import time
-import warnings
 from typing import NamedTuple
 
 import jax
@@ -17,13 +16,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import check_choice
-from .._errors import ConvergenceWarning, InputError
+from .._errors import InputError
 from .._geometry.grid import sphere_points_np
 from .._geometry.metric import SplitMetric
-from .._options import ShapeOptions
+from .._options import ShapeOptions, options_with
 from .._runtime.cache import CompileCounter
 from .records import MODULI
-from .shape import resolve_options, shape_geodesic
+from .shape import solve_shapes
 
 # Every level runs: two levels' distances never agree within this.
 _EVERY_LEVEL = 1e-300
@@ -123,7 +122,7 @@ def warmup(
         raise InputError("modulo: give at least one of 'diff', 'rigid'")
     for name in moduli:
         check_choice("modulo", name, MODULI)
-    resolved = resolve_options(options, changes, "warmup")
+    resolved = options_with("warmup", options, changes)
     try:
         m, n = (int(k) for k in input_grid)
     except (TypeError, ValueError):
@@ -149,10 +148,9 @@ def warmup(
     metric = SplitMetric(1.0, 1.0, 0.1, 0.0)
     counter = CompileCounter()
     begin = time.perf_counter()
-    with counter, warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)
+    with counter:
         for name in moduli:
-            jax.block_until_ready(shape_geodesic(f1, f2, metric, modulo=name, options=resolved))
+            jax.block_until_ready(solve_shapes(f1, f2, metric, name, resolved))
     return WarmupReport(
         grids=tuple(grids),
         input_grid=(m, n),

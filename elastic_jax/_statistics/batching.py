@@ -6,7 +6,6 @@ each chunk padded to the compiled batch shape (math §7).
 from __future__ import annotations
 
 import functools
-import warnings
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -16,17 +15,17 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, ArrayLike, Float
 
-from .._errors import ConvergenceWarning, InputError
-from .._geodesics.geodesic import geodesic
-from .._geodesics.solvers import default_tol
+from .._errors import InputError
+from .._geodesics.geodesic import solve_geodesic
 from .._geometry.grid import sphere_points
 from .._geometry.metric import SplitMetric
-from .._geometry.validation import as_surface
-from .._options import ShapeOptions, check_choice
+from .._geometry.numerics import default_tol
+from .._geometry.validation import as_surface, check_grid_options
+from .._options import ShapeOptions, check_choice, options_with
 from .._registration.levels import LevelOutcome, noise_distance, registration_at, run_levels
-from .._registration.one_grid import check_grid_options, continued_geodesic
+from .._registration.one_grid import continued_geodesic
 from .._registration.records import turned_back
-from .._registration.shape import resolve_options, shape_geodesic
+from .._registration.shape import solve_shapes
 from .._results import RESULTS
 from .._runtime.cache import solver_jit
 
@@ -90,7 +89,7 @@ def _one_geodesic(
       then a continuous function of the mean: no jump to another basin.
     """
     if modulo == "none":
-        res = geodesic(shape, mean, metric, **options.geodesic_kwargs())
+        res = solve_geodesic(shape, mean, metric, **options.geodesic_kwargs())
         m, n = mean.shape[-2:]
         gamma, rotation = sphere_points(m, n, mean.dtype), jnp.eye(3, dtype=mean.dtype)
         back = res.path
@@ -99,9 +98,9 @@ def _one_geodesic(
         if start is not None and len(start) == 3:
             res = continued_geodesic(shape, mean, metric, modulo, options, *start)
         else:
-            res = shape_geodesic(shape, mean, metric, modulo=modulo, options=options)
+            res = solve_shapes(shape, mean, metric, modulo, options)
         if start is not None and len(start) == 2:
-            warm = shape_geodesic(shape, mean, metric, modulo=modulo, options=options, start=start)
+            warm = solve_shapes(shape, mean, metric, modulo, options, start=start)
             lower = warm.distance < res.distance
             res = jax.tree_util.tree_map(lambda a, b: jnp.where(lower, a, b), warm, res)
         gamma, rotation = res.gamma, res.rotation
@@ -139,10 +138,10 @@ def _pair_distance(
 ):
     """Distance, status, refinement change, result code and solver steps of one pair."""
     if modulo == "none":
-        res = geodesic(a, b, metric, **options.geodesic_kwargs())
+        res = solve_geodesic(a, b, metric, **options.geodesic_kwargs())
         change = jnp.full_like(res.distance, jnp.nan)
     else:
-        res = shape_geodesic(a, b, metric, modulo=modulo, options=options)
+        res = solve_shapes(a, b, metric, modulo, options)
         change = res.refinement.relative_change
     # The code as an integer: the chunk's outputs are plain arrays (checkpoints, Dask).
     code = jnp.asarray(res.result._value, jnp.int32)
@@ -170,12 +169,12 @@ def _registered_pair(
     """
     if modulo == "none":
         init = None if start is None else start[2]
-        res = geodesic(a, b, metric, init=init, **options.geodesic_kwargs())
+        res = solve_geodesic(a, b, metric, init=init, **options.geodesic_kwargs())
         m, n = a.shape[-2:]
         gamma, rotation = sphere_points(m, n, a.dtype), jnp.eye(3, dtype=a.dtype)
     else:
         if start is None:
-            res = shape_geodesic(a, b, metric, modulo=modulo, options=options)
+            res = solve_shapes(a, b, metric, modulo, options)
         else:
             res = continued_geodesic(a, b, metric, modulo, options, *start)
         gamma, rotation = res.gamma, res.rotation
@@ -256,13 +255,11 @@ def _solve_chunk(
     """``_batched`` over a chunk (a pytree, leading axis b) padded to ``size`` items, the
     compiled batch shape (the padding is dropped): every chunk of a job runs one compiled
     program, here or on a Dask worker. The loop strategy solves one item at a time and is
-    not padded. The solves' ConvergenceWarnings are silenced: callers report each item's
-    status."""
+    not padded. The solves do not warn (solve_shapes, solve_geodesic): callers report each
+    item's status."""
     b = jax.tree_util.tree_leaves(batch)[0].shape[0]
     padded = batch if strategy == "loop" else _padded(batch, size)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        return tuple(out[:b] for out in _batched(batch_call, single_call, padded, strategy))
+    return tuple(out[:b] for out in _batched(batch_call, single_call, padded, strategy))
 
 
 def velocity_chunk(
@@ -374,7 +371,7 @@ def _level_pair(
     (where the next level's starts). ``start``: (gamma, R, C, parametrized C) of the
     level below."""
     if start is None:
-        res = shape_geodesic(a, b, metric, modulo=modulo, options=options)
+        res = solve_shapes(a, b, metric, modulo, options)
     else:
         res = continued_geodesic(a, b, metric, modulo, options, *start)
     code = jnp.asarray(res.result._value, jnp.int32)
@@ -600,9 +597,10 @@ def check_collection(
     modulo: str,
     name: str = "shapes",
     levels: bool = False,
+    function: str = "karcher_mean",
 ):
     """The collection ``(K, 3, m, n)`` and its options, checked on its grid, tol resolved;
-    ``modulo`` checked first (one of MODULI).
+    ``modulo`` checked first (one of MODULI); ``function`` names the caller in errors.
 
     ``levels``: keep ``options.rtol`` (a caller that resolves its working grid by levels,
     :func:`elastic_jax.karcher_mean`); otherwise rtol is dropped: the collection is
@@ -612,7 +610,7 @@ def check_collection(
     shapes = as_surface(shapes, name)
     if shapes.ndim != 4 or shapes.shape[0] < 2:
         raise InputError(f"{name} must have shape (K, 3, m, n) with K >= 2; got {shapes.shape}")
-    options = resolve_options(options, {})
+    options = options_with(function, options, {})
     check_grid_options(options, *shapes.shape[-2:])
     grid = tuple(shapes.shape[-2:])
     if options.grid not in (None, grid):

@@ -23,7 +23,7 @@ from .batching import (
     job_settings,
 )
 from .checkpoints import fingerprint_of
-from .driver import JobOptions, check_job, open_pool, run
+from .driver import JobOptions, check_job, run
 
 
 @status_record
@@ -166,8 +166,19 @@ class _PairsJob(NamedTuple):
         state.done[a:b] = True
         return state, True
 
-    def terminate(self, state: _PairsState) -> str | None:
-        return "successful" if state.done.all() else None
+    def pool_inputs(self) -> tuple:
+        return self.shapes, self.metric, self.modulo, self.options, self.strategy
+
+    def steps(self, state: _PairsState) -> int:
+        """The pairs solved (a matrix has no step limit: run is given none)."""
+        return int(state.done.sum())
+
+    def value(self, state: _PairsState) -> None:
+        """None: a pair's non-finite distance is that pair's result, not the job's."""
+        return None
+
+    def terminate(self, state: _PairsState) -> RESULTS | None:
+        return RESULTS.successful if state.done.all() else None
 
     def arrays(self, state: _PairsState) -> dict | None:
         if int(state.done.sum()) == state.done_before:  # no pair solved in this run yet
@@ -182,7 +193,7 @@ class _PairsJob(NamedTuple):
         left = self.pairs - now
         return {"pairs_done": now, "pairs": self.pairs, "eta_s": left / rate if rate > 0 else None}
 
-    def result(self, state: _PairsState, code: str) -> DistanceMatrixResult:
+    def result(self, state: _PairsState, code: RESULTS) -> DistanceMatrixResult:
         """The symmetric record from the upper triangle."""
         rows, cols = np.triu_indices(self.count, 1)
         k = self.count
@@ -253,7 +264,9 @@ def distance_matrix(
         (:class:`ConvergenceWarning`) once, naming the pairs.
     """
     job = check_job(job)
-    shapes, options = check_collection(shapes, options, modulo, levels=modulo != "none")
+    shapes, options = check_collection(
+        shapes, options, modulo, levels=modulo != "none", function="distance_matrix"
+    )
     if modulo == "none":
         options = options.replace(rtol=None)
     strategy = job.resolved_strategy
@@ -267,5 +280,4 @@ def distance_matrix(
         default_chunk(strategy) if job.batch_size is None else job.batch_size,
         fingerprint_of(shapes, **settings),
     )
-    with open_pool(job.client, shapes, metric, modulo, options, strategy) as pool:
-        return run(pairs, job.checkpoint, job.resume, job.progress, pool)
+    return run(pairs, job)

@@ -2,11 +2,12 @@
 
 Each job is an iteration in the shape of an optimistix solver: ``init`` makes the first
 state, ``step`` makes the next, ``terminate`` says why the iteration stops there (a
-``RESULTS`` name) or None, and ``result`` turns the last state into the job's record.
-:func:`run` is the one loop around them: it reads and writes the checkpoint, reports
-progress, binds the cluster pool and warns when the record did not converge. What a job
-does between two checkpoints is the job's; when it is kept on disk and told to the user is
-the driver's, the same for all three.
+``RESULTS`` member) or None, and ``result`` turns the last state into the job's record.
+:func:`run` is the one loop around them: it opens the cluster pool, reads and writes the
+checkpoint, reports progress, stops a job whose value is not finite or whose steps reach
+``max_steps``, and warns when the record did not converge. What a job does between two
+checkpoints is the job's; when it is kept on disk, when it has run long enough and what
+the user is told is the driver's, the same for all three.
 
 :class:`JobOptions` is the one record of how a job runs (batching, checkpoint, progress,
 cluster), beside :class:`ShapeOptions`, the record of what each solve does.
@@ -19,12 +20,14 @@ import dataclasses
 import os
 import pathlib
 import time
-import warnings
 from collections.abc import Callable
 from typing import Any, NamedTuple, Protocol, runtime_checkable
 
+import numpy as np
+
 from .._checks import check_bool, check_choice, check_int, check_progress
-from .._errors import ConvergenceWarning, InputError
+from .._errors import ConvergenceWarning, InputError, warn_user
+from .._results import RESULTS
 from .._runtime.atomic import save_npz_atomic
 from .batching import STRATEGIES, default_strategy
 from .checkpoints import load_checkpoint
@@ -115,11 +118,18 @@ class Sink(NamedTuple):
 
 @runtime_checkable
 class Job(Protocol):
-    """The iteration a collection job is (a NamedTuple with a ``pool`` field, which
-    :func:`run` sets). States are the job's own records."""
+    """The iteration a collection job is: an immutable record (a NamedTuple) whose
+    ``pool`` :func:`run` fills through ``_replace``. States are the job's own records.
+    :func:`run` refuses a job that lacks any of these."""
 
     fingerprint: str  # the inputs and settings a checkpoint must have been written for
-    pool: Any
+    pool: Any  # the cluster link (None in this process); run sets it
+
+    def _replace(self, **fields) -> Job:
+        """A copy with ``fields`` changed (a NamedTuple's own)."""
+
+    def pool_inputs(self) -> tuple:
+        """What a cluster pool's workers hold: (shapes, metric, modulo, options, strategy)."""
 
     def restore(self, saved: dict) -> Any | None:
         """The state a checkpoint holds, or None when it holds none (unfinished init)."""
@@ -130,8 +140,15 @@ class Job(Protocol):
     def step(self, state) -> tuple[Any, bool]:
         """The next state, and whether it is kept (checkpointed and reported)."""
 
-    def terminate(self, state) -> str | None:
-        """Why the iteration stops at ``state`` (a ``RESULTS`` name), or None."""
+    def steps(self, state) -> int:
+        """The steps ``state`` has taken, counted against ``run``'s ``max_steps``."""
+
+    def value(self, state) -> float | None:
+        """The number the job lowers or gathers at ``state`` (None: none); ``run`` stops
+        the job ``nonfinite`` when it is NaN or infinite."""
+
+    def terminate(self, state) -> RESULTS | None:
+        """Why the iteration stops at ``state`` (a ``RESULTS`` member), or None."""
 
     def arrays(self, state) -> dict | None:
         """What the checkpoint holds of ``state`` (arrays and numbers); None: nothing
@@ -140,38 +157,63 @@ class Job(Protocol):
     def report(self, state, seconds: float) -> dict | None:
         """What progress is told of ``state`` (None: nothing)."""
 
-    def result(self, state, code: str):
-        """The job's record at the last state; ``code`` from terminate."""
+    def result(self, state, code: RESULTS):
+        """The job's record at the last state; ``code`` from terminate or ``run``."""
 
     def warning(self, record) -> str:
         """The ConvergenceWarning's text for a record that did not converge."""
 
 
-def open_pool(client, shapes, metric, modulo, options, strategy):
-    """A context holding the cluster link for ``client`` (None: no pool, this process)."""
+# What run calls on a job (named when a job lacks some).
+
+_JOB_METHODS = (
+    "_replace",
+    "pool_inputs",
+    "restore",
+    "init",
+    "step",
+    "steps",
+    "value",
+    "terminate",
+    "arrays",
+    "report",
+    "result",
+    "warning",
+)
+
+
+def open_pool(client, job: Job):
+    """A context holding the cluster link for ``client`` to the workers that hold
+    ``job.pool_inputs()`` (None: no pool, this process)."""
     if client is None:
         return contextlib.nullcontext(None)
     from .._runtime.distributed import Pool
 
-    return Pool(client, shapes, metric, modulo, options, strategy)
+    return Pool(client, *job.pool_inputs())
 
 
-def run(
-    job: Job,
-    checkpoint: str | os.PathLike | None = None,
-    resume: bool = False,
-    progress: Callable[[dict], None] | None = None,
-    pool=None,
-):
+def run(job: Job, options: JobOptions | None = None, max_steps: int | None = None):
     """Iterate ``job`` from its first (or checkpointed) state until it terminates.
 
-    The checkpoint is read when resuming (refused if its fingerprint is not the job's)
-    and written atomically after the first state and after every kept step, so that a
-    killed job loses at most the step it was in; progress hears of the same states. The
-    record that does not converge warns (:class:`ConvergenceWarning`) with the job's
-    text, attributed to the caller of the public function.
+    ``options`` (:class:`JobOptions`, defaults when None) says how: its ``client`` opens
+    the pool the job's chunks run on (``job.pool_inputs()``, closed when the job ends);
+    its ``checkpoint`` is read when ``resume`` is set (refused if its fingerprint is not
+    the job's) and written atomically after the first state and after every kept step, so
+    that a killed job loses at most the step it was in; ``progress`` hears of the same
+    states. Before each step the job stops ``nonfinite`` when ``job.value`` is not
+    finite, with ``job.terminate``'s code when it gives one, and
+    ``nonlinear_max_steps_reached`` once ``job.steps`` reaches ``max_steps`` (None: no
+    limit). The record that does not converge warns (:class:`ConvergenceWarning`) with
+    the job's text, attributed to the caller of the public function.
     """
-    path = None if checkpoint is None else pathlib.Path(checkpoint)
+    if not isinstance(job, Job):
+        missing = sorted(
+            name for name in ("fingerprint", "pool", *_JOB_METHODS) if not hasattr(job, name)
+        )
+        raise TypeError(f"run: {type(job).__name__} is not a Job (it lacks {missing})")
+    options = check_job(options)
+    path = None if options.checkpoint is None else pathlib.Path(options.checkpoint)
+    progress = options.progress
     started = time.perf_counter()
 
     def save(arrays: dict | None) -> None:
@@ -182,23 +224,33 @@ def run(
         if progress is not None and info is not None:
             progress({**info, "seconds": time.perf_counter() - started})
 
-    if pool is not None:
-        job = job._replace(pool=pool)
-    saved = load_checkpoint(path, job.fingerprint) if path is not None and resume else None
-    state = None if saved is None else job.restore(saved)
-    if state is None:
-        # No checkpoint or no listener: None, so that init spends nothing on them.
-        sink = Sink(save if path is not None else None, report if progress is not None else None)
-        state = job.init(saved, sink)
-        save(job.arrays(state))
-        report(job.report(state, time.perf_counter() - started))
-    while (code := job.terminate(state)) is None:
-        state, kept = job.step(state)
-        if kept:
+    def stop(state) -> RESULTS | None:
+        value = job.value(state)
+        if value is not None and not np.isfinite(value):
+            return RESULTS.nonfinite
+        code = job.terminate(state)
+        if code is None and max_steps is not None and job.steps(state) >= max_steps:
+            return RESULTS.nonlinear_max_steps_reached
+        return code
+
+    with open_pool(options.client, job) as pool:
+        if pool is not None:
+            job = job._replace(pool=pool)
+        resume = path is not None and options.resume
+        saved = load_checkpoint(path, job.fingerprint) if resume else None
+        state = None if saved is None else job.restore(saved)
+        if state is None:
+            # No checkpoint or no listener: None, so that init spends nothing on them.
+            sink = Sink(save if path is not None else None, report if progress else None)
+            state = job.init(saved, sink)
             save(job.arrays(state))
             report(job.report(state, time.perf_counter() - started))
-    record = job.result(state, code)
+        while (code := stop(state)) is None:
+            state, kept = job.step(state)
+            if kept:
+                save(job.arrays(state))
+                report(job.report(state, time.perf_counter() - started))
+        record = job.result(state, code)
     if not bool(record.converged):
-        # run is called by the public function: stacklevel 3 names the user's line.
-        warnings.warn(job.warning(record), ConvergenceWarning, stacklevel=3)
+        warn_user(job.warning(record), ConvergenceWarning)
     return record

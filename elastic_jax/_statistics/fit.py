@@ -31,13 +31,13 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._checks import check_choice, check_int, check_positive
 from .._errors import InputError
 from .._geodesics.solvers import minimize
-from .._geometry.bases import basis_np, frames_between, perturbed_frames
+from .._geometry.bases import basis_np, frames_between, make_bases, perturbed_frames
 from .._geometry.differential import interior_frame
 from .._geometry.energy import frame_energy
 from .._geometry.metric import SplitMetric
 from .._geometry.numerics import safe_sqrt
 from .._options import ShapeOptions
-from .._registration.problem import make_bases, make_problem, path_energy_at
+from .._registration.problem import make_problem, path_energy_at
 from .._results import RESULTS, status_record
 from .batching import (
     check_collection,
@@ -47,7 +47,7 @@ from .batching import (
     registered_chunk,
 )
 from .checkpoints import fingerprint_of
-from .driver import JobOptions, check_job, open_pool, run
+from .driver import JobOptions, check_job, run
 from .retrieval import check_distances, check_labels
 
 # The least share of a learned coefficient in a + b + c + d = 1 (times the learned
@@ -85,8 +85,9 @@ class MetricFit(NamedTuple):
         grids: ``(K, K, 2)`` the working grid each pair is solved on (its finest level's
             when resolved, else the collection's; 0 on the diagonal).
         converged: ``()`` grad_norm <= tol.
-        result: ``successful``, ``nonlinear_max_steps_reached`` (max_steps ran out) or
-            ``stalled`` (the trust region shrank below 1e-3 without a lower objective).
+        result: ``successful``, ``nonlinear_max_steps_reached`` (max_steps ran out),
+            ``stalled`` (the trust region shrank below 1e-3 without a lower objective) or
+            ``nonfinite`` (the objective at the metric is not finite).
         num_steps: ``()`` trust region steps taken (accepted or not).
         evaluations: ``()`` batched solves of all pairs (one per step, plus the first).
     """
@@ -317,7 +318,9 @@ def fit_metric(
             symmetric, finite and non-negative, ``learn`` not two or more of "abcd".
     """
     job = check_job(job)
-    shapes, options = check_collection(shapes, options, modulo, levels=modulo != "none")
+    shapes, options = check_collection(
+        shapes, options, modulo, levels=modulo != "none", function="fit_metric"
+    )
     if modulo == "none":
         options = options.replace(rtol=None)
     k = shapes.shape[0]
@@ -386,9 +389,7 @@ def fit_metric(
         solves,
         fingerprint,
     )
-    first = fit.metric_at(theta0)
-    with open_pool(job.client, shapes, first, modulo, options, strategy) as pool:
-        return run(fit, job.checkpoint, job.resume, job.progress, pool)
+    return run(fit, job, max_steps)
 
 
 class _Solves(NamedTuple):
@@ -476,15 +477,26 @@ class _FitJob(NamedTuple):
             list(saved["history"]),
         )
 
-    def terminate(self, state: _FitState) -> str | None:
-        """The result's name when the fit stops here, None while it goes on."""
+    def pool_inputs(self) -> tuple:
+        solves = self.solves
+        first = self.metric_at(self.theta0)
+        return solves.shapes, first, solves.modulo, solves.options, solves.strategy
+
+    def steps(self, state: _FitState) -> int:
+        return state.steps
+
+    def value(self, state: _FitState) -> float:
+        """The objective at ``state.theta`` (the last entry of its history)."""
+        return float(state.history[-1])
+
+    def terminate(self, state: _FitState) -> RESULTS | None:
+        """The result when the fit stops here, None while it goes on (the step limit
+        and a non-finite objective are the driver's)."""
         grad = self.value_and_grad(state.held.parts, state.theta)[1]
         if float(jnp.linalg.norm(grad)) <= self.tol:
-            return "successful"
+            return RESULTS.successful
         if state.radius < _RADIUS[2]:
-            return "stalled"
-        if state.steps >= self.max_steps:
-            return "nonlinear_max_steps_reached"
+            return RESULTS.stalled
         return None
 
     def step(self, state: _FitState) -> tuple[_FitState, bool]:
@@ -557,8 +569,8 @@ class _FitJob(NamedTuple):
             **_saved_starts(state.held.starts),
         }
 
-    def result(self, state: _FitState, code: str) -> MetricFit:
-        theta0, max_steps, result = self.theta0, self.max_steps, getattr(RESULTS, code)
+    def result(self, state: _FitState, code: RESULTS) -> MetricFit:
+        theta0, max_steps, result = self.theta0, self.max_steps, code
         rows, cols = np.triu_indices(self.k, 1)
         value, grad = self.value_and_grad(state.held.parts, state.theta)
         dtype = state.theta.dtype

@@ -11,7 +11,6 @@ options travel as one :class:`ShapeOptions` record; the Karcher iteration's own 
 from __future__ import annotations
 
 import functools
-import warnings
 from typing import NamedTuple
 
 import jax
@@ -20,7 +19,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_bool
-from .._errors import ConvergenceWarning, InputError
+from .._errors import InputError
+from .._geometry.composition import on_grid
 from .._geometry.grid import sphere_points
 from .._geometry.harmonics import vector_fields_np
 from .._geometry.metric import SplitMetric, metric_inner_unchecked
@@ -29,8 +29,7 @@ from .._geometry.srnf import center_unchecked
 from .._geometry.validation import as_surface
 from .._options import ShapeOptions, check_int, check_positive
 from .._registration.levels import registration_at
-from .._registration.problem import on_grid
-from .._registration.shape import shape_geodesic
+from .._registration.shape import solve_shapes
 from .._results import RESULTS, status_record
 from .batching import (
     check_collection,
@@ -41,7 +40,7 @@ from .batching import (
     velocity_chunk,
 )
 from .checkpoints import fingerprint_of
-from .driver import JobOptions, check_job, open_pool, run
+from .driver import JobOptions, check_job, run
 
 # Halvings of a Karcher step that raised the sum of squared distances before giving up.
 _HALVINGS = 4
@@ -210,7 +209,7 @@ class _KarcherState(NamedTuple):
     history: tuple
     working: ShapeOptions
     level_distances: np.ndarray | None
-    stop: str | None = None
+    stop: RESULTS | None = None
 
 
 class _KarcherJob(NamedTuple):
@@ -227,7 +226,6 @@ class _KarcherJob(NamedTuple):
     chunks: tuple  # (a, b) bounds of the chunks of shapes
     tol: float
     step_size: float
-    max_steps: int
     warm_start: bool
     fingerprint: str
     pool: object = None
@@ -328,20 +326,27 @@ class _KarcherJob(NamedTuple):
             levels,
         )
 
-    def terminate(self, state: _KarcherState) -> str | None:
-        """Why the iteration stops at ``state`` (a RESULTS name), or None to step on."""
+    def pool_inputs(self) -> tuple:
+        return self.shapes, self.metric, self.modulo, self.options, self.strategy
+
+    def steps(self, state: _KarcherState) -> int:
+        return state.step
+
+    def value(self, state: _KarcherState) -> float:
+        """The sum of squared distances at the mean."""
+        return float(state.direction.sum_sq)
+
+    def terminate(self, state: _KarcherState) -> RESULTS | None:
+        """Why the iteration stops at ``state`` (a RESULTS member), or None to step on
+        (the step limit and a non-finite sum are the driver's)."""
         if state.stop is not None:
             return state.stop
         sum_sq, norm = state.direction.sum_sq, state.direction.norm
         rms = np.sqrt(sum_sq / self.count)
-        if not np.isfinite(sum_sq):
-            return "nonfinite"
         if rms <= np.sqrt(np.finfo(np.dtype(state.mean.dtype)).eps) * state.direction.size:
-            return "distances_at_rounding"
+            return RESULTS.distances_at_rounding
         if norm <= self.tol * max(rms, np.finfo(np.float64).tiny):
-            return "mean_velocity_small"
-        if state.step >= self.max_steps:
-            return "nonlinear_max_steps_reached"
+            return RESULTS.mean_velocity_small
         return None
 
     def step(self, state: _KarcherState) -> tuple[_KarcherState, bool]:
@@ -362,11 +367,11 @@ class _KarcherJob(NamedTuple):
             # registrations' own scatter (each is a nonconvex search), and halving a
             # step the SSD cannot resolve only looks for a lower draw of that scatter.
             if s == self.step_size and trial_sum_sq - sum_sq <= self.tol * sum_sq:
-                return state._replace(num_solves=num_solves, stop="sum_sq_stalled"), False
+                return state._replace(num_solves=num_solves, stop=RESULTS.sum_sq_stalled), False
             s *= 0.5
         else:
             limited = bool(np.any(np.asarray(state.solved.limited)))
-            stop = "resolution_limited" if limited else "line_search_failed"
+            stop = RESULTS.resolution_limited if limited else RESULTS.line_search_failed
             return state._replace(num_solves=num_solves, stop=stop), False
         direction = self._direction(trial_mean, trial, state.working)
         # A halved step counts too: the full step raised the SSD by more than tol, and
@@ -383,7 +388,7 @@ class _KarcherJob(NamedTuple):
             step=state.step + 1,
             num_solves=num_solves,
             history=(*state.history, (direction.sum_sq, direction.norm, s)),
-            stop="sum_sq_stalled" if stalled else None,
+            stop=RESULTS.sum_sq_stalled if stalled else None,
         ), True
 
     def arrays(self, state: _KarcherState) -> dict:
@@ -408,7 +413,7 @@ class _KarcherJob(NamedTuple):
             "num_solves": state.num_solves,
         }
 
-    def result(self, state: _KarcherState, code: str) -> KarcherResult:
+    def result(self, state: _KarcherState, code: RESULTS) -> KarcherResult:
         solved = state.solved
         return KarcherResult(
             mean=state.mean,
@@ -417,10 +422,10 @@ class _KarcherJob(NamedTuple):
             velocities=solved.velocities,
             geodesics_converged=solved.converged,
             history=np.asarray(state.history),
-            converged=np.asarray(code in _CONVERGED),
+            converged=np.asarray(RESULTS.name(code) in _CONVERGED),
             num_steps=state.step,
             num_solves=state.num_solves,
-            result=getattr(RESULTS, code),
+            result=code,
             level_distances=state.level_distances,
         )
 
@@ -464,18 +469,16 @@ def _resolved_start(
         if not todo:
             continue
         told = None if report is None else (lambda i, info, todo=todo: report(todo[i], info))
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ConvergenceWarning)
-            out = levelled_chunk(
-                shapes[np.asarray(todo)],
-                jnp.broadcast_to(mean, (len(todo), *mean.shape)),
-                metric,
-                modulo,
-                options,
-                strategy,
-                b - a,
-                report=told,
-            )
+        out = levelled_chunk(
+            shapes[np.asarray(todo)],
+            jnp.broadcast_to(mean, (len(todo), *mean.shape)),
+            metric,
+            modulo,
+            options,
+            strategy,
+            b - a,
+            report=told,
+        )
         for i, k in enumerate(todo):
             finished.update(
                 {
@@ -502,9 +505,7 @@ def _resolved_start(
         coefficients = finished[f"first_coefficients_{k}"]
         carried = registration_at((gamma, rotation), grid, mean.dtype, modulo)
         if carried is None:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", ConvergenceWarning)
-                r = shape_geodesic(shape, at, metric, modulo=modulo, options=working)
+            r = solve_shapes(shape, at, metric, modulo, working)
             carried, coefficients = (r.gamma, r.rotation), r.coefficients
         starts.append((*carried, jnp.asarray(coefficients, mean.dtype)))
     stacked = tuple(jnp.stack(parts) for parts in zip(*starts, strict=True))
@@ -652,12 +653,10 @@ def karcher_mean(
         tuple(chunk_bounds(shapes.shape[0], batch_size)),
         tol,
         step_size,
-        max_steps,
         warm_start,
         fingerprint_of(shapes, mean, **settings),
     )
-    with open_pool(job.client, shapes, metric, modulo, options, strategy) as pool:
-        return run(iteration, job.checkpoint, job.resume, job.progress, pool)
+    return run(iteration, job, max_steps)
 
 
 def _starting_mean(shapes, init, modulo: str):

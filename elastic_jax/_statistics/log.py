@@ -17,20 +17,19 @@ from .._checks import check_choice
 from .._errors import InputError
 from .._geodesics.geodesic import GeodesicResult, geodesic
 from .._geodesics.shooting import check_scheme
+from .._geometry.bases import make_bases
+from .._geometry.composition import on_grid, rotate_surface
 from .._geometry.differential import interior_frame
 from .._geometry.grid import sphere_points
 from .._geometry.metric import SplitMetric
 from .._geometry.validation import check_pair
-from .._options import ShapeOptions
+from .._options import ShapeOptions, options_with
 from .._registration.problem import (
-    make_bases,
     make_problem,
-    on_grid,
     path_frames_at,
-    rotate_surface,
 )
 from .._registration.records import Levels, turned_back
-from .._registration.shape import resolve_options, shape_geodesic
+from .._registration.shape import shape_geodesic
 from .._results import RESULTS, status_record
 
 
@@ -127,7 +126,7 @@ def log(
     """
 
     check_choice("modulo", modulo, ("none", "diff", "rigid"))
-    options = resolve_options(options, changes, "log")
+    options = options_with("log", options, changes)
     check_scheme(options.scheme)
     # A registered log reads each input through its interpolant: any two grids.
     f1, f2 = check_pair(f1, f2, same_grid=modulo == "none")

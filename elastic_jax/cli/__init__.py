@@ -29,18 +29,12 @@ from collections.abc import Sequence
 
 import jax
 
-from .._errors import ConvergenceWarning, InputError
-from .._runtime.cache import enable_compilation_cache
+from .. import ConvergenceWarning, InputError, enable_compilation_cache
 from .._runtime.precision import full_products
-from .bench import run_bench
+from .arguments import join_negative_values
 from .common import BadInput, Progress, one_line, write_summary
-from .demo import run_demo
-from .distances import run_distances
-from .fit_metric import run_fit_metric
-from .geodesic import run_geodesic
-from .karcher import run_karcher
-from .parser import build_parser, join_negative_values
-from .pca import run_pca
+from .parser import COMMANDS as _COMMANDS
+from .parser import build_parser
 from .process import (
     EXIT_BAD_INPUT,
     EXIT_FAILURE,
@@ -55,9 +49,6 @@ from .process import (
     preflight,
     raise_terminated,
 )
-from .shape_geodesic import run_shape_geodesic
-from .shoot import run_shoot
-from .warmup import run_warmup
 
 __all__ = [
     "COMMANDS",
@@ -73,18 +64,8 @@ __all__ = [
     "main",
 ]
 
-COMMANDS = {
-    "geodesic": run_geodesic,
-    "shape-geodesic": run_shape_geodesic,
-    "karcher": run_karcher,
-    "distances": run_distances,
-    "fit-metric": run_fit_metric,
-    "pca": run_pca,
-    "shoot": run_shoot,
-    "demo": run_demo,
-    "bench": run_bench,
-    "warmup": run_warmup,
-}
+# Each command's run(args, progress) by name.
+COMMANDS = {command.name: command.run for command in _COMMANDS}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import argparse
 import time
 from collections.abc import Callable
 
 import jax
 import numpy as np
 
-from .._geodesics.geodesic import geodesic
-from .._geometry.energy import path_energy, straight_path
+from .. import geodesic, path_energy, straight_path
+from .arguments import Command, common_options
 from .common import Progress, environment_record, geodesic_options_from, prepare, result_fields
 from .demo import builtin_pair
 
@@ -58,3 +59,17 @@ def run_bench(args, progress: Progress) -> dict:
         **result_fields(res),
         "environment": environment_record(),
     }
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``bench`` command's arguments."""
+    common_options(p, degree=7, times=13)
+    p.add_argument("--repeat", type=int, default=3, help="timed calls after the first")
+
+
+COMMAND = Command(
+    name="bench",
+    run=run_bench,
+    add_arguments=add_arguments,
+    help="time the energy gradient and a geodesic solve (JSON)",
+)

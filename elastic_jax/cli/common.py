@@ -16,13 +16,9 @@ from collections.abc import Callable, Sequence
 import jax
 import numpy as np
 
-from .._errors import InputError
+from .. import RESULTS, InputError, JobOptions, ShapeOptions, SplitMetric
 from .._geometry.harmonics import check_degree
-from .._geometry.metric import SplitMetric
-from .._options import ShapeOptions
-from .._results import RESULTS
 from .._runtime.atomic import write_text_atomic
-from .._statistics.driver import JobOptions
 
 CHECKPOINTS = {
     "karcher": "karcher_checkpoint.npz",

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import argparse
+
 import numpy as np
 
 from .. import shapes
+from .arguments import Command, common_options
 from .common import Progress
 from .geodesic import run_geodesic
 
@@ -29,3 +32,16 @@ def run_demo(args, progress: Progress) -> dict:
     summary = run_geodesic(args, progress, pair, label=inputs)
     summary["files"] = inputs + summary["files"]
     return summary
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``demo`` command's arguments."""
+    common_options(p, degree=7, times=10)
+
+
+COMMAND = Command(
+    name="demo",
+    run=run_demo,
+    add_arguments=add_arguments,
+    help="a geodesic between two built-in surfaces, with figures",
+)

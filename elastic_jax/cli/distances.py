@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import pathlib
 import time
 
 import numpy as np
 
+from .. import distance_matrix
 from .._runtime.atomic import save_npz_atomic, write_text_atomic
-from .._statistics.distances import distance_matrix
+from .arguments import Command, batch_options, input_options, rtol_option, shape_options
 from .common import (
+    SURFACE_FILES,
     Progress,
     collection_settings,
     environment_record,
@@ -100,3 +103,20 @@ def run_distances(args, progress: Progress) -> dict:
         "files": files,
         "environment": environment_record(),
     }
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``distances`` command's arguments."""
+    p.add_argument("files", nargs="+", help=SURFACE_FILES)
+    shape_options(p, modulo="rigid")
+    input_options(p)
+    rtol_option(p, "each pair's resolved distance")
+    batch_options(p)
+
+
+COMMAND = Command(
+    name="distances",
+    run=run_distances,
+    add_arguments=add_arguments,
+    help="matrix of pairwise shape distances",
+)

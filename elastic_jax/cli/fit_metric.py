@@ -3,17 +3,18 @@
 
 from __future__ import annotations
 
+import argparse
 import pathlib
 import time
 
 import numpy as np
 
+from .. import distance_matrix, fit_metric, retrieval_scores
 from .._runtime.atomic import save_npz_atomic
-from .._statistics.distances import distance_matrix
-from .._statistics.fit import fit_metric
-from .._statistics.retrieval import retrieval_scores
+from .arguments import Command, batch_options, input_options, rtol_option, shape_options
 from .common import (
     CHECKPOINTS,
+    SURFACE_FILES,
     BadInput,
     Progress,
     collection_settings,
@@ -159,3 +160,62 @@ def run_fit_metric(args, progress: Progress) -> dict:
     summary["files"] = files
     summary["environment"] = environment_record()
     return summary
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``fit-metric`` command's arguments."""
+    p.add_argument("files", nargs="+", help=SURFACE_FILES)
+    data = p.add_mutually_exclusive_group(required=True)
+    data.add_argument(
+        "--labels",
+        default=None,
+        help="text file: one class label per line in the files' order, or lines name,label",
+    )
+    data.add_argument(
+        "--targets", default=None, help="(K, K) dissimilarities: .npy, .npz, .csv or text"
+    )
+    shape_options(p, modulo="rigid", moduli=("rigid", "diff", "none"))
+    input_options(p)
+    rtol_option(p, "each pair's resolved distance at the first solve (the steps continue it)")
+    batch_options(p)
+    p.add_argument("--learn", default="abc", help="the coefficients that move (of abcd)")
+    p.add_argument(
+        "--temperature",
+        type=float,
+        default=0.1,
+        help="softness of the soft nearest neighbours (squared mean distances)",
+    )
+    p.add_argument(
+        "--fit-steps",
+        type=int,
+        default=30,
+        help="most trust region steps (each solves every pair once)",
+    )
+    p.add_argument(
+        "--fit-tol",
+        type=float,
+        default=1e-3,
+        help="the fit converges when its gradient norm is at most this",
+    )
+    p.add_argument(
+        "--test",
+        nargs="+",
+        default=None,
+        metavar="FILE",
+        help="held-out surface files to score the metrics on",
+    )
+    p.add_argument("--test-labels", default=None, help="their labels (as --labels)")
+
+
+COMMAND = Command(
+    name="fit-metric",
+    run=run_fit_metric,
+    add_arguments=add_arguments,
+    help="learn the metric's coefficients from labelled shapes (or target distances)",
+    description="Fit the split metric's coefficients (a, b, c, d) to the shapes' class "
+    "labels (soft nearest neighbours) or to a matrix of target dissimilarities "
+    "(elastic_jax.fit_metric), starting from --metric; a + b + c + d = 1 in the result. "
+    "With --test and --test-labels, also scores the start and the fitted metric on those "
+    "held-out shapes (nearest neighbour, first and second tier). Writes summary.json "
+    "and fit_metric.npz (the coefficients, the distance matrices, the history).",
+)

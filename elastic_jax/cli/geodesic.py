@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import argparse
 import time
 
 import jax
 import numpy as np
 
-from .._geodesics.geodesic import geodesic
+from .. import geodesic
+from .arguments import Command, common_options, input_options
 from .common import (
+    SURFACE_FILE,
     Progress,
     environment_record,
     geodesic_options_from,
@@ -52,3 +55,19 @@ def run_geodesic(args, progress: Progress, surfaces=None, label=None) -> dict:
     }
     summary["files"] = write_path(args.out, np.asarray(res.path), settings, progress)
     return summary
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``geodesic`` command's arguments."""
+    p.add_argument("source", help=SURFACE_FILE)
+    p.add_argument("target", help=SURFACE_FILE)
+    common_options(p, degree=7, times=13)
+    input_options(p)
+
+
+COMMAND = Command(
+    name="geodesic",
+    run=run_geodesic,
+    add_arguments=add_arguments,
+    help="geodesic between two parametrized surfaces",
+)

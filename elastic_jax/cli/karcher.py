@@ -2,16 +2,25 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import time
 
 import numpy as np
 
-from .._results import RESULTS
+from .. import RESULTS, karcher_mean
 from .._runtime.atomic import save_npz_atomic
-from .._statistics.karcher import karcher_mean
+from .arguments import (
+    Command,
+    batch_options,
+    input_options,
+    karcher_options,
+    rtol_option,
+    shape_options,
+)
 from .common import (
     CHECKPOINTS,
+    SURFACE_FILES,
     Progress,
     collection_settings,
     environment_record,
@@ -146,3 +155,29 @@ def solve_karcher(args, progress: Progress):
 
 def run_karcher(args, progress: Progress) -> dict:
     return solve_karcher(args, progress)[-1]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``karcher`` command's arguments."""
+    p.add_argument("files", nargs="+", help=SURFACE_FILES)
+    shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
+    input_options(p)
+    rtol_option(
+        p,
+        "a resolved mean: each shape's first geodesic by levels, the mean then kept on the "
+        "finest grid any shape needed",
+    )
+    batch_options(p)
+    karcher_options(p)
+
+
+COMMAND = Command(
+    name="karcher",
+    run=run_karcher,
+    add_arguments=add_arguments,
+    help="Karcher mean of a collection of shapes",
+    description="The Karcher mean of the shapes modulo rigid motions (or "
+    "reparametrizations only), checkpointed after every step (--resume continues). "
+    "Writes mean.npz (the mean, its distances, the velocities at the mean and the "
+    "settings: the pca command's input), mean.ply, mean.png and history.png.",
+)

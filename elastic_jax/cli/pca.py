@@ -2,14 +2,32 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import pathlib
 
 import numpy as np
 
+from .. import mode_path, tangent_pca
 from .._runtime.atomic import save_npz_atomic, write_text_atomic
-from .._statistics.pca import mode_path, sigmas_reached, tangent_pca
-from .common import Progress, environment_record, json_floats, json_safe, metric_from, write_figure
+from .._statistics.pca import sigmas_reached
+from .arguments import (
+    Command,
+    batch_options,
+    input_options,
+    karcher_options,
+    rtol_option,
+    shape_options,
+)
+from .common import (
+    SURFACE_FILES,
+    Progress,
+    environment_record,
+    json_floats,
+    json_safe,
+    metric_from,
+    write_figure,
+)
 from .karcher import solve_karcher
 
 
@@ -144,3 +162,42 @@ def run_pca(args, progress: Progress) -> dict:
     }
     summary["converged"] = karcher_converged and not unconverged
     return summary
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``pca`` command's arguments."""
+    p.add_argument("files", nargs="+", help=SURFACE_FILES + "; or one karcher run's mean.npz")
+    shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
+    input_options(p)
+    rtol_option(
+        p,
+        "a resolved mean: each shape's first geodesic by levels, the mean then kept on the "
+        "finest grid any shape needed",
+    )
+    batch_options(p)
+    karcher_options(p)
+    p.add_argument("--modes", type=int, default=3, help="modes to keep (at most shapes - 1)")
+    p.add_argument(
+        "--sigmas", type=float, default=2.0, help="mode paths reach +-sigmas standard deviations"
+    )
+    p.add_argument(
+        "--mode-times",
+        type=int,
+        default=7,
+        help="time points of each half of a mode path (mean to +-sigmas)",
+    )
+
+
+COMMAND = Command(
+    name="pca",
+    run=run_pca,
+    add_arguments=add_arguments,
+    help="Karcher mean, tangent PCA and mode paths of a collection of shapes",
+    description="The Karcher mean of the shapes (as the karcher command), the metric "
+    "PCA of their velocities at the mean (tangent_pca) and the geodesics through the "
+    "mean along the first modes (mode_path). Writes the mean and each mode's +-sigma "
+    "shapes as meshes, each mode's one-sigma velocity (modeK_velocity.npz, for the "
+    "shoot command), pca.npz, scores.json and a figure (modes.png). Given a karcher "
+    "run's mean.npz as its only input, it starts from that mean and its velocities, "
+    "with that run's metric and options, and solves no geodesic.",
+)

@@ -14,10 +14,9 @@ import tempfile
 
 import numpy as np
 
+from .. import ShapeOptions, enable_compilation_cache
 from .._checks import check_grid_shape, check_int, check_positive
-from .._options import ShapeOptions
 from .._runtime.atomic import TEMPORARY, stale_temporaries
-from .._runtime.cache import enable_compilation_cache
 from .._statistics.fit import check_learn
 from .common import (
     CHECKPOINTS,

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import argparse
 import time
 
 import jax
 import numpy as np
 
-from .._geometry.energy import energy_density
-from .._registration.shape import shape_geodesic
+from .. import energy_density, shape_geodesic
 from .._runtime.atomic import atomic_path, save_npz_atomic
+from .arguments import Command, input_options, rtol_option, shape_options
 from .common import (
+    SURFACE_FILE,
     Progress,
     environment_record,
     input_settings,
@@ -177,3 +179,30 @@ def run_shape_geodesic(args, progress: Progress) -> dict:
         "files": files,
         "environment": environment_record(),
     }
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``shape-geodesic`` command's arguments."""
+    p.add_argument("source", help=SURFACE_FILE)
+    p.add_argument("target", help=SURFACE_FILE)
+    shape_options(p, modulo="diff")
+    rtol_option(p, "a resolved distance")
+    input_options(p)
+    p.add_argument(
+        "--on-target-mesh",
+        action="store_true",
+        help="also write the path's frames as meshes with the target mesh's faces, each "
+        "frame read at the target's vertices through the map that brought it in "
+        "(io.VertexMap): path/target_mesh_NNN.ply, the last one the target's own vertices "
+        "(rotated and centred under --modulo rigid) to the grid's resolution; the path "
+        "starts at the source reparametrized onto the target, so this paints the "
+        "deformation on the target's mesh (a mesh target only)",
+    )
+
+
+COMMAND = Command(
+    name="shape-geodesic",
+    run=run_shape_geodesic,
+    add_arguments=add_arguments,
+    help="geodesic between shapes (registration)",
+)

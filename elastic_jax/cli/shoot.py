@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import time
 
 import jax
 import numpy as np
 
-from .._geodesics.shooting import shoot
+from .. import shoot
+from .._options import SHOOTING_SCHEMES
 from .._runtime.atomic import save_npz_atomic
+from .arguments import Command, input_options, io_options
 from .common import (
+    SURFACE_FILE,
     BadInput,
     Progress,
     environment_record,
@@ -108,3 +112,45 @@ def run_shoot(args, progress: Progress) -> dict:
         "files": files,
         "environment": environment_record(),
     }
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``shoot`` command's arguments."""
+    p.add_argument("source", help=SURFACE_FILE)
+    p.add_argument(
+        "velocity",
+        help="the initial velocity: .npz with array v (or velocity) of the surface's shape "
+        "(3, m, n), e.g. the pca command's modeK_velocity.npz",
+    )
+    io_options(p)
+    input_options(p)
+    p.add_argument(
+        "--degree", type=int, default=7, help="spherical-harmonic degree of each step's solve"
+    )
+    p.add_argument("--times", type=int, default=13, help="time points N, ends included")
+    p.add_argument("--scale", type=float, default=1.0, help="multiplies the velocity")
+    p.add_argument(
+        "--scheme",
+        choices=SHOOTING_SCHEMES,
+        default="midpoint",
+        help="time discretization of the path energy (central cannot be shot)",
+    )
+    p.add_argument(
+        "--tol",
+        type=float,
+        default=None,
+        help="each step's Newton tolerance (default: 1e-10 in float64, 1e-4 in float32)",
+    )
+    p.add_argument("--max-newton", type=int, default=20, help="Newton iterations per step")
+
+
+COMMAND = Command(
+    name="shoot",
+    run=run_shoot,
+    add_arguments=add_arguments,
+    help="geodesic from a surface with an initial velocity (exponential map)",
+    description="Shoot the discrete geodesic from the source surface with initial "
+    "velocity --scale times the velocity file's (elastic_jax.shoot). Writes the path "
+    "(path/: a mesh per time point and path.npz), shoot.npz (endpoint, final "
+    "velocity, speeds, residuals) and a figure.",
+)

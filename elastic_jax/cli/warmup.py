@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import argparse
+
 import jax
 
-from .._registration.warmup import warmup, working_grids
+from .. import warmup
+from .._registration.warmup import working_grids
+from .arguments import Command, rtol_option, shape_options
 from .common import BadInput, Progress, check_degrees
 
 # The data's grid when none is given: the shared surfaces', and meshes' default.
@@ -53,3 +57,21 @@ def run_warmup(args, progress: Progress) -> dict:
         "seconds": report.seconds,
         "cache_dir": report.cache_dir,
     }
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``warmup`` command's arguments."""
+    shape_options(p, modulo="diff", moduli=("diff", "rigid", "both"))
+    rtol_option(p, "the job's resolved distances")
+
+
+COMMAND = Command(
+    name="warmup",
+    run=run_warmup,
+    add_arguments=add_arguments,
+    help="compile a batch job's shape solves into the cache ahead of it",
+    description="Solves a built-in pair with the job's shape options on every working "
+    "grid (each level of --rtol), so that the compilation cache (--cache-dir) holds "
+    "every program the job's shape geodesics, distances and resolved Karcher means run "
+    "for inputs on --grid (default 50 99): later runs load them instead of compiling.",
+)
