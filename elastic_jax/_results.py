@@ -121,21 +121,53 @@ class RESULTS(optx.RESULTS, metaclass=_NamedEnumeration):  # pyright: ignore
     )
 
 
+# The result protocol's fields, in the order that ends every record, and how each is
+# annotated (a 0-d array; a record computed in numpy, a mesh's map, holds numpy's).
+_PROTOCOL = ("converged", "result", "num_steps")
+_ANNOTATIONS = {
+    "converged": ('Bool[Array, ""]', 'Bool[np.ndarray, ""]'),
+    "result": ("RESULTS",),
+    "num_steps": ('Int[Array, ""]', 'Int[np.ndarray, ""]'),
+}
+
+
 def status_record(cls):
     """Give a result record (a NamedTuple) the members the result protocol shares.
 
     Every result of the package carries ``converged`` (a 0-d bool array: the solve met
     its criterion), ``result`` (one ``RESULTS`` member per cause), ``num_steps`` and
     ``message``; this decorator checks the first three are there (as fields or
-    properties) and installs the last two members the records share: ``message``, the
-    code's own words from ``RESULTS`` ('' for ``successful``) passed through the record's
-    ``_explain(words)`` when it has one (which node, which pair, the saddle's eigenvalue),
-    and the short repr of :func:`record_repr`. A class decorator rather than a base class:
-    a NamedTuple cannot take a mixin.
+    properties), that those held as fields end the record in that order, annotated
+    ``Bool[Array, ""]``, ``RESULTS`` and ``Int[Array, ""]`` (a TypeError when the class
+    is defined, not when a long job returns one), and installs the last two members the
+    records share: ``message``, the code's own words from ``RESULTS`` ('' for
+    ``successful``) passed through the record's ``_explain(words)`` when it has one
+    (which node, which pair, the saddle's eigenvalue), and the short repr of
+    :func:`record_repr`. A class decorator rather than a base class: a NamedTuple cannot
+    take a mixin.
     """
-    missing = [k for k in ("converged", "result", "num_steps") if not hasattr(cls, k)]
+    missing = [k for k in _PROTOCOL if not hasattr(cls, k)]
     if missing:
         raise TypeError(f"{cls.__name__} lacks the result protocol's {missing}")
+    fields = tuple(getattr(cls, "_fields", ()))
+    # The protocol's fields end the record, in one order; a record that derives some of
+    # them (properties: a mesh's map) ends with the ones it holds.
+    held = tuple(k for k in _PROTOCOL if k in fields)
+    if fields[len(fields) - len(held) :] != held:
+        raise TypeError(
+            f"{cls.__name__}: the result protocol's fields {list(held)} must end the record "
+            f"in that order; its fields end with {list(fields[-len(held) :])}"
+        )
+    annotations = getattr(cls, "__annotations__", {})
+    for name in held:
+        annotation = annotations.get(name, "")
+        # A NamedTuple keeps postponed annotations as ForwardRefs of their source text.
+        written = str(getattr(annotation, "__forward_arg__", annotation)).replace("'", '"')
+        written = " ".join(written.split())
+        if written not in _ANNOTATIONS[name]:
+            raise TypeError(
+                f"{cls.__name__}.{name} must be annotated {_ANNOTATIONS[name][0]}; got {written!r}"
+            )
     explain = getattr(cls, "_explain", None)
 
     def message(self) -> str:

@@ -316,6 +316,7 @@ def _fake_karcher(calls):
             num_steps=1,
             num_solves=3,
             result=ej.RESULTS.mean_velocity_small,
+            level_distances=None,
         )
 
     return karcher_mean
@@ -563,6 +564,7 @@ def test_pca_and_shoot_equal_the_library_and_compose(tmp_path, capsys, monkeypat
             num_steps=0,
             num_solves=1,
             result=ej.RESULTS.mean_velocity_small,
+            level_distances=None,
         )
 
     monkeypatch.setattr(_karcher, "karcher_mean", karcher_mean)

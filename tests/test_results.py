@@ -200,23 +200,24 @@ def _shape_geodesic_record():
     the issue's 40k-character repr), built without a solve."""
     refinement = ej.Refinement(_scalar(0.7366), _scalar(0.7412), _scalar(0.0083))
     return ej.ShapeGeodesicResult(
-        _f64(13, 3, 25, 49),
-        _scalar(0.7351234),
-        _scalar(0.7351234**2),
-        _scalar(1.2034),
-        _f64(3, 25, 49),
-        _f64(3, 25, 49),
-        jnp.eye(3),
-        _f64(11, 3 * ((4 + 1) ** 2 - 1)),
-        _f64(11, 3 * ((4 + 1) ** 2 - 1)),
-        _f64(12),
-        _scalar(7),
-        _scalar(412),
-        _scalar(True),
-        ej.RESULTS.successful,
-        _scalar(3.1e-9),
-        _scalar(0.42),
-        refinement,
+        path=_f64(13, 3, 25, 49),
+        distance=_scalar(0.7351234),
+        energy=_scalar(0.7351234**2),
+        parametrized_distance=_scalar(1.2034),
+        f1_registered=_f64(3, 25, 49),
+        gamma=_f64(3, 25, 49),
+        rotation=jnp.eye(3),
+        coefficients=_f64(11, 3 * ((4 + 1) ** 2 - 1)),
+        parametrized_coefficients=_f64(11, 3 * ((4 + 1) ** 2 - 1)),
+        energy_history=_f64(12),
+        rounds=_scalar(7),
+        num_steps=_scalar(412),
+        converged=_scalar(True),
+        result=ej.RESULTS.successful,
+        grad_norm=_scalar(3.1e-9),
+        min_curvature=_scalar(0.42),
+        refinement=refinement,
+        levels=None,
     )
 
 
@@ -224,21 +225,21 @@ def _metric_fit():
     metric, start = ej.SplitMetric(0.4, 0.3, 0.2, 0.1), ej.SplitMetric(0.25, 0.25, 0.25, 0.25)
     k = 4
     return ej.MetricFit(
-        metric,
-        start,
-        _scalar(0.61),
-        _scalar(0.4321),
-        _f64(21),
-        _scalar(2e-7),
-        _f64(4),
-        _f64(k, k),
-        _f64(k, k),
-        jnp.ones((k, k), bool),
-        jnp.full((k, k, 2), 13, jnp.int32),
-        _scalar(True),
-        ej.RESULTS.successful,
-        _scalar(9),
-        _scalar(10),
+        metric=metric,
+        initial_metric=start,
+        objective_before=_scalar(0.61),
+        objective_after=_scalar(0.4321),
+        history=_f64(21),
+        grad_norm=_scalar(2e-7),
+        gradient=_f64(4),
+        distances=_f64(k, k),
+        distances_before=_f64(k, k),
+        pairs_converged=jnp.ones((k, k), bool),
+        grids=jnp.full((k, k, 2), 13, jnp.int32),
+        converged=_scalar(True),
+        result=ej.RESULTS.successful,
+        num_steps=_scalar(9),
+        evaluations=_scalar(10),
     )
 
 
@@ -248,7 +249,7 @@ def _mesh_records():
 
     v, f = np.linspace(0.0, 1.0, 642 * 3).reshape(642, 3), np.zeros((1280, 3), np.int64)
     frame = MeshFrame(np.zeros(3), 1.25, np.eye(3), np.full(3, 1 / 3), np.zeros(3), "x" * 300)
-    sphere_map = SphericalParametrization(v, f, v, 0, 1.84, 1.52, 6.25, 2.0871, 311, True, 4.2)
+    sphere_map = SphericalParametrization(v, f, v, 0, 1.84, 1.52, 6.25, 2.0871, 311, 4.2, True)
     return {"MeshFrame": frame, "SphericalParametrization": sphere_map}
 
 
@@ -285,45 +286,46 @@ def _records():
         ),
         "TransportResult": (
             ej.TransportResult(
-                surface,
-                path5,
-                _f64(5),
-                _scalar(-1.5e-4),
-                _f64(4, 2),
-                _scalar(5),
-                ok,
-                successful,
-                _scalar(17),
-                _f64(2, 3, 11, 24),
+                vector=surface,
+                vectors=path5,
+                norms=_f64(5),
+                norm_drift=_scalar(-1.5e-4),
+                residuals=_f64(4, 2),
+                n_valid=_scalar(5),
+                converged=ok,
+                result=successful,
+                num_steps=_scalar(17),
+                frame=_f64(2, 3, 11, 24),
             ),
             ["vectors=f64[5,3,13,25]", "norm_drift=-0.00015"],
         ),
         "LogResult": (
             ej.LogResult(
-                surface,
-                surface,
-                _scalar(0.5123),
-                path5,
-                ok,
-                successful,
-                _scalar(30),
-                _f64(2, 2, 3, 11, 24),
-                _f64(5, 2, 3, 11, 24),
-                surface,
+                velocity=surface,
+                target=surface,
+                distance=_scalar(0.5123),
+                path=path5,
+                converged=ok,
+                result=successful,
+                num_steps=_scalar(30),
+                frames=_f64(2, 2, 3, 11, 24),
+                path_frames=_f64(5, 2, 3, 11, 24),
+                base=surface,
+                levels=None,
             ),
             ["path=f64[5,3,13,25]", "distance=0.5123", "frames=f64[2,2,3,11,24]", "levels=None"],
         ),
         "SrnfInversion": (
             ej.SrnfInversion(
-                surface,
-                _scalar(0.0123),
-                _scalar(0.004),
-                _f64(45),
-                _scalar(80),
-                ok,
-                successful,
-                _scalar(1e-8),
-                _f64(2),
+                surface=surface,
+                residual=_scalar(0.0123),
+                relative_residual=_scalar(0.004),
+                coefficients=_f64(45),
+                num_steps=_scalar(80),
+                converged=ok,
+                result=successful,
+                grad_norm=_scalar(1e-8),
+                level_residuals=_f64(2),
             ),
             ["surface=f64[3,13,25]", "residual=0.0123"],
         ),
@@ -348,16 +350,17 @@ def _records():
         ),
         "KarcherResult": (
             ej.KarcherResult(
-                surface,
-                _f64(3),
-                _f64(3, 3, *n),
-                _f64(3, 3, *n),
-                jnp.ones(3, bool),
-                np.zeros((5, 3)),
-                True,
-                4,
-                6,
-                ej.RESULTS.mean_velocity_small,
+                mean=surface,
+                distances=_f64(3),
+                registered=_f64(3, 3, *n),
+                velocities=_f64(3, 3, *n),
+                geodesics_converged=jnp.ones(3, bool),
+                history=np.zeros((5, 3)),
+                converged=True,
+                num_steps=4,
+                num_solves=6,
+                result=ej.RESULTS.mean_velocity_small,
+                level_distances=None,
             ),
             ["history=f64[5,3]", "num_steps=4", "result=mean_velocity_small"],
         ),
@@ -481,15 +484,63 @@ def test_every_result_record_shares_one_status_protocol():
     for cls in records:
         assert isinstance(vars(cls)["message"], property), cls.__name__
         assert cls.__repr__ is _results.record_repr, cls.__name__
+        # One order: the protocol's fields end every record (a mesh's map derives
+        # result and num_steps from its own fields).
+        held = [k for k in ("converged", "result", "num_steps") if k in cls._fields]
+        assert list(cls._fields[-len(held) :]) == held, cls.__name__
+    # A record that breaks the order or the annotation is refused where it is defined.
+    from typing import NamedTuple
+
+    from jaxtyping import Array, Bool, Int
+
+    class Misordered(NamedTuple):
+        converged: Bool[Array, ""]
+        result: ej.RESULTS
+        num_steps: Int[Array, ""]
+        extra: int
+
+    class Misannotated(NamedTuple):
+        converged: Array
+        result: ej.RESULTS
+        num_steps: Int[Array, ""]
+
+    with pytest.raises(TypeError, match=r"must end the record in that order"):
+        _results.status_record(Misordered)
+    with pytest.raises(TypeError, match=r"converged must be annotated Bool\[Array"):
+        _results.status_record(Misannotated)
     # Karcher's words are RESULTS' words: a converged criterion prints them unchanged, a
     # stop says "stopped: " before them.
     mean = np.zeros((3, M, N))
     for name in ("distances_at_rounding", "mean_velocity_small", "sum_sq_stalled"):
         code = getattr(ej.RESULTS, name)
-        record = ej.KarcherResult(mean, [], [], [], [], [], np.asarray(True), 2, 3, code)
+        record = ej.KarcherResult(
+            mean=mean,
+            distances=[],
+            registered=[],
+            velocities=[],
+            geodesics_converged=[],
+            history=[],
+            converged=np.asarray(True),
+            num_steps=2,
+            num_solves=3,
+            result=code,
+            level_distances=None,
+        )
         assert record.message == ej.RESULTS.message(code) and record.message
     code = ej.RESULTS.line_search_failed
-    record = ej.KarcherResult(mean, [], [], [], [], [], np.asarray(False), 2, 3, code)
+    record = ej.KarcherResult(
+        mean=mean,
+        distances=[],
+        registered=[],
+        velocities=[],
+        geodesics_converged=[],
+        history=[],
+        converged=np.asarray(False),
+        num_steps=2,
+        num_solves=3,
+        result=code,
+        level_distances=None,
+    )
     assert record.message == "stopped: " + ej.RESULTS.message(code)
     package = pathlib.Path(ej.__file__).parent
     limits = sorted(

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.typing import DTypeLike
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._checks import (
     check_choice,
@@ -90,11 +90,11 @@ class GeodesicResult(NamedTuple):
     energy: Float[Array, ""]
     straight_energy: Float[Array, ""]
     coefficients: Float[Array, "K L"]
-    num_steps: Int[Array, ""]
-    converged: Array
-    result: RESULTS
     grad_norm: Float[Array, ""]
     min_curvature: Float[Array, ""]
+    converged: Bool[Array, ""]
+    result: RESULTS
+    num_steps: Int[Array, ""]
 
     def _explain(self, words: str) -> str:
         if RESULTS.name(self.result) == "saddle_point":  # no eager == (a program of its own)

@@ -27,7 +27,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 from jax.typing import DTypeLike
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._checks import check_choice, check_finite, check_int, check_positive, is_concrete, real_array
 from .._errors import ConvergenceWarning, InputError, warn_user
@@ -82,7 +82,7 @@ class ShootingResult(NamedTuple):
     coefficients: Float[Array, "K L"]
     newton_steps: Int[Array, " K"]
     n_valid: Int[Array, ""]
-    converged: Array
+    converged: Bool[Array, ""]
     result: RESULTS
     num_steps: Int[Array, ""]
 

@@ -70,11 +70,11 @@ class SrnfInversion(NamedTuple):
     residual: Float[Array, ""]
     relative_residual: Float[Array, ""]
     coefficients: Float[Array, " L"]
-    num_steps: Int[Array, ""]
-    converged: Bool[Array, ""]
-    result: RESULTS
     grad_norm: Float[Array, ""]
     level_residuals: Float[Array, " levels"]
+    converged: Bool[Array, ""]
+    result: RESULTS
+    num_steps: Int[Array, ""]
 
 
 @status_record

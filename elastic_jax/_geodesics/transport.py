@@ -38,7 +38,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._checks import check_choice, check_int, check_positive, is_concrete
 from .._errors import ConvergenceWarning, InputError, warn_user
@@ -92,10 +92,10 @@ class TransportResult(NamedTuple):
     norm_drift: Float[Array, ""]
     residuals: Float[Array, "K 2"]
     n_valid: Int[Array, ""]
-    converged: Array
+    frame: Float[Array, "2 3 m-2 n-1"]
+    converged: Bool[Array, ""]
     result: RESULTS
     num_steps: Int[Array, ""]
-    frame: Float[Array, "2 3 m-2 n-1"]
 
     def _explain(self, words: str) -> str:
         last = self.vectors.shape[-4] - 1

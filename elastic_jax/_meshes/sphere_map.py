@@ -49,6 +49,7 @@ import scipy.sparse
 import scipy.sparse.csgraph
 import scipy.sparse.linalg
 import scipy.spatial
+from jaxtyping import Bool
 
 from .._checks import check_grid_shape, check_int, check_positive
 from .._errors import ConvergenceWarning, InputError, warn_user
@@ -130,9 +131,9 @@ class SphericalParametrization(NamedTuple):
             the mesh and on the sphere's chord triangle (0 for a conformal map).
         energy: the final distortion energy per unit area (2 for an isometry, the minimum).
         iterations: L-BFGS iterations in all.
+        seconds: wall-clock time of the whole parametrization.
         converged: ``()`` bool array, True when the energy stopped decreasing (relative
             change below ``rtol`` over a round of iterations) before ``max_steps``.
-        seconds: wall-clock time of the whole parametrization.
     """
 
     vertices: np.ndarray
@@ -144,8 +145,8 @@ class SphericalParametrization(NamedTuple):
     angle_error: float
     energy: float
     iterations: int
-    converged: np.ndarray
     seconds: float
+    converged: Bool[np.ndarray, ""]
 
     # The result protocol (elastic_jax.RESULTS), from the fields above.
     @property

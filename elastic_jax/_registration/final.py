@@ -221,6 +221,7 @@ def end_phase(
         grad_norm=grad_norm,
         min_curvature=final.min_curvature,
         refinement=refinement,
+        levels=None,
     )
 
 

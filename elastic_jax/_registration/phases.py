@@ -36,10 +36,14 @@ _STATE_SKELETON = State(*([0] * 6))
 _ROUNDS_SKELETON = Rounds(_STATE_SKELETON, 0, 0, 0, 0)
 
 
-_RESULT_SKELETON = ShapeGeodesicResult(*([0] * 13), RESULTS.successful, 0, 0, Refinement(0, 0, 0))
+_RESULT_SKELETON = ShapeGeodesicResult(
+    **dict.fromkeys(ShapeGeodesicResult._fields, 0),
+)._replace(result=RESULTS.successful, refinement=Refinement(0, 0, 0), levels=None)
 
 
-_GEODESIC_SKELETON = GeodesicResult(*([0] * 7), RESULTS.successful, 0, 0)
+_GEODESIC_SKELETON = GeodesicResult(**dict.fromkeys(GeodesicResult._fields, 0))._replace(
+    result=RESULTS.successful
+)
 
 
 # (name, function, skeleton) per phase, in order; each takes the previous one's result.

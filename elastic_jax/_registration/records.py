@@ -8,7 +8,7 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from .._checks import is_concrete
 from .._errors import ConvergenceWarning, warn_user
@@ -133,13 +133,13 @@ class ShapeGeodesicResult(NamedTuple):
     parametrized_coefficients: Float[Array, "K L"]
     energy_history: Float[Array, " H"]
     rounds: Int[Array, ""]
-    num_steps: Int[Array, ""]
-    converged: Array
-    result: RESULTS
     grad_norm: Float[Array, ""]
     min_curvature: Float[Array, ""]
     refinement: Refinement
-    levels: Levels | None = None
+    levels: Levels | None
+    converged: Bool[Array, ""]
+    result: RESULTS
+    num_steps: Int[Array, ""]
 
     def _explain(self, words: str) -> str:
         # A converged result whose last round was refused (its full step, resolved by the

@@ -103,10 +103,10 @@ class MetricFit(NamedTuple):
     distances_before: Float[Array, "K K"]
     pairs_converged: Bool[Array, "K K"]
     grids: Int[Array, "K K 2"]
+    evaluations: Int[Array, ""]
     converged: Bool[Array, ""]
     result: RESULTS
     num_steps: Int[Array, ""]
-    evaluations: Int[Array, ""]
 
 
 def normalized(metric: SplitMetric) -> np.ndarray:

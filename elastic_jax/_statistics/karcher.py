@@ -16,7 +16,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._checks import check_bool
 from .._errors import InputError
@@ -86,11 +86,11 @@ class KarcherResult(NamedTuple):
     velocities: Array
     geodesics_converged: Array
     history: np.ndarray
-    converged: np.ndarray
-    num_steps: int
     num_solves: int
+    level_distances: np.ndarray | None
+    converged: Bool[Array, ""]
     result: RESULTS
-    level_distances: np.ndarray | None = None
+    num_steps: Int[Array, ""]
 
     def _explain(self, words: str) -> str:
         # A Karcher mean names its criterion also when it converged; a stop says what
@@ -422,8 +422,8 @@ class _KarcherJob(NamedTuple):
             velocities=solved.velocities,
             geodesics_converged=solved.converged,
             history=np.asarray(state.history),
-            converged=np.asarray(RESULTS.name(code) in _CONVERGED),
-            num_steps=state.step,
+            converged=jnp.asarray(RESULTS.name(code) in _CONVERGED),
+            num_steps=jnp.asarray(state.step, jnp.int32),
             num_solves=state.num_solves,
             result=code,
             level_distances=state.level_distances,

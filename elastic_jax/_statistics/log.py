@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._checks import check_choice
 from .._errors import InputError
@@ -70,13 +70,13 @@ class LogResult(NamedTuple):
     target: Float[Array, "3 m n"]
     distance: Float[Array, ""]
     path: Float[Array, "N 3 m n"]
-    converged: Array
-    result: RESULTS
-    num_steps: Int[Array, ""]
     frames: Float[Array, "2 2 3 m-2 n-1"]
     path_frames: Float[Array, "N 2 3 m-2 n-1"]
     base: Float[Array, "3 m n"]
-    levels: Levels | None = None
+    levels: Levels | None
+    converged: Bool[Array, ""]
+    result: RESULTS
+    num_steps: Int[Array, ""]
 
 
 def log(
