@@ -436,7 +436,7 @@ def matching_criterion(prob: Problem, options: ShapeOptions, weight: ArrayLike):
 
 def iterate(
     round_fn: Callable,
-    state: State,
+    state: tuple,  # a State, or a record with its fields and more (rounds' _Warm)
     max_rounds: int,
     small_change: Callable,
     history: Array | None = None,

@@ -93,8 +93,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     progress = Progress(args.quiet)
     previous = signal.signal(signal.SIGTERM, raise_terminated)
     try:
-        # The commands call internal solvers: their float32 products at full precision,
-        # as the public functions trace them (_runtime/precision.py).
+        # The solves a command calls are public functions, which trace their float32
+        # products at full precision themselves (_runtime/precision.py); reading meshes
+        # (io's sphere map) and the summaries' own arithmetic are not: the same here.
         with warnings.catch_warnings(), contextlib.ExitStack() as stack, full_products():
             # Non-convergence is reported in the summary and the exit code instead.
             warnings.simplefilter("ignore", ConvergenceWarning)
