@@ -540,7 +540,8 @@ m, n = 13, 25
 coll = jnp.stack([shapes.sample(shapes.bumpy, m, n),
                   shapes.sample(shapes.ellipsoid, m, n, axes=(1.1, 0.9, 0.7)),
                   shapes.sample(shapes.bumpy, m, n, scale=1.3)])
-res = ej.karcher_mean(coll, ej.SplitMetric(1.0, 1.0, 0.1, 0.0), modulo="none", strategy="vmap",
+res = ej.karcher_mean(coll, ej.SplitMetric(1.0, 1.0, 0.1, 0.0), modulo="none",
+                      job=ej.JobOptions(strategy="vmap"),
                       options=ej.ShapeOptions(degree=3, n_times=5), max_steps=2)
 print(json.dumps({"devices": jax.device_count(), "mean": res.mean.ravel().tolist()}))
 """
