@@ -164,21 +164,14 @@ class Job(Protocol):
         """The ConvergenceWarning's text for a record that did not converge."""
 
 
-# What run calls on a job (named when a job lacks some).
-
-_JOB_METHODS = (
-    "_replace",
-    "pool_inputs",
-    "restore",
-    "init",
-    "step",
-    "steps",
-    "value",
-    "terminate",
-    "arrays",
-    "report",
-    "result",
-    "warning",
+# What run uses of a job, read from the protocol itself (named when a job lacks some).
+_JOB_MEMBERS = tuple(
+    sorted(
+        {
+            *Job.__annotations__,
+            *(name for name, value in vars(Job).items() if callable(value) and name[:2] != "__"),
+        }
+    )
 )
 
 
@@ -207,9 +200,7 @@ def run(job: Job, options: JobOptions | None = None, max_steps: int | None = Non
     the job's text, attributed to the caller of the public function.
     """
     if not isinstance(job, Job):
-        missing = sorted(
-            name for name in ("fingerprint", "pool", *_JOB_METHODS) if not hasattr(job, name)
-        )
+        missing = [name for name in _JOB_MEMBERS if not hasattr(job, name)]
         raise TypeError(f"run: {type(job).__name__} is not a Job (it lacks {missing})")
     options = check_job(options)
     path = None if options.checkpoint is None else pathlib.Path(options.checkpoint)

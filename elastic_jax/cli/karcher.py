@@ -157,9 +157,10 @@ def run_karcher(args, progress: Progress) -> dict:
     return solve_karcher(args, progress)[-1]
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The ``karcher`` command's arguments."""
-    p.add_argument("files", nargs="+", help=SURFACE_FILES)
+def add_arguments(p: argparse.ArgumentParser, files_help: str = SURFACE_FILES) -> None:
+    """The ``karcher`` command's arguments (the ``pca`` command's too, which solves the
+    same mean first)."""
+    p.add_argument("files", nargs="+", help=files_help)
     shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
     input_options(p)
     rtol_option(

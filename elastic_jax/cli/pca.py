@@ -13,11 +13,6 @@ from .._runtime.atomic import save_npz_atomic, write_text_atomic
 from .._statistics.pca import sigmas_reached
 from .arguments import (
     Command,
-    batch_options,
-    input_options,
-    karcher_options,
-    rtol_option,
-    shape_options,
 )
 from .common import (
     SURFACE_FILES,
@@ -28,6 +23,7 @@ from .common import (
     metric_from,
     write_figure,
 )
+from .karcher import add_arguments as karcher_arguments
 from .karcher import solve_karcher
 
 
@@ -165,17 +161,8 @@ def run_pca(args, progress: Progress) -> dict:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The ``pca`` command's arguments."""
-    p.add_argument("files", nargs="+", help=SURFACE_FILES + "; or one karcher run's mean.npz")
-    shape_options(p, modulo="rigid", inner="; the Karcher steps are --karcher-steps")
-    input_options(p)
-    rtol_option(
-        p,
-        "a resolved mean: each shape's first geodesic by levels, the mean then kept on the "
-        "finest grid any shape needed",
-    )
-    batch_options(p)
-    karcher_options(p)
+    """The ``pca`` command's arguments: the ``karcher`` command's, then the modes'."""
+    karcher_arguments(p, files_help=SURFACE_FILES + "; or one karcher run's mean.npz")
     p.add_argument("--modes", type=int, default=3, help="modes to keep (at most shapes - 1)")
     p.add_argument(
         "--sigmas", type=float, default=2.0, help="mode paths reach +-sigmas standard deviations"
