@@ -217,7 +217,6 @@ def _statistics_at(res, metric, options, coll) -> dict:
     import numpy as np
 
     import elastic_jax as ej
-    from elastic_jax._statistics.pca import sigmas_reached
 
     mean = res.mean
     pca = ej.tangent_pca(res, metric)
@@ -226,7 +225,7 @@ def _statistics_at(res, metric, options, coll) -> dict:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ej.ConvergenceWarning)
             path = ej.mode_path(pca, mode, metric, degree=options.degree, n_times=5)
-        reached.append(sigmas_reached(path, 2.0))
+        reached.append(ej.sigmas_reached(path, 2.0))
     grid = mean.shape[-2:]
     member = ej.reparametrize(coll[1], ej.sphere_points(*grid), method="spline")
     with warnings.catch_warnings():

@@ -63,6 +63,7 @@ from ._registration.shape import shape_geodesic as shape_geodesic
 from ._registration.warmup import WarmupReport as WarmupReport
 from ._registration.warmup import warmup as warmup
 from ._results import RESULTS as RESULTS
+from ._runtime import precision as _precision
 from ._runtime.cache import clear_caches as clear_caches
 from ._runtime.cache import enable_compilation_cache as enable_compilation_cache
 from ._statistics.distances import DistanceMatrixResult as DistanceMatrixResult
@@ -76,6 +77,7 @@ from ._statistics.log import LogResult as LogResult
 from ._statistics.log import log as log
 from ._statistics.pca import TangentPCA as TangentPCA
 from ._statistics.pca import mode_path as mode_path
+from ._statistics.pca import sigmas_reached as sigmas_reached
 from ._statistics.pca import tangent_pca as tangent_pca
 from ._statistics.retrieval import RetrievalScores as RetrievalScores
 from ._statistics.retrieval import retrieval_scores as retrieval_scores
@@ -141,6 +143,7 @@ __all__ = [
     "rotate_parametrization",
     "shape_geodesic",
     "shoot",
+    "sigmas_reached",
     "so3_exp",
     "so3_log",
     "sphere_points",
@@ -163,19 +166,10 @@ __all__ = [
 ]
 
 
-def _trace_at_full_precision() -> None:
-    # Each public function traces its float32 products at float32's own precision (on
-    # recent GPUs JAX's default is TensorFloat-32, ~1e-3: _runtime/precision.py), unless
-    # the caller has chosen a precision. The internal modules are called from these.
-    from ._runtime.precision import full_precision
-
-    for name in __all__:
-        obj = globals()[name]
-        if callable(obj) and not isinstance(obj, type):
-            globals()[name] = full_precision(obj)
-
-
-_trace_at_full_precision()
+# Each public function traces its float32 products at float32's own precision (on recent
+# GPUs JAX's default is TensorFloat-32, ~1e-3: _runtime/precision.py), unless the caller has
+# chosen a precision. The internal modules are called from these.
+_precision.trace_public_at_full_precision(globals(), __all__)
 
 _SUBMODULES = ("cli", "io", "plot")
 

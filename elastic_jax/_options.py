@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 import numbers
+from collections.abc import Mapping
+from types import MappingProxyType
+from typing import ClassVar
 
 from ._checks import check_bool, check_choice, check_grid_shape, check_int, check_positive
 from ._errors import InputError
@@ -198,6 +201,19 @@ class ShapeOptions:
             geodesic solve (0: none).
     """
 
+    #: The allowed values of each field that names a choice (a read-only mapping; the
+    #: command line offers the same).
+    CHOICES: ClassVar[Mapping[str, tuple[str, ...]]] = MappingProxyType(
+        {
+            "solver": SOLVERS,
+            "scheme": SCHEMES,
+            "method": METHODS,
+            "init": INITS,
+            "interpolation": INTERPOLATIONS,
+            "differential": DIFFERENTIALS,
+        }
+    )
+
     degree: int = 7
     n_times: int = 13
     solver: str = "bfgs"
@@ -242,15 +258,7 @@ class ShapeOptions:
                 f"init_candidates must be at most 60 (the icosahedral rotations); "
                 f"got {self.init_candidates}"
             )
-        choices = {
-            "solver": SOLVERS,
-            "scheme": SCHEMES,
-            "method": METHODS,
-            "init": INITS,
-            "interpolation": INTERPOLATIONS,
-            "differential": DIFFERENTIALS,
-        }
-        for name, allowed in choices.items():
+        for name, allowed in self.CHOICES.items():
             check_choice(name, getattr(self, name), allowed)
         if self.tol is not None:
             object.__setattr__(self, "tol", check_positive("tol", self.tol))
@@ -295,6 +303,21 @@ class ShapeOptions:
         object.__setattr__(self, "levels", levels)
         if self.rtol is not None:
             object.__setattr__(self, "rtol", check_positive("rtol", self.rtol))
+
+    def working_grids(self, input_grid: tuple[int, int]) -> tuple[tuple[int, int], ...]:
+        """The working grids ``(m, n)`` a shape solve with these options runs on, coarse to
+        fine, for inputs on ``input_grid``: every level of ``levels`` when the solve
+        resolves (``rtol`` given, ``grid`` not), else ``grid`` or ``input_grid``.
+
+        Example:
+            >>> ShapeOptions().working_grids((50, 99))
+            ((13, 25), (25, 49), (49, 97), (97, 193))
+            >>> ShapeOptions(rtol=None).working_grids((50, 99))
+            ((50, 99),)
+        """
+        if self.resolves:
+            return tuple(tuple(level) for level in self.levels)
+        return (tuple(self.grid or input_grid),)
 
     @property
     def resolves(self) -> bool:

@@ -11,7 +11,13 @@ the grid with one vertex per distinct grid point; :func:`grid_to_vertices` (with
 at the input mesh's own vertices, through the same sphere map that brought the mesh in.
 
 Every file is written atomically (a temporary beside it, then a rename), so an interrupted
-job leaves the previous file or the new one, never part of one.
+job leaves the previous file or the new one, never part of one. The same writes serve a
+user's own long jobs: :func:`atomic_path`, :func:`save_npz_atomic`, :func:`write_text_atomic`,
+and :func:`stale_temporaries` for the temporaries a killed job left behind.
+
+Like the package's functions, these trace float32 matrix products at float32's own
+precision unless the caller has chosen one (the sphere map and the grid reads are such
+products; on recent GPUs JAX's default is TensorFloat-32).
 
 Example:
     >>> import numpy as np
@@ -64,7 +70,8 @@ from ._meshes.sphere_map import (
     ParametrizationError,
     SphericalParametrization,
 )
-from ._runtime.atomic import atomic_path, save_npz_atomic
+from ._runtime import precision as _precision
+from ._runtime.atomic import atomic_path, save_npz_atomic, stale_temporaries, write_text_atomic
 
 __all__ = [
     "MESH_FORMATS",
@@ -80,17 +87,21 @@ __all__ = [
     "ParametrizationError",
     "SphericalParametrization",
     "VertexMap",
+    "atomic_path",
     "grid_to_mesh",
     "grid_to_vertices",
     "load_surface",
     "mesh_frame",
     "mesh_to_grid",
     "normalize_scale",
+    "save_npz_atomic",
     "save_path",
     "save_surface",
     "spherical_parametrization",
+    "stale_temporaries",
     "star_center",
     "surface_files",
+    "write_text_atomic",
 ]
 
 #: Mesh formats that :func:`save_surface` and :func:`save_path` write with trimesh and that
@@ -678,3 +689,6 @@ def save_path(
         np.savez(fh, path=surfaces, settings=np.str_(text))
     written.append(target)
     return written
+
+
+_precision.trace_public_at_full_precision(globals(), __all__)

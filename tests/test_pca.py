@@ -57,6 +57,13 @@ def test_pca_of_a_two_factor_family_finds_two_modes():
     path = mode_path(pca, 0, METRIC, sigmas=1.0, n_times=N_TIMES, degree=DEGREE)
     assert path.shape == (2 * N_TIMES - 1, 3, M, N_GRID)
     assert float(jnp.max(jnp.abs(path[N_TIMES - 1] - mean))) == 0.0
+    # Both shots converged: the path reached -1 and +1 sigma; a lost end node, one step less.
+    assert ej.sigmas_reached(path, 1.0) == [-1.0, 1.0]
+    cut = np.array(path)
+    cut[-1] = np.nan
+    assert ej.sigmas_reached(cut, 1.0) == [-1.0, 1.0 - 1.0 / (N_TIMES - 1)]
+    with pytest.raises(ej.InputError, match="2 T \\+ 1"):
+        ej.sigmas_reached(path[1:], 1.0)
 
 
 def test_default_modes_stop_at_the_rank_in_float32():

@@ -61,10 +61,12 @@ def test_public_functions_trace_float32_products_at_full_precision():
         chosen = _dot_precisions(public, path, rotation)
     assert chosen and not any("HIGHEST" in p for p in chosen), chosen
     # Every public function is wrapped (a new one added without it would trace at TF32).
-    for name in ej.__all__:
-        obj = getattr(ej, name)
-        if callable(obj) and not isinstance(obj, type):
-            assert hasattr(obj, "__wrapped__"), name
+    # io's too (its sphere map and grid reads are products; the commands call them).
+    for module in (ej, ej.io):
+        for name in module.__all__:
+            obj = getattr(module, name)
+            if callable(obj) and not isinstance(obj, type):
+                assert hasattr(obj, "__wrapped__"), name
 
 
 def test_float32_shape_geodesic_is_float64s_problem():

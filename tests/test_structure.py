@@ -205,7 +205,7 @@ PUBLIC = {
         hat icosahedral_group integrate jacobian_determinant karcher_mean log max_degree
         metric_inner mode_path moebius parallel_transport path_energy path_length
         quadrature_weights real_sph_harm reparametrize resample retrieval_scores
-        rotate_parametrization shape_geodesic shoot so3_exp so3_log sphere_points
+        rotate_parametrization shape_geodesic shoot sigmas_reached so3_exp so3_log sphere_points
         split_inner split_parts srnf srnf_distance srnf_geodesic srnf_invert
         srnf_path_length straight_path surface_area surface_basis tangent_pca
         upsample_coefficients validate_surface vector_field_basis vee warmup""",
@@ -214,7 +214,8 @@ PUBLIC = {
         NotStarShapedError NotWatertightError
         ParametrizationError SphericalParametrization VertexMap grid_to_mesh grid_to_vertices
         load_surface mesh_to_grid normalize_scale save_path save_surface
-        spherical_parametrization star_center surface_files""",
+        spherical_parametrization star_center surface_files
+        atomic_path save_npz_atomic write_text_atomic stale_temporaries""",
     "elastic_jax.plot": """parametrization_colors plot_path plot_field plot_modes plot_energy
         plot_distance_matrix save_figure""",
     "elastic_jax.shapes": "sphere ellipsoid bumpy bent_cylinder sample random_rotation two_classes "
@@ -386,13 +387,27 @@ def test_each_command_owns_its_arguments_and_uses_the_public_functions():
     subparsers = next(a for a in parser._actions if a.dest == "command")
     assert sorted(subparsers.choices) == sorted(names)
     exported = set(ej.__all__)
-    private = sorted(
-        f"{p.name}: {alias.name} from {node.module}"
+    imports = [
+        (p.name, node)
         for p in (PACKAGE / "cli").glob("*.py")
         for node in ast.walk(ast.parse(p.read_text()))
-        if isinstance(node, ast.ImportFrom) and node.level == 2 and node.module
+        if isinstance(node, ast.ImportFrom) and node.level == 2
+    ]
+    around = sorted(
+        f"{name}: {alias.name} from {node.module}"
+        for name, node in imports
+        if node.module
         for alias in node.names
         if alias.name in exported
+    )
+    assert around == []
+    # Commands import only public names: the package's, and its public modules' (io's
+    # atomic writes), never a private module's helpers.
+    private = sorted(
+        f"{name}: {', '.join(a.name for a in node.names)} from {node.module or '..'}"
+        for name, node in imports
+        if (node.module or "").startswith("_")
+        or any(a.name.startswith("_") and not a.name.endswith("__") for a in node.names)
     )
     assert private == []
 
@@ -409,13 +424,11 @@ def test_a_concrete_only_check_is_spelled_one_way():
 def test_cli_imports_at_call_time_only_what_the_package_has_not_loaded():
     """``import elastic_jax.cli`` runs elastic_jax/__init__ first, which loads jax, numpy and
     every solver: importing those inside a command saves nothing (issue 53 counted 28).
-    What a command may import when it runs: io and plot (trimesh and matplotlib, about
-    0.2 s and 0.3 s that ``elastic_jax`` alone does not load), the optional Dask and the
-    POSIX-only fcntl."""
+    What a command may import when it runs: plot (matplotlib, about 0.3 s that
+    ``elastic_jax`` alone does not load; io, which the commands' atomic writes come from,
+    is loaded with them), the optional Dask and the POSIX-only fcntl."""
     allowed = {
-        "from .. import io",
         "from .. import plot",
-        "from .. import io, plot",
         "import distributed",
         "import fcntl",
     }

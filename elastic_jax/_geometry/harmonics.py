@@ -39,7 +39,13 @@ def max_degree(m: int, n: int) -> int:
 
 def check_degree(degree: int, m: int, n: int, name: str = "degree") -> int:
     """``degree`` as an int if 1 <= degree <= :func:`max_degree` (m, n); else InputError."""
-    degree = check_int(name, degree, 1)
+    return degree_within(check_int(name, degree, 1), m, n, name)
+
+
+def degree_within(degree: int, m: int, n: int, name: str = "degree") -> int:
+    """An int ``degree`` (an options record's, checked already) if at most
+    :func:`max_degree` (m, n), the highest whose harmonics are independent on the grid;
+    else InputError."""
     limit = max_degree(m, n)
     if degree > limit:
         raise InputError(

@@ -10,7 +10,7 @@ from .._checks import check_grid_shape, extents, grid_array, is_concrete, item_s
 from .._errors import InputError
 from .._options import ShapeOptions
 from .differential import area_element, interior_frame
-from .harmonics import check_degree
+from .harmonics import degree_within
 
 __all__ = [
     "as_surface",
@@ -141,5 +141,6 @@ def check_grid_options(options: ShapeOptions, m: int, n: int) -> None:
     Raises:
         InputError: naming the option, its value and the grid's limit.
     """
-    check_degree(options.degree, m, n)
-    check_degree(options.vf_degree, m, n, "vf_degree")
+    # The record made both ints >= 1 already; the grid sets their ceiling.
+    degree_within(options.degree, m, n)
+    degree_within(options.vf_degree, m, n, "vf_degree")

@@ -63,14 +63,6 @@ def _pair(m: int, n: int, dtype) -> tuple[np.ndarray, np.ndarray]:
     return e1.astype(dtype), np.einsum("ij,jmn->imn", stretch, e1).astype(dtype)
 
 
-def working_grids(options: ShapeOptions, input_grid: tuple[int, int]) -> tuple:
-    """The working grids a solve with ``options`` runs on, for inputs on ``input_grid``:
-    every level of ``options.levels`` with rtol, else ``options.grid`` or the inputs'."""
-    if options.resolves:
-        return tuple(options.levels)
-    return (tuple(options.grid or input_grid),)
-
-
 def warmup(
     input_grid: tuple[int, int] = (50, 99),
     *,
@@ -139,7 +131,7 @@ def warmup(
             "dtype='float64' needs jax.config.update('jax_enable_x64', True) first "
             "(the CLI sets it for --dtype float64)"
         )
-    grids = working_grids(resolved, (m, n))
+    grids = resolved.working_grids((m, n))
     if resolved.resolves:
         # Every level, with the rounds' stop the job's rtol gives its levels (a static
         # setting of their programs).

@@ -48,3 +48,12 @@ def full_precision(fn: Callable) -> Callable:
             return fn(*args, **kwargs)
 
     return wrapper
+
+
+def trace_public_at_full_precision(namespace: dict, names) -> None:
+    """Replace each function among ``names`` in a module's ``namespace`` by its
+    :func:`full_precision` wrapper (classes and constants are left as they are)."""
+    for name in names:
+        obj = namespace[name]
+        if callable(obj) and not isinstance(obj, type):
+            namespace[name] = full_precision(obj)

@@ -175,10 +175,30 @@ def sigmas_reached(path, sigmas: float) -> list[float]:
     Each half of the ``(2 T + 1, 3, m, n)`` path is a shot from the mean (the centre):
     a failed step leaves the nodes beyond it NaN, so the solved nodes are a run around
     the centre, T nodes of sigmas / T each way.
+
+    Args:
+        path: ``(2 T + 1, 3, m, n)``, a :func:`mode_path` (T >= 1).
+        sigmas: the ``sigmas`` the path was shot to.
+
+    Returns:
+        ``[low, high]``: the signed standard deviations of the last solved node on each
+        side.
+
+    Example:
+        >>> import numpy as np
+        >>> path = np.zeros((5, 3, 5, 9))  # T = 2 nodes each way, shot to 2 sigmas
+        >>> path[0] = np.nan  # the last step down failed
+        >>> sigmas_reached(path, 2.0)
+        [-1.0, 2.0]
     """
     import numpy as np
 
-    solved = np.isfinite(np.asarray(path)).all(axis=(1, 2, 3))
+    path = np.asarray(path)
+    if path.ndim != 4 or path.shape[1] != 3 or path.shape[0] < 3 or path.shape[0] % 2 == 0:
+        raise InputError(
+            f"path must have shape (2 T + 1, 3, m, n) with T >= 1 (a mode_path); got {path.shape}"
+        )
+    solved = np.isfinite(path).all(axis=(1, 2, 3))
     c = (len(solved) - 1) // 2
     down = int(np.argmin([*solved[c::-1], False]))  # solved nodes from the centre down
     up = int(np.argmin([*solved[c:], False]))

@@ -30,7 +30,6 @@ from collections.abc import Sequence
 import jax
 
 from .. import ConvergenceWarning, InputError, enable_compilation_cache
-from .._runtime.precision import full_products
 from .arguments import join_negative_values
 from .common import BadInput, Progress, one_line, write_summary
 from .parser import COMMANDS as _COMMANDS
@@ -93,10 +92,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     progress = Progress(args.quiet)
     previous = signal.signal(signal.SIGTERM, raise_terminated)
     try:
-        # The solves a command calls are public functions, which trace their float32
-        # products at full precision themselves (_runtime/precision.py); reading meshes
-        # (io's sphere map) and the summaries' own arithmetic are not: the same here.
-        with warnings.catch_warnings(), contextlib.ExitStack() as stack, full_products():
+        # Every function a command calls is public (the package's and io's), and each
+        # traces its float32 products at full precision itself (_runtime/precision.py).
+        with warnings.catch_warnings(), contextlib.ExitStack() as stack:
             # Non-convergence is reported in the summary and the exit code instead.
             warnings.simplefilter("ignore", ConvergenceWarning)
             preflight(args)

@@ -10,7 +10,7 @@ import re
 from collections.abc import Callable
 from typing import NamedTuple
 
-from .._options import INITS, METHODS, SCHEMES, SOLVERS
+from .. import ShapeOptions
 from .common import DEFAULT_METRIC, SHAPE_DEFAULTS
 
 
@@ -142,7 +142,7 @@ def common_options(
     parser.add_argument("--times", type=int, default=times, help="time points N, ends included")
     parser.add_argument(
         "--solver",
-        choices=SOLVERS,
+        choices=ShapeOptions.CHOICES["solver"],
         default="bfgs",
         help="optimistix BFGS or jaxopt L-BFGS",
     )
@@ -185,13 +185,13 @@ def shape_options(
     )
     parser.add_argument(
         "--scheme",
-        choices=SCHEMES,
+        choices=ShapeOptions.CHOICES["scheme"],
         default=d.scheme,
         help="time discretization of the path energy (see ShapeOptions)",
     )
     parser.add_argument(
         "--method",
-        choices=METHODS,
+        choices=ShapeOptions.CHOICES["method"],
         default=d.method,
         help="registration: paper Algorithm 2 (joint) or alternating (coordinate)",
     )
@@ -199,7 +199,12 @@ def shape_options(
     parser.add_argument(
         "--outer-steps", type=int, default=d.outer_steps, help="most registration rounds"
     )
-    parser.add_argument("--init", choices=INITS, default=d.init, help="initial registration search")
+    parser.add_argument(
+        "--init",
+        choices=ShapeOptions.CHOICES["init"],
+        default=d.init,
+        help="initial registration search",
+    )
     parser.add_argument(
         "--no-refinement",
         dest="refinement",

@@ -16,9 +16,8 @@ from collections.abc import Callable, Sequence
 import jax
 import numpy as np
 
-from .. import RESULTS, InputError, JobOptions, ShapeOptions, SplitMetric
-from .._geometry.harmonics import check_degree
-from .._runtime.atomic import write_text_atomic
+from .. import RESULTS, InputError, JobOptions, ShapeOptions, SplitMetric, io, max_degree
+from ..io import write_text_atomic
 
 CHECKPOINTS = {
     "karcher": "karcher_checkpoint.npz",
@@ -159,8 +158,6 @@ def _load_all(
     (io.load_surface's ``sphere``). ``normalize``: "none" or "area" (io.normalize_scale).
     ``maps``: a list that receives each input's io.VertexMap (None for a grid file)."""
 
-    from .. import io
-
     out = []
     m, n = (None, None) if grid is None else grid
     for k, name in enumerate(files):
@@ -198,13 +195,17 @@ def metric_from(args):
 
 
 def check_degrees(args, m: int, n: int) -> None:
+    """--degree and --vf-degree within 1 .. max_degree(m, n), the degrees whose harmonics
+    are independent on the m x n grid."""
+    limit = max_degree(m, n)
     for name in ("degree", "vf_degree"):
         value = getattr(args, name, None)
-        if value is not None:
-            try:
-                check_degree(value, m, n, name)
-            except ValueError as err:
-                raise BadInput(f"--{name.replace('_', '-')} {value}: {err}") from err
+        if value is not None and not 1 <= value <= limit:
+            raise BadInput(
+                f"--{name.replace('_', '-')} {value}: must be between 1 and {limit} on the "
+                f"{m} x {n} grid (min(m - 3, (n - 3) // 2), beyond which the harmonics are "
+                "not independent on the grid)"
+            )
 
 
 def geodesic_options_from(args) -> dict:
@@ -270,7 +271,7 @@ def write_figure(target: pathlib.Path, make: Callable, progress: Progress) -> li
 
 
 def write_path(out: pathlib.Path, path, settings: dict, progress: Progress) -> list[str]:
-    from .. import io, plot
+    from .. import plot
 
     if not np.isfinite(path).all():
         progress("the path is not finite: no meshes and no figure written")
@@ -350,11 +351,25 @@ def job_options(args, checkpoint=None, progress=None):
 
 
 def checked_flag(flag: str, check: Callable, *args):
-    """``check(flag, value, ...)`` from the validation layer, its InputError as BadInput."""
+    """``check(flag, value, ...)``, an InputError it raises as BadInput."""
     try:
         return check(flag, *args)
     except InputError as err:
         raise BadInput(str(err)) from err
+
+
+def at_least(flag: str, value: int, minimum: int) -> int:
+    """An integer flag's value (argparse made it an int) if it is at least ``minimum``."""
+    if value < minimum:
+        raise BadInput(f"{flag} {value}: must be an integer >= {minimum}")
+    return value
+
+
+def positive(flag: str, value: float) -> float:
+    """A number flag's value (argparse made it a float) if it is finite and above 0."""
+    if not (math.isfinite(value) and value > 0):
+        raise BadInput(f"{flag} {value}: must be a positive finite number")
+    return value
 
 
 def one_line(err: Exception) -> str:

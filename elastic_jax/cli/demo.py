@@ -6,7 +6,7 @@ import argparse
 
 import numpy as np
 
-from .. import shapes
+from .. import io, shapes
 from .arguments import Command, common_options
 from .common import Progress
 from .geodesic import run_geodesic
@@ -21,7 +21,6 @@ def builtin_pair(m: int, n: int, dtype: str):
 
 
 def run_demo(args, progress: Progress) -> dict:
-    from .. import io
 
     f1, f2 = pair = builtin_pair(*(args.grid or (25, 49)), args.dtype)
     args.out.mkdir(parents=True, exist_ok=True)

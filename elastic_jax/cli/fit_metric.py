@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from .. import distance_matrix, fit_metric, retrieval_scores
-from .._runtime.atomic import save_npz_atomic
+from ..io import save_npz_atomic
 from .arguments import Command, batch_options, input_options, rtol_option, shape_options
 from .common import (
     CHECKPOINTS,

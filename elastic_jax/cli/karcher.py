@@ -8,8 +8,8 @@ import time
 
 import numpy as np
 
-from .. import RESULTS, karcher_mean
-from .._runtime.atomic import save_npz_atomic
+from .. import RESULTS, io, karcher_mean
+from ..io import save_npz_atomic
 from .arguments import (
     Command,
     batch_options,
@@ -37,7 +37,7 @@ def solve_karcher(args, progress: Progress):
     """The Karcher mean of ``args.files`` with its files and summary: (result, metric,
     options, summary), the summary holding ``files`` already written."""
 
-    from .. import io, plot
+    from .. import plot
 
     shapes, metric, options = prepare(args, progress, args.files, shape_geodesic_options)
     m, n = shapes.shape[2:]

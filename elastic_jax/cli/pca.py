@@ -8,9 +8,8 @@ import pathlib
 
 import numpy as np
 
-from .. import mode_path, tangent_pca
-from .._runtime.atomic import save_npz_atomic, write_text_atomic
-from .._statistics.pca import sigmas_reached
+from .. import io, mode_path, sigmas_reached, tangent_pca
+from ..io import save_npz_atomic, write_text_atomic
 from .arguments import (
     Command,
 )
@@ -28,7 +27,7 @@ from .karcher import solve_karcher
 
 
 def run_pca(args, progress: Progress) -> dict:
-    from .. import io, plot
+    from .. import plot
 
     if args.karcher_output is None:
         karcher, metric, options, summary = solve_karcher(args, progress)

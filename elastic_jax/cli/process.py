@@ -10,14 +10,11 @@ import json
 import math
 import os
 import pathlib
-import tempfile
 
 import numpy as np
 
-from .. import ShapeOptions, enable_compilation_cache
-from .._checks import check_grid_shape, check_int, check_positive
-from .._runtime.atomic import TEMPORARY, stale_temporaries
-from .._statistics.fit import check_learn
+from .. import InputError, ShapeOptions, enable_compilation_cache, io
+from ..io import stale_temporaries, write_text_atomic
 from .common import (
     CHECKPOINTS,
     KARCHER_OUTPUT_KEYS,
@@ -25,10 +22,11 @@ from .common import (
     SHAPE_COMMANDS,
     BadInput,
     Progress,
+    at_least,
     check_spheres,
-    checked_flag,
     is_grid_file,
     metric_from,
+    positive,
     shape_options_from,
 )
 from .parser import build_parser
@@ -41,6 +39,8 @@ EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # 128 + SIGINT, 128 + SIGTERM
 
 
 LOCK_NAME = ".elastic-jax.lock"
+# Written (atomically) and removed at once: proves that --out takes new files.
+PROBE_NAME = ".elastic-jax.probe"
 
 
 def _expand_directories(args) -> None:
@@ -49,7 +49,6 @@ def _expand_directories(args) -> None:
     files = getattr(args, "files", None)
     if files is None or not any(pathlib.Path(f).is_dir() for f in files):
         return
-    from .. import io
 
     expanded = []
     for name in files:
@@ -100,6 +99,15 @@ def _read_karcher_output(args) -> dict | None:
     return saved
 
 
+def check_learn(learn: str) -> None:
+    """--learn: at least two different letters of abcd (the coefficients' sum is fixed)."""
+    if len(set(learn)) != len(learn) or not set(learn) <= set("abcd") or len(learn) < 2:
+        raise BadInput(
+            f"--learn {learn}: learn must name at least two different coefficients of "
+            "'abcd' (their sum is fixed, so one alone cannot move)"
+        )
+
+
 def preflight(args) -> None:
     """Refuse bad options before reading any file or starting any work."""
     _expand_directories(args)
@@ -112,14 +120,17 @@ def preflight(args) -> None:
         )
     metric_from(args)
     if args.grid is not None:
-        checked_flag("--grid", lambda name, grid: check_grid_shape((3, *grid), name), args.grid)
+        try:  # the record checks a working grid as the solves will
+            ShapeOptions(grid=tuple(args.grid))
+        except InputError as err:
+            raise BadInput(f"--grid {args.grid[0]} {args.grid[1]}: {err}") from err
     if args.command in SHAPE_COMMANDS and args.karcher_output is None:
         args.shape_options = shape_options_from(args)
     else:
-        checked_flag("--degree", check_int, args.degree, 1)
-        checked_flag("--times", check_int, args.times, 3)
+        at_least("--degree", args.degree, 1)
+        at_least("--times", args.times, 3)
         if getattr(args, "max_steps", None) is not None:
-            checked_flag("--max-steps", check_int, args.max_steps, 1)
+            at_least("--max-steps", args.max_steps, 1)
     if args.command == "warmup":
         check_warmup(args)
     if args.command in ("karcher", "pca", "distances") and args.karcher_output is None:
@@ -136,22 +147,22 @@ def preflight(args) -> None:
         if args.test is not None and args.labels is None:
             raise BadInput("--test scores a classification: it needs --labels")
 
-        checked_flag("--learn", lambda flag, value: check_learn(value), args.learn)
+        check_learn(args.learn)
         for flag in ("--labels", "--targets", "--test-labels"):
             name = getattr(args, flag[2:].replace("-", "_"))
             if name is not None and not pathlib.Path(name).is_file():
                 raise BadInput(f"{flag} {name}: no such file")
-        checked_flag("--fit-steps", check_int, args.fit_steps, 0)
-        checked_flag("--fit-tol", check_positive, args.fit_tol)
-        checked_flag("--temperature", check_positive, args.temperature)
+        at_least("--fit-steps", args.fit_steps, 0)
+        positive("--fit-tol", args.fit_tol)
+        positive("--temperature", args.temperature)
     if args.command in ("karcher", "pca"):
-        checked_flag("--karcher-steps", check_int, args.karcher_steps, 0)
-        checked_flag("--tol", check_positive, args.tol)
-        checked_flag("--step-size", check_positive, args.step_size)
+        at_least("--karcher-steps", args.karcher_steps, 0)
+        positive("--tol", args.tol)
+        positive("--step-size", args.step_size)
     if args.command == "pca":
-        checked_flag("--modes", check_int, args.modes, 1)
-        checked_flag("--sigmas", check_positive, args.sigmas)
-        checked_flag("--mode-times", check_int, args.mode_times, 3)
+        at_least("--modes", args.modes, 1)
+        positive("--sigmas", args.sigmas)
+        at_least("--mode-times", args.mode_times, 3)
         if args.scheme == "central":
             raise BadInput(
                 "--scheme central: the mode paths are shot, and the central scheme cannot be "
@@ -161,16 +172,16 @@ def preflight(args) -> None:
         if not math.isfinite(args.scale):
             raise BadInput(f"--scale {args.scale}: must be a finite number")
         if args.tol is not None:
-            checked_flag("--tol", check_positive, args.tol)
-        checked_flag("--max-newton", check_int, args.max_newton, 1)
+            positive("--tol", args.tol)
+        at_least("--max-newton", args.max_newton, 1)
         if not pathlib.Path(args.velocity).is_file():
             raise BadInput(f"{args.velocity}: no such file (the velocity .npz)")
     if getattr(args, "batch_size", None) is not None:
-        checked_flag("--batch-size", check_int, args.batch_size, 1)
+        at_least("--batch-size", args.batch_size, 1)
     if getattr(args, "workers", None) is not None:
-        checked_flag("--workers", check_int, args.workers, 1)
+        at_least("--workers", args.workers, 1)
     if args.command == "bench":
-        checked_flag("--repeat", check_int, args.repeat, 1)
+        at_least("--repeat", args.repeat, 1)
 
 
 def claim_out(args, stack: contextlib.ExitStack) -> None:
@@ -192,8 +203,7 @@ def claim_out(args, stack: contextlib.ExitStack) -> None:
     try:
         out.mkdir(parents=True, exist_ok=True)
         stack.enter_context(_locked(out / LOCK_NAME))
-        probe = tempfile.NamedTemporaryFile(dir=out, prefix=f".probe{TEMPORARY}")
-        probe.close()
+        write_text_atomic(out / PROBE_NAME, "").unlink()
     except BlockingIOError:
         raise BadInput(
             f"--out {out}: another elastic-jax run is writing there (it holds {LOCK_NAME}); "

@@ -8,8 +8,8 @@ import time
 import jax
 import numpy as np
 
-from .. import energy_density, shape_geodesic
-from .._runtime.atomic import atomic_path, save_npz_atomic
+from .. import energy_density, io, shape_geodesic
+from ..io import atomic_path, save_npz_atomic
 from .arguments import Command, input_options, rtol_option, shape_options
 from .common import (
     SURFACE_FILE,
@@ -68,7 +68,7 @@ def write_energy_density(out, path, metric, scheme: str, progress: Progress):
     """The path's energy by grid point and term (energy_density) in ``energy_density.npz``,
     on the path's first frame (f1 registered) as ``energy_density.ply`` vertex properties,
     and drawn per unit area on that frame; returns the files and each term's sum."""
-    from .. import io, plot
+    from .. import plot
 
     density = energy_density(metric, path, scheme)
     fields = {name: np.asarray(getattr(density, name)) for name in _TERMS}

@@ -9,9 +9,8 @@ import time
 import jax
 import numpy as np
 
-from .. import shoot
-from .._options import SHOOTING_SCHEMES
-from .._runtime.atomic import save_npz_atomic
+from .. import ShapeOptions, shoot
+from ..io import save_npz_atomic
 from .arguments import Command, input_options, io_options
 from .common import (
     SURFACE_FILE,
@@ -25,6 +24,10 @@ from .common import (
     result_fields,
     write_path,
 )
+
+# The schemes a path can be shot with: those whose energy couples each node to its two
+# neighbours only (shoot refuses "central", whose energy couples five nodes).
+SHOOTING_SCHEMES = tuple(s for s in ShapeOptions.CHOICES["scheme"] if s != "central")
 
 
 def _load_velocity(name: str, shape: tuple, dtype: str):

@@ -7,7 +7,6 @@ import argparse
 import jax
 
 from .. import warmup
-from .._registration.warmup import working_grids
 from .arguments import Command, rtol_option, shape_options
 from .common import BadInput, Progress, check_degrees
 
@@ -19,7 +18,7 @@ def _grids(args) -> tuple[tuple[int, int], tuple[tuple[int, int], ...]]:
     """The inputs' grid and the working grids the job's options solve on."""
 
     grid = tuple(args.grid) if args.grid else DEFAULT_INPUT_GRID
-    return grid, working_grids(args.shape_options, grid)
+    return grid, args.shape_options.working_grids(grid)
 
 
 def check_warmup(args) -> None:
