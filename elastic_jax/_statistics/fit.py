@@ -403,10 +403,16 @@ class _Solves(NamedTuple):
     size: int
     bases: dict  # energy_parts' bases by working grid, filled as grids come
 
+    def options_at(self, grid: tuple[int, int]) -> ShapeOptions:
+        """The options the pairs held on ``grid`` were solved with: a level's (its
+        quadrature and stretched cells, :meth:`ShapeOptions.on_level`) when the solves
+        register, so that the held energies are the solves' own."""
+        return self.options if self.modulo == "none" else self.options.on_level(grid)
+
     def bases_at(self, grid: tuple[int, int]):
         if grid not in self.bases:
             dtype = self.shapes.dtype
-            self.bases[grid] = _evaluation_bases(grid, self.options, self.modulo, dtype)
+            self.bases[grid] = _evaluation_bases(grid, self.options_at(grid), self.modulo, dtype)
         return self.bases[grid]
 
 
@@ -724,7 +730,8 @@ def _solve_pairs(metric, starts, solves: _Solves, pool=None) -> _Held:
                 coefficients[i], converged[i] = jnp.asarray(c[k]), bool(ok[k])
     parts = np.zeros((count, 4))
     for group in _by_grid(gammas):
-        bases = solves.bases_at(tuple(gammas[group[0]].shape[-2:]))
+        grid = tuple(gammas[group[0]].shape[-2:])
+        bases, at = solves.bases_at(grid), solves.options_at(grid)
         for a, b in chunk_bounds(group.size, solves.size):
             # Every chunk padded to the solves' batch size: one compiled energy_parts a grid.
             chosen = group[a:b][np.minimum(np.arange(solves.size), b - a - 1)]
@@ -733,6 +740,6 @@ def _solve_pairs(metric, starts, solves: _Solves, pool=None) -> _Held:
                 shapes[cols[chosen]],
                 *(jnp.stack([x[i] for i in chosen]) for x in (gammas, rotations, coefficients)),
             )
-            energies = energy_parts(*held, bases, options=options, modulo=modulo)
+            energies = energy_parts(*held, bases, options=at, modulo=modulo)
             parts[group[a:b]] = np.asarray(energies)[: b - a]
     return _Held(parts, (gammas, rotations, coefficients), converged)
