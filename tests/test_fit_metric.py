@@ -304,12 +304,21 @@ def test_scaling_every_shape_leaves_the_fitted_coefficients():
     ]
     for fit in fits:
         assert bool(fit.converged), fit.message
-    a, b = ([x.metric.a, x.metric.b, x.metric.c] for x in fits)
-    # The solves run in units of a power of two (8 and 16 here): equal to rounding and tol.
-    np.testing.assert_allclose(a, b, atol=1e-5)
+    # The solves run in units of a power of two (8 and 16 here): at the start both solve
+    # one problem, and the distances scale exactly.
     np.testing.assert_allclose(
-        np.asarray(fits[1].distances), 10.0 * np.asarray(fits[0].distances), rtol=1e-4
+        np.asarray(fits[1].distances_before),
+        10.0 * np.asarray(fits[0].distances_before),
+        rtol=1e-12,
     )
+    # The steps are accepted by re-solved values, which round differently at the two
+    # scales: on one machine the two fits took the same steps (coefficients equal to
+    # 1e-5), on another 18 and 19 steps, both ending on the gradient criterion at
+    # objectives 0.098811 and 0.098765 with a, b, c within 5e-4 (c ~ 0.985, at the box's
+    # edge). Equal within the fits' own tolerance, not to rounding.
+    assert float(fits[1].objective_after) == pytest.approx(float(fits[0].objective_after), rel=1e-3)
+    a, b = ([x.metric.a, x.metric.b, x.metric.c] for x in fits)
+    np.testing.assert_allclose(a, b, atol=1e-3)
 
 
 @pytest.mark.slow
