@@ -371,7 +371,7 @@ class ShapeOptions:
     @property
     def level_stretch(self) -> float:
         """The fraction of stretched cells a resolved distance's levels integrate finer
-        (``stretch_quadrature``; when None, :data:`LEVEL_STRETCH` with the chain rule and
+        (``stretch_quadrature``; when None, 0.03 with the chain rule and
         the midpoint scheme, else 0)."""
         if self.stretch_quadrature is not None:
             return self.stretch_quadrature

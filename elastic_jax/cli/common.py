@@ -350,14 +350,6 @@ def job_options(args, checkpoint=None, progress=None):
     )
 
 
-def checked_flag(flag: str, check: Callable, *args):
-    """``check(flag, value, ...)``, an InputError it raises as BadInput."""
-    try:
-        return check(flag, *args)
-    except InputError as err:
-        raise BadInput(str(err)) from err
-
-
 def at_least(flag: str, value: int, minimum: int) -> int:
     """An integer flag's value (argparse made it an int) if it is at least ``minimum``."""
     if value < minimum:
