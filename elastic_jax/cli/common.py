@@ -17,7 +17,6 @@ import jax
 import numpy as np
 
 from .. import RESULTS, InputError, JobOptions, ShapeOptions, SplitMetric, io, max_degree
-from ..io import write_text_atomic
 
 CHECKPOINTS = {
     "karcher": "karcher_checkpoint.npz",
@@ -252,7 +251,7 @@ def write_summary(out: pathlib.Path, summary: dict) -> None:
     summary["files"] = sorted({*summary.get("files", []), str(target)})
     # A failed solve's NaN becomes null: the file stays valid JSON (allow_nan=False).
     text = json.dumps(json_safe(summary), indent=2, allow_nan=False)
-    write_text_atomic(target, text + "\n")
+    io.write_text_atomic(target, text + "\n")
     print(text)
 
 

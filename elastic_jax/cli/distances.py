@@ -9,8 +9,7 @@ import time
 
 import numpy as np
 
-from .. import distance_matrix
-from ..io import save_npz_atomic, write_text_atomic
+from .. import distance_matrix, io
 from .arguments import Command, batch_options, input_options, rtol_option, shape_options
 from .common import (
     SURFACE_FILES,
@@ -62,7 +61,7 @@ def run_distances(args, progress: Progress) -> dict:
     names = [pathlib.Path(f).stem for f in args.files]
     files = [
         str(
-            save_npz_atomic(
+            io.save_npz_atomic(
                 args.out / "distances.npz",
                 distances=matrix,
                 converged=converged,
@@ -79,7 +78,7 @@ def run_distances(args, progress: Progress) -> dict:
         ",".join([name, *(f"{v:.10g}" for v in row)])
         for name, row in zip(names, matrix, strict=True)
     ]
-    files.append(str(write_text_atomic(args.out / "distances.csv", "\n".join(rows) + "\n")))
+    files.append(str(io.write_text_atomic(args.out / "distances.csv", "\n".join(rows) + "\n")))
     files += write_figure(
         args.out / "distances.png",
         lambda: plot.plot_distance_matrix(

@@ -9,8 +9,7 @@ import time
 
 import numpy as np
 
-from .. import distance_matrix, fit_metric, retrieval_scores
-from ..io import save_npz_atomic
+from .. import distance_matrix, fit_metric, io, retrieval_scores
 from .arguments import Command, batch_options, input_options, rtol_option, shape_options
 from .common import (
     CHECKPOINTS,
@@ -156,7 +155,7 @@ def run_fit_metric(args, progress: Progress) -> dict:
             arrays[f"test_distances_{name}"] = np.asarray(res.distances)
         summary["held_out_scores"] = held_out
         summary["test_inputs"] = list(args.test)
-    files = [str(save_npz_atomic(args.out / "fit_metric.npz", **arrays))]
+    files = [str(io.save_npz_atomic(args.out / "fit_metric.npz", **arrays))]
     summary["files"] = files
     summary["environment"] = environment_record()
     return summary

@@ -9,7 +9,6 @@ import time
 import numpy as np
 
 from .. import RESULTS, io, karcher_mean
-from ..io import save_npz_atomic
 from .arguments import (
     Command,
     batch_options,
@@ -104,7 +103,7 @@ def solve_karcher(args, progress: Progress):
     result = RESULTS.name(res.result)  # by name in the files: a code is this release's
     files = [
         str(
-            save_npz_atomic(
+            io.save_npz_atomic(
                 args.out / "mean.npz",
                 f=mean,
                 distances=np.asarray(res.distances),

@@ -9,7 +9,6 @@ import pathlib
 import numpy as np
 
 from .. import io, mode_path, sigmas_reached, tangent_pca
-from ..io import save_npz_atomic, write_text_atomic
 from .arguments import (
     Command,
 )
@@ -91,7 +90,7 @@ def run_pca(args, progress: Progress) -> dict:
     for mode, path in enumerate(paths, start=1):
         files.append(
             str(
-                save_npz_atomic(
+                io.save_npz_atomic(
                     args.out / f"mode{mode}_velocity.npz",
                     v=sigma[mode - 1] * np.asarray(pca.modes[mode - 1]),
                     f=mean,
@@ -109,7 +108,7 @@ def run_pca(args, progress: Progress) -> dict:
             )
     files.append(
         str(
-            save_npz_atomic(
+            io.save_npz_atomic(
                 args.out / "pca.npz",
                 mean=mean,
                 modes=np.asarray(pca.modes),
@@ -134,7 +133,7 @@ def run_pca(args, progress: Progress) -> dict:
         },
     }
     text = json.dumps(json_safe(scores), indent=2, allow_nan=False)
-    files.append(str(write_text_atomic(args.out / "scores.json", text + "\n")))
+    files.append(str(io.write_text_atomic(args.out / "scores.json", text + "\n")))
     files += write_figure(
         args.out / "modes.png",
         lambda: plot.plot_modes(

@@ -14,7 +14,6 @@ import pathlib
 import numpy as np
 
 from .. import InputError, ShapeOptions, enable_compilation_cache, io
-from ..io import stale_temporaries, write_text_atomic
 from .common import (
     CHECKPOINTS,
     KARCHER_OUTPUT_KEYS,
@@ -203,7 +202,7 @@ def claim_out(args, stack: contextlib.ExitStack) -> None:
     try:
         out.mkdir(parents=True, exist_ok=True)
         stack.enter_context(_locked(out / LOCK_NAME))
-        write_text_atomic(out / PROBE_NAME, "").unlink()
+        io.write_text_atomic(out / PROBE_NAME, "").unlink()
     except BlockingIOError:
         raise BadInput(
             f"--out {out}: another elastic-jax run is writing there (it holds {LOCK_NAME}); "
@@ -213,7 +212,7 @@ def claim_out(args, stack: contextlib.ExitStack) -> None:
         raise BadInput(f"--out {out}: not a writable directory ({err.strerror or err})") from err
     # Temporaries of atomic writes that a killed run left behind: nobody else writes here
     # while we hold the lock.
-    for stale in stale_temporaries(out):
+    for stale in io.stale_temporaries(out):
         stale.unlink(missing_ok=True)
     checkpoint = CHECKPOINTS.get(args.command)
     if checkpoint and (out / checkpoint).exists() and not (args.resume or args.overwrite):

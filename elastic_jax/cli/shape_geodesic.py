@@ -9,7 +9,6 @@ import jax
 import numpy as np
 
 from .. import energy_density, io, shape_geodesic
-from ..io import atomic_path, save_npz_atomic
 from .arguments import Command, input_options, rtol_option, shape_options
 from .common import (
     SURFACE_FILE,
@@ -55,7 +54,7 @@ def write_on_mesh(directory, path, vertex_map, progress: Progress) -> list[str]:
     written = []
     for k, f in enumerate(path):
         target = directory / f"target_mesh_{k:0{digits}d}.ply"
-        with atomic_path(target) as tmp:
+        with io.atomic_path(target) as tmp:
             vertex_map.to_mesh(f).export(tmp, file_type="ply")
         written.append(str(target))
     return written
@@ -75,7 +74,7 @@ def write_energy_density(out, path, metric, scheme: str, progress: Progress):
     first = np.asarray(path[0])
     progress(f"writing the path's energy by point and term to {out / 'energy_density.*'}")
     written = [
-        str(save_npz_atomic(out / "energy_density.npz", **fields)),
+        str(io.save_npz_atomic(out / "energy_density.npz", **fields)),
         str(io.save_surface(first, out / "energy_density.ply", fields=fields)),
     ]
     written += write_figure(
@@ -144,7 +143,7 @@ def run_shape_geodesic(args, progress: Progress) -> dict:
         files += written
     files.append(
         str(
-            save_npz_atomic(
+            io.save_npz_atomic(
                 args.out / "registration.npz",
                 gamma=np.asarray(res.gamma),
                 rotation=np.asarray(res.rotation),

@@ -9,8 +9,7 @@ import time
 import jax
 import numpy as np
 
-from .. import ShapeOptions, shoot
-from ..io import save_npz_atomic
+from .. import ShapeOptions, io, shoot
 from .arguments import Command, input_options, io_options
 from .common import (
     SURFACE_FILE,
@@ -87,7 +86,7 @@ def run_shoot(args, progress: Progress) -> dict:
     files = write_path(args.out, path[:n_valid], settings, progress)
     files.append(
         str(
-            save_npz_atomic(
+            io.save_npz_atomic(
                 args.out / "shoot.npz",
                 n_valid=n_valid,
                 endpoint=path[-1],
