@@ -4,8 +4,11 @@ For each pair, modulo rigid motion, metric (1, 1, 0.1, 0), float64, ``shape_geod
 with ``ShapeOptions(rtol=..., levels=...)`` and nothing else changed: one record per pair
 with the levels' grids, ``distances`` (the last level's minimum on each grid: where the
 levels going up turned back or stopped halving, the coarser grids solved again from the
-last level), ``ascent`` (the levels as first solved), seconds, the estimate, the result's
-name and the total time (compiling included), next to the settings and the machine.
+last level), ``ascent`` (the levels as first solved), ``refined`` (each of those read on the grid
+twice finer than its rule), ``refined_gaps`` (abs(refined / ascent - 1)) and their
+observed orders ``gap_orders`` (log2 of successive ratios), seconds, the estimate, the
+result's name and the total time (compiling included), next to the settings and the
+machine.
 
 Pairs: those of bench_order.py (``cats``, ``cat-horse``, ``horse-cat``, ``horse-hand``,
 ``pial``) or any two of the authors' surfaces as ``first:second`` (``cat2:horse0``).
@@ -84,6 +87,8 @@ def run_pair(name: str, options: ej.ShapeOptions, turn: float, call: int = 1) ->
             progress=events.append,
         )
     levels = res.levels
+    # What each level's rule under-read: its registration and path on the grid twice finer.
+    gaps = np.abs(np.asarray(levels.refined) / np.asarray(levels.ascent) - 1.0)
     return {
         "call": call,
         "phases": phase_seconds(events),
@@ -96,6 +101,9 @@ def run_pair(name: str, options: ej.ShapeOptions, turn: float, call: int = 1) ->
         "grids": np.asarray(levels.grids).tolist(),
         "distances": np.asarray(levels.distances).tolist(),
         "ascent": np.asarray(levels.ascent).tolist(),
+        "refined": np.asarray(levels.refined).tolist(),
+        "refined_gaps": gaps.tolist(),
+        "gap_orders": np.log2(gaps[:-1] / gaps[1:]).tolist(),
         "seconds": np.asarray(levels.seconds).tolist(),
         "estimate": float(levels.estimate),
         "total_s": time.perf_counter() - begin,

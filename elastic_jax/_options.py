@@ -196,7 +196,8 @@ class ShapeOptions:
 
     Check fields:
         refinement: re-evaluate the result with every time step halved and on the
-            (2m - 1) x (2n - 1) grid (:class:`Refinement`).
+            grid twice finer than the one its energy was integrated on
+            (:class:`Refinement`).
         saddle_checks: at most this many escapes from saddle points of the final
             geodesic solve (0: none).
     """

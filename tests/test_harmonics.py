@@ -105,6 +105,35 @@ def test_the_diff_steps_separable_sum_is_the_dense_one():
         np.testing.assert_allclose(g1, g2, rtol=1e-12, atol=1e-12)
 
 
+def test_the_refinements_separable_factors_are_the_harmonics():
+    """The refinement evaluates the path's harmonics on its fine grid from separable
+    factors (harmonic_factors_np): their outer products are harmonics_np's values, and
+    the perturbation's frames equal the (K, 2 P) table's product (basis_np) to rounding."""
+
+    from elastic_jax._geometry.bases import basis_np, make_bases
+    from elastic_jax._geometry.harmonics import harmonic_factors_np, harmonics_np
+    from elastic_jax._registration.problem import Problem, refined_frames
+
+    for m, n, degree in [(7, 13, 2), (25, 49, 7), (49, 97, 7)]:
+        rows, columns = harmonic_factors_np(m, n, degree)
+        values = harmonics_np(m, n, degree).values
+        outer = np.einsum("ki,kj->kij", rows, columns)
+        np.testing.assert_allclose(outer, values, rtol=0, atol=1e-14)
+    # On 7 x 13 (the refinement grid of a 4 x 7 working grid: 2 (4 - 1) + 1, 2 (7 - 1) + 1).
+    bases = make_bases(4, 7, ej.ShapeOptions(degree=1, vf_degree=1), jnp.float64)
+    assert bases.fine_rows.shape == (3, 7) and bases.fine_columns.shape == (3, 13)
+    table = basis_np(7, 13, 1)[1]
+    rng = np.random.default_rng(0)
+    c = jnp.asarray(rng.normal(size=(2, 9)))  # N = 4: two interior times, 3 x 3
+    zeros = [jnp.zeros((4, 3, 5, 12))] * 2
+    prob = Problem(None, None, None, None, bases, None, None)
+    a1, a2 = refined_frames(zeros, prob, c)
+    pert = (c.reshape(-1, 3) @ table).reshape(2, 3, 2 * 60)
+    np.testing.assert_allclose(a1[1:-1].reshape(2, 3, 60), pert[..., :60], atol=1e-13)
+    np.testing.assert_allclose(a2[1:-1].reshape(2, 3, 60), pert[..., 60:], atol=1e-13)
+    assert float(jnp.max(jnp.abs(a1[0]))) == 0.0 and bool(jnp.isfinite(a2).all())
+
+
 def test_degree_limits():
     assert (
         ej.max_degree(50, 99) == 47 and ej.max_degree(25, 49) == 22 and ej.max_degree(12, 25) == 9

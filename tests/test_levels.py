@@ -10,7 +10,7 @@ import pytest
 
 import elastic_jax as ej
 from elastic_jax import shapes
-from elastic_jax._registration.levels import noise_distance
+from elastic_jax._registration.levels import level_change, noise_distance, refinement_gap
 from elastic_jax._registration.one_grid import working_grid_of
 
 from .conftest import assert_area_bound
@@ -119,6 +119,13 @@ def test_levels_resolve_the_concentric_spheres():
     noise = noise_distance(f1, f2)
     assert 1e-4 < noise < 1e-3
     np.testing.assert_allclose(levels.estimate, (abs(d[1] - d[0]) - noise) / d[1], rtol=1e-12)
+    # The last level's registration and path read on the 97 x 193 nodes (twice finer than
+    # its rule): a smooth pair's refinement moves it far less than the levels' change
+    # (measured 1.3e-4 against 5.3e-4 relative), and the record keeps each level's read.
+    gap = refinement_gap(res)
+    assert float(levels.refined[-1]) == float(res.refinement.distance_grid)
+    assert 0.0 < gap < 0.5 * abs(d[1] - d[0])
+    assert float(levels.estimate) == level_change(d, res.parametrized_distance, noise, gap)
     assert float(levels.estimate) <= 0.03 and bool(res.converged)
     assert res.result == ej.RESULTS.successful and res.path.shape[-2:] == (25, 49)
     assert float(res.distance) == d[-1]
@@ -305,6 +312,19 @@ def test_identical_shapes_resolve_at_the_second_level():
     assert np.asarray(res.levels.grids).tolist() == [[13, 25], [25, 49]]
     assert res.result == ej.RESULTS.successful and float(res.levels.estimate) == 0.0
     assert float(res.distance) < 1e-10 and float(res.parametrized_distance) == 0.0
+
+
+def test_a_level_is_resolved_only_where_its_own_refinement_moves_it_within_rtol():
+    """Two levels that agree can agree in a minimum that hides content between both
+    grids' points (the fsaverage5 pial pair: 3.799 and 3.731 at 13 x 25 and 25 x 49, then
+    3.619 at 49 x 97): the estimate is the larger of the levels' change and how far the
+    last level's refinement moves it, both less the noise, relative to the distance."""
+    changes = [2.0, 2.02]
+    assert level_change(changes) == pytest.approx(0.02 / 2.02, rel=1e-14)
+    assert level_change(changes, 0.0, 0.0, 0.101) == pytest.approx(0.05, rel=1e-14)
+    assert level_change(changes, 0.0, 0.0, 0.001) == pytest.approx(0.02 / 2.02, rel=1e-14)
+    assert level_change(changes, 0.0, 0.001, 0.101) == pytest.approx(0.1 / 2.02, rel=1e-12)
+    assert level_change(changes, 0.0, 0.0, np.nan) == level_change(changes)
 
 
 def _spheres_by_rotation(radii, m=13, n=25):

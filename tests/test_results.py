@@ -392,6 +392,7 @@ def _records():
             jnp.asarray([[13, 25], [25, 49], [49, 97]], jnp.int32),
             jnp.asarray([0.8, 0.9, 0.92]),
             jnp.asarray([0.8, 0.95, 0.92]),
+            jnp.asarray([0.9, 0.97, 0.93]),
             jnp.asarray([10.0, 20.0, 60.0]),
             _scalar(0.0217),
             _scalar(0.03),

@@ -17,7 +17,7 @@ from .._options import ShapeOptions
 from .._runtime.cache import cached
 from .differential import interior_frame
 from .grid import interior_weights_np, sphere_points_np
-from .harmonics import harmonics_np, vector_field_tables_np
+from .harmonics import harmonic_factors_np, harmonics_np, vector_field_tables_np
 from .so3 import icosahedral_np
 
 __all__ = [
@@ -97,8 +97,9 @@ class Bases(NamedTuple):
     field_poles: Array  # (Lbar, 3, 2, n)
     field_scale: Array  # (Lbar,)
     ico: Array  # (60, 3, 3)
-    fine_points: Array  # (3, 2m - 1, 2n - 1) the refinement grid's points
-    fine_dframe: Array  # (K, 2 P') the path harmonics' differentials there (q != 2)
+    fine_points: Array  # (3, M', N') the refinement grid's points (refinement_grid)
+    fine_rows: Array  # (K, M') the path harmonics' row factors there (harmonic_factors_np)
+    fine_columns: Array  # (K, N') and their column factors
     quad_points: Array  # (3, M, N) the quadrature's nodes (options.quadrature > 1)
     quad_dframe: Array  # (K, 2 P'') the path harmonics' differentials there
     area_floor: Array  # () least grid area a reparametrization may keep (resolution_np)
@@ -147,30 +148,43 @@ def resolution_np(m: int, n: int) -> tuple[float, float]:
     return floor, low
 
 
+def refinement_grid(m: int, n: int, q: int) -> tuple[int, int]:
+    """The grid a result on the m x n working grid is re-evaluated on (:class:`Refinement`):
+    twice finer than the grid its energy was integrated on, (2 q (m - 1) + 1) x
+    (2 q (n - 1) + 1) for quadrature factor q, so that it reads what that rule did not."""
+    return 2 * q * (m - 1) + 1, 2 * q * (n - 1) + 1
+
+
 def make_bases(m: int, n: int, options: ShapeOptions, dtype: DTypeLike) -> Bases:
     """The :class:`Bases` of a solve on the m x n working grid, in ``dtype``.
 
     The path's harmonics of degree 1..``options.degree`` (math §5) and their
     differentials, the Diff step's vector fields of degree 1..``options.vf_degree``
     (math §6) with their 1 / sqrt(l(l+1)) scale, the icosahedral rotations of the start
-    search, the nodes and differentials of the refinement grid (2m - 1) x (2n - 1) and of
-    the quadrature grid (q (m - 1) + 1) x (q (n - 1) + 1), q = ``options.quadrature``,
+    search, the nodes and separable harmonic factors of the refinement grid
+    (:func:`refinement_grid`), the nodes and differentials of the quadrature grid
+    (q (m - 1) + 1) x (q (n - 1) + 1), q = ``options.quadrature``,
     and the grid's area floor and largest resolved Moebius boost (:func:`resolution_np`).
     Registration, logs and metric fits build their problems from it.
     """
     values, dframe = basis_np(m, n, options.degree)
     tables = vector_field_tables_np(m, n, options.vf_degree)
-    fine = (2 * m - 1, 2 * n - 1)
     q = options.quadrature_factor
     quad = (q * (m - 1) + 1, q * (n - 1) + 1)
     if q == 1:
         quad_points, quad_dframe = np.zeros((3, 1, 1)), np.zeros((1, 1))
     else:
         quad_points, quad_dframe = sphere_points_np(*quad), basis_np(*quad, options.degree)[1]
-    # With q = 2 the refinement's grid is the quadrature's: its table is quad_dframe
-    # (refinement_dframe), not held twice (75 MB at 97 x 193, degree 7).
-    held = options.refinement and q != 2
-    fine_dframe = basis_np(*fine, options.degree)[1] if held else np.zeros((1, 1))
+    if options.refinement:
+        fine = refinement_grid(m, n, q)
+        fine_points = sphere_points_np(*fine)
+        fine_rows, fine_columns = (a[1:] for a in harmonic_factors_np(*fine, options.degree))
+    else:
+        fine_points, fine_rows, fine_columns = (
+            np.zeros((3, 1, 1)),
+            np.zeros((1, 1)),
+            np.zeros((1, 1)),
+        )
     arrays = Bases(
         values=values,
         dframe=dframe,
@@ -181,8 +195,9 @@ def make_bases(m: int, n: int, options: ShapeOptions, dtype: DTypeLike) -> Bases
         field_poles=tables.poles,
         field_scale=field_scale_np(m, n, options.vf_degree),
         ico=icosahedral_np(),
-        fine_points=sphere_points_np(*fine),
-        fine_dframe=fine_dframe,
+        fine_points=fine_points,
+        fine_rows=fine_rows,
+        fine_columns=fine_columns,
         quad_points=quad_points,
         quad_dframe=quad_dframe,
         area_floor=np.asarray(resolution_np(m, n)[0]),

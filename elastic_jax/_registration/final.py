@@ -26,17 +26,19 @@ from .problem import (
     Problem,
     State,
     frame_of,
+    frames_energy_by_rule,
     geodesic_options,
     identity_frames,
     joint_objective,
     make_problem,
     path_dframe,
     path_energy_at,
-    refinement_dframe,
+    refined_frames,
     registered_f1,
     registered_frame,
     rotated_end_frame,
     scaling_at,
+    stretched_cells_of,
     zero_registration,
 )
 from .records import Refinement, ShapeGeodesicResult
@@ -51,22 +53,26 @@ def _refinement(
     coefficients: ArrayLike,
     energy: ArrayLike,
 ) -> Refinement:
-    """The result re-evaluated with halved time steps and on the (2m - 1) x (2n - 1) grid."""
+    """The result re-evaluated with halved time steps, and on the grid twice finer than
+    the one its energy was integrated on (bases.refinement_grid) by that grid's nodes."""
     metric, bases, degree = prob.metric, prob.bases, options.degree
     start, end = registered_frame(prob, options, gamma), rotated_end_frame(prob, options, rotation)
     n_fine = 2 * options.n_times - 1
     halved = upsample_coefficients(coefficients, degree, degree, n_fine)
     straight = frames_between(start, end, n_fine)
     frames = perturbed_frames(straight, halved, path_dframe(prob, options))
-    time_energy = frame_energy(metric, *frames, options.scheme)
+    # By the solve's own rule in space (its stretched cells included): only time changes.
+    cells = stretched_cells_of(prob, options, gamma)
+    time_energy = frames_energy_by_rule(prob, options, frames, gamma, rotation, cells)
 
     fine_gamma = compose(gamma, bases.fine_points, options.interpolation)
     fine_start = frame_of(prob.source1, fine_gamma, options)
-    fine_end = [
-        rotate_surface(rotation, a) for a in frame_of(prob.source2, bases.fine_points, options)
-    ]
+    # R f2 read through the identity's interpolant, as f1 o gamma is through gamma's: a
+    # surface against itself is then at distance 0 here too.
+    fine_id = compose(prob.e1, bases.fine_points, options.interpolation)
+    fine_end = [rotate_surface(rotation, a) for a in frame_of(prob.source2, fine_id, options)]
     straight = frames_between(fine_start, fine_end, options.n_times)
-    frames = perturbed_frames(straight, coefficients, refinement_dframe(prob, options))
+    frames = refined_frames(straight, prob, coefficients)
     grid_energy = frame_energy(metric, *frames, options.scheme)
 
     d = jnp.sqrt(energy)

@@ -26,11 +26,13 @@ class Refinement(NamedTuple):
     Attributes:
         distance_time: ``()`` the same path with every time step halved (2N - 1 time
             points, frames linearly interpolated).
-        distance_grid: ``()`` the same path on the (2m - 1) x (2n - 1) grid: gamma and
-            f2 interpolated there, f1 o gamma read from f1's own grid, the path's
-            spherical-harmonic perturbation evaluated on the finer grid. With
-            ``ShapeOptions(quadrature=2)`` the solve already integrated at those
-            nodes, and only the time steps can move the distance.
+        distance_grid: ``()`` the same path by the nodes of the grid twice finer than
+            the one its energy was integrated on: (2m - 1) x (2n - 1) for the working
+            grid's nodes, (4m - 3) x (4n - 3) with ``ShapeOptions(quadrature=2)`` (a
+            resolved distance's levels): gamma and f2 interpolated there, f1 o gamma
+            read from f1's own grid, the path's spherical-harmonic perturbation
+            evaluated on that grid. It reads what the solve's rule did not, where a
+            registration may hide content between the points.
         relative_change: ``()`` max(abs(distance_time - d), abs(distance_grid - d)) / d.
     """
 
@@ -56,19 +58,28 @@ class Levels(NamedTuple):
             last gamma folds between a coarser grid's points).
         ascent: ``(L,)`` each level's distance as first solved, going up (equal to
             ``distances`` unless the levels below were solved again).
+        refined: ``(L,)`` each level's registration and path as first solved, read by
+            the nodes of the grid twice finer than the rule the level integrated by (its
+            :class:`Refinement` ``distance_grid``; NaN without the refinement check):
+            ``refined / ascent - 1`` is what each level's rule under-read, and its
+            observed order across levels that of the discretization at fixed
+            registrations, whichever minimum each level reached.
         seconds: ``(L,)`` each level's wall-clock time (its first call compiles; the
             levels below solved again count in the level that asked for them).
         estimate: ``()`` the relative change of ``distances`` between the last two
             levels, abs(d_L - d_{L-1}) / max(d_L, 0.05 p_L) with p_L the last level's
             parametrized distance (near-equal shapes, whose distance is near zero, are
-            resolved to that absolute size): the stated resolution of the answer (NaN
-            with one level).
+            resolved to that absolute size), or the last level's own
+            ``refinement.relative_change`` in the same scale where that is larger (two
+            levels can agree in a minimum that hides content between both grids'
+            points): the stated resolution of the answer (NaN with one level).
         rtol: ``()`` the tolerance asked for.
     """
 
     grids: Int[Array, "L 2"]
     distances: Float[Array, " L"]
     ascent: Float[Array, " L"]
+    refined: Float[Array, " L"]
     seconds: Float[Array, " L"]
     estimate: Float[Array, ""]
     rtol: Float[Array, ""]

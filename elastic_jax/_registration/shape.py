@@ -23,7 +23,7 @@ from .._geometry.metric import SplitMetric
 from .._geometry.reparam import jacobian_determinant_unchecked
 from .._geometry.validation import check_pair
 from .._options import ShapeOptions, check_choice, options_with
-from .levels import levels_solve, noise_distance, with_levels
+from .levels import levels_solve, noise_distance, refinement_gap, with_levels
 from .one_grid import one_grid_solve
 from .phases import Reporter
 from .records import MODULI, ShapeGeodesicResult, warn_unless_converged
@@ -225,11 +225,21 @@ def _symmetric_solve(
                 last = [float(again.distance)]
                 distances = np.asarray(levels.distances).tolist()[:-1] + last
                 ascent = np.asarray(levels.ascent).tolist()[:-1] + last
+                refined = np.asarray(levels.refined).tolist()[:-1]
+                refined += [float(again.refinement.distance_grid)]
                 seconds = np.asarray(levels.seconds).tolist()
                 seconds[-1] += time.perf_counter() - begin
                 noise = noise_distance(f1, f2)
                 again = with_levels(
-                    again, levels.grids, distances, seconds, resolved.rtol, noise, ascent
+                    again,
+                    levels.grids,
+                    distances,
+                    seconds,
+                    resolved.rtol,
+                    noise,
+                    ascent,
+                    refined,
+                    refinement_gap(again),
                 )
             if float(again.distance) < float(best.distance):
                 best = again

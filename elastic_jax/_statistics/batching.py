@@ -390,6 +390,10 @@ def _level_pair(
     )
 
 
+def _tiny(x: ArrayLike) -> float:
+    return float(np.finfo(np.asarray(x).dtype).tiny)
+
+
 class _LevelSolution(NamedTuple):
     """:func:`_level_pair`'s outputs by name (one pair's, or a group's stacked)."""
 
@@ -534,7 +538,14 @@ def levelled_chunk(
                 sol = _LevelSolution(*(x[k] for x in solved))
                 d, ok = float(sol.distance), bool(sol.converged)
                 steps[i] += sol.num_steps
-                outcomes[i] = LevelOutcome(d, ok, float(sol.parametrized_distance), sol)
+                outcomes[i] = LevelOutcome(
+                    d,
+                    ok,
+                    float(sol.parametrized_distance),
+                    sol,
+                    # Refinement.relative_change is relative to max(d, tiny).
+                    refined_gap=float(sol.refinement_change) * max(d, _tiny(sol.distance)),
+                )
                 if report is not None:
                     info = {"level": index + 1, "levels": len(levels), "grid": tuple(grid)}
                     info.update({"again": True} if again else {})

@@ -22,9 +22,11 @@ from .._geometry.composition import on_grid, rotate_surface
 from .._geometry.differential import interior_frame
 from .._geometry.grid import sphere_points
 from .._geometry.metric import SplitMetric
+from .._geometry.numerics import default_tol
 from .._geometry.validation import check_pair
 from .._options import ShapeOptions, options_with
 from .._registration.problem import (
+    geodesic_at,
     make_problem,
     path_frames_at,
 )
@@ -45,8 +47,12 @@ class LogResult(NamedTuple):
             ``base`` with the same degree, N and scheme gives that path back.
         target: ``(3, m, n)`` the surface the velocity reaches: f2 for modulo="none",
             R^T (f2 o gamma) otherwise: f2 reparametrized and turned onto f1.
-        distance: ``()`` the geodesic distance.
-        path: ``(N, 3, m, n)`` the geodesic from ``base`` to ``target``.
+        distance: ``()`` the geodesic distance (the resolved one when levels ran).
+        path: ``(N, 3, m, n)`` the geodesic from ``base`` to ``target``, integrated by
+            the working grid's nodes as :func:`shoot` steps: where the solve integrated
+            finer (the levels' quadrature and stretched cells), the path is solved again
+            by the nodes at the solve's registration, so its length can differ from
+            ``distance`` by what the finer rule reads (``refinement`` of the solve).
         converged: ``()`` the geodesic solve's own convergence.
         result: that solve's result code (``elastic_jax.RESULTS``).
         num_steps: ``()`` that solve's steps.
@@ -98,7 +104,10 @@ def log(
     tangent space) and ``target`` the registered f2. With ``options.rtol`` (the default)
     the registration is resolved by levels of working grids, as :func:`shape_geodesic`
     resolves it (math §10), and the log lives on the finest level's grid: at ``base``,
-    f1 read at that grid (``levels`` records the levels). ``grid=(m, n)`` or
+    f1 read at that grid (``levels`` records the levels). The levels integrate finer than
+    the working grid's nodes, and :func:`shoot` steps by the nodes, so the path is then
+    solved again by the nodes at the resolved registration (gamma and R held): the
+    geodesic that shooting ``velocity`` follows. ``grid=(m, n)`` or
     ``rtol=None`` (the inputs' grid, the finer of two) solve on one grid; logs that are to
     share a grid (a transfer, a tangent space's statistics) are asked for on one. The
     midpoint energy is symmetric under reversal, so the reversed path is again a discrete
@@ -113,9 +122,8 @@ def log(
         metric: the split metric coefficients.
         modulo: ``"none"``, ``"diff"`` or ``"rigid"``.
         options: :class:`ShapeOptions` (degree, n_times, scheme, ... and the registration;
-            its defaults when None). Solved on the inputs' grid (or ``grid``), not by
-            levels: the record's ``rtol`` and ``levels`` are not used (rtol is set to
-            None for the solve).
+            its defaults when None): resolved by its ``rtol`` and ``levels`` modulo
+            "diff" / "rigid", on one grid with ``grid`` or ``rtol=None``.
         **changes: fields of ShapeOptions as keywords (``degree=5``): without
             ``options`` each sets that field of the default record; beside ``options``
             each must equal the record's field (an equal one is accepted, another is an
@@ -143,16 +151,35 @@ def log(
         res = shape_geodesic(f2, f1, metric, modulo=modulo, options=options)
         levels = res.levels
         m, n = res.path.shape[-2:]
+        node_rule = options.replace(
+            refinement=False,
+            rtol=None,
+            grid=None,
+            quadrature=1,
+            stretch_quadrature=0.0,
+            tol=default_tol(f1.dtype) if options.tol is None else options.tol,
+        )
+        solved = options.on_level((m, n))  # the options of the grid the path is on
+        if solved.quadrature_factor != 1 or solved.stretch_fraction > 0.0:
+            # The levels integrate finer than the nodes, and shoot steps by the nodes: a
+            # geodesic of the finer rule is not one that shoot follows (the cats' log
+            # shot back left NaN nodes). The path is solved again by the nodes at the
+            # resolved registration, from the levels' path.
+            path_res = _node_rule_path(f2, f1, metric, res, node_rule, modulo == "rigid")
+            res = res._replace(
+                path=path_res.path,
+                coefficients=path_res.coefficients,
+                converged=res.converged & path_res.converged,
+                result=RESULTS.where(path_res.converged, res.result, path_res.result),
+                num_steps=res.num_steps + path_res.num_steps,
+            )
         base = on_grid(f1, sphere_points(m, n, f1.dtype), options.interpolation)
         # The solve's last node is R (f1 read at the working grid, centred modulo
         # "rigid"): turned back and moved onto ``base`` it is ``base`` but for rounding.
         path = turned_back(res, base)[::-1].at[0].set(base)
         if options.differential == "chain":
-            # The bases without the finer grid's (refinement): a static resolved. The
-            # frames at the working grid's nodes, whatever the solve integrated by: the
-            # finer nodes include them, and gamma's spline takes its values there.
-            resolved = options.replace(refinement=False, rtol=None, grid=None, quadrature=1)
-            solve_frames = _solve_frames(f2, f1, metric, res, resolved, modulo == "rigid")
+            # The frames at the working grid's nodes, as shoot takes them.
+            solve_frames = _solve_frames(f2, f1, metric, res, node_rule, modulo == "rigid")
     t = options.n_times - 1
     velocity = t * (path[1] - path[0])
     if solve_frames is None:  # every node's differential is its grid differences
@@ -170,6 +197,16 @@ def log(
         base=base,
         levels=levels,
     )
+
+
+@functools.partial(jax.jit, static_argnames=("options", "rigid"))
+def _node_rule_path(f2, f1, metric, res, options, rigid):
+    """The geodesic from f2 o gamma to R f1 integrated by the working grid's nodes
+    (``options``: the node rule), gamma and R held, warm-started at the levels' path."""
+    m, n = res.gamma.shape[-2:]
+    bases = make_bases(m, n, options, f1.dtype)
+    prob = make_problem(metric, f2, f1, bases, rigid, options.interpolation)
+    return geodesic_at(prob, options, res.gamma, res.rotation, res.coefficients)
 
 
 @functools.partial(jax.jit, static_argnames=("options", "rigid"))
