@@ -67,6 +67,21 @@ class HarmonicsTable(NamedTuple):
     orders: np.ndarray  # (K,) k
 
 
+def _azimuthal(k: int, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """The order-k factor of the real harmonics Y_lk on the grid's azimuths: (trig, its
+    theta derivative, the normalization sqrt2 (-1)^k, 1 for k = 0); cos for k > 0, sin for
+    k < 0. The seam column repeats column 0 exactly."""
+    a = abs(k)
+    if k == 0:
+        trig, dtrig, scale = np.ones_like(theta), np.zeros_like(theta), 1.0
+    elif k > 0:
+        trig, dtrig, scale = np.cos(a * theta), -a * np.sin(a * theta), np.sqrt(2) * (-1) ** a
+    else:
+        trig, dtrig, scale = np.sin(a * theta), a * np.cos(a * theta), np.sqrt(2) * (-1) ** a
+    trig[-1], dtrig[-1] = trig[0], dtrig[0]
+    return trig, dtrig, scale
+
+
 @cached
 def harmonics_np(m: int, n: int, degree: int) -> HarmonicsTable:
     """The harmonics of degree 0..degree and their derivatives on the grid (math §5)."""
@@ -83,22 +98,7 @@ def harmonics_np(m: int, n: int, degree: int) -> HarmonicsTable:
     for l in range(degree + 1):
         for k in range(-l, l + 1):
             a = abs(k)
-            if k == 0:
-                trig, dtrig, scale = np.ones_like(theta), np.zeros_like(theta), 1.0
-            elif k > 0:
-                trig, dtrig, scale = (
-                    np.cos(a * theta),
-                    -a * np.sin(a * theta),
-                    np.sqrt(2) * (-1) ** a,
-                )
-            else:
-                trig, dtrig, scale = (
-                    np.sin(a * theta),
-                    a * np.cos(a * theta),
-                    np.sqrt(2) * (-1) ** a,
-                )
-            # The seam column repeats column 0 exactly.
-            trig[-1], dtrig[-1] = trig[0], dtrig[0]
+            trig, dtrig, scale = _azimuthal(k, theta)
             rows.append(
                 (
                     scale * np.outer(p[l, a], trig),
@@ -127,11 +127,8 @@ def harmonic_factors_np(m: int, n: int, degree: int) -> tuple[np.ndarray, np.nda
     rows, columns = [], []
     for l in range(degree + 1):
         for k in range(-l, l + 1):
-            a = abs(k)
-            scale = 1.0 if k == 0 else np.sqrt(2) * (-1) ** a
-            trig = np.ones_like(theta) if k == 0 else (np.cos if k > 0 else np.sin)(a * theta)
-            trig[-1] = trig[0]  # the seam column repeats column 0 exactly
-            rows.append(scale * p[l, a])
+            trig, _, scale = _azimuthal(k, theta)
+            rows.append(scale * p[l, abs(k)])
             columns.append(trig)
     return np.asarray(rows), np.asarray(columns)
 
