@@ -102,12 +102,13 @@ def test_spline_reads_make_the_chain_rule_meet_the_spheres_closed_form():
 @pytest.mark.slow  # about 140 s on 2 cores (the default tier keeps the resolved matrix)
 def test_levels_resolve_the_concentric_spheres():
     """Spheres of radii 1 and 2 (the second rotated, on a finer grid than the first) at
-    the default rtol and levels: the levels' distances approach the closed form
-    sqrt(8 pi) (metric a = b = 1) and stop where two agree within rtol (the second,
+    the default rtol, levels from 13 x 25: the levels' distances approach the closed
+    form sqrt(8 pi) (metric a = b = 1) and stop where two agree within rtol (the second,
     25 x 49); the estimate is their relative change."""
     f1 = shapes.sample(shapes.sphere, 13, 25, radius=1.0)
     f2 = shapes.sample(shapes.sphere, 25, 49, radius=2.0, rotation=shapes.random_rotation(3))
-    options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)  # rtol 0.03, levels default
+    levels = ((13, 25), *ej.ShapeOptions().levels)
+    options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5, levels=levels)  # rtol 0.03
     with warnings.catch_warnings():
         warnings.simplefilter("error", ej.ConvergenceWarning)
         res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
@@ -305,7 +306,7 @@ def test_identical_shapes_resolve_at_the_second_level():
     e1 = ej.sphere_points(13, 25, dtype=jnp.float64)
     gamma = ej.moebius(e1, jnp.asarray([-0.1, 0.2, -0.2]))
     f = 2.0 * gamma
-    options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)
+    options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5, levels=((13, 25), (25, 49)))
     with warnings.catch_warnings():
         warnings.simplefilter("error", ej.ConvergenceWarning)
         res = ej.shape_geodesic(f, f, METRIC, modulo="rigid", options=options)
@@ -347,7 +348,8 @@ def test_a_resolved_matrix_is_its_pairs_resolved_distances():
     0.073 % under it at 25 x 49, levels estimate 0.21 %)."""
     radii = (1.0, 2.0, 3.0)
     spheres = _spheres_by_rotation(radii)
-    options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5)  # rtol 0.03, default levels
+    # rtol 0.03; levels from 13 x 25, where smooth shapes resolve cheaply
+    options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5, levels=((13, 25), (25, 49)))
     with warnings.catch_warnings():
         warnings.simplefilter("error", ej.ConvergenceWarning)
         res = ej.distance_matrix(
@@ -435,9 +437,9 @@ def test_one_levels_loop_lets_each_pair_leave_when_it_resolves():
     """run_levels, the loop shape_geodesic's levels and the collections' levelled solves
     share: a pair leaves once two successive levels agree within rtol at a converged
     solve; a non-finite distance ends its levels; the others go on to the next grid,
-    each continuing its own solution from the level below. Where three levels' changes
-    turn back or stop halving, the levels below are solved again from the last level's
-    solution, and the change of that minimum decides."""
+    each continuing its own solution from the level below. Where two levels disagree, or
+    three levels' changes turn back or stop halving, the levels below are solved again
+    from the last level's solution, and the change of that minimum decides."""
     from elastic_jax._registration.levels import LevelOutcome, run_levels
 
     levels = ((9, 17), (13, 25), (17, 33), (25, 49))
@@ -446,7 +448,10 @@ def test_one_levels_loop_lets_each_pair_leave_when_it_resolves():
     # turns non-finite at level 2; pair 3 never agrees (changes 1, 1, 1: solved again
     # below at levels 3 and 4, no closer); pair 4 turns back at level 3 (0.2, -0.2) and
     # its minimum agrees one level down (0.99 against 1.0); pair 5 turns back too, but
-    # its last gamma folds on the level below: the change stands, and level 4 agrees.
+    # its last gamma folds on the level below: the change stands, and level 4 agrees;
+    # pair 6's two levels disagree (1.0, 1.2), and its second level's minimum agrees one
+    # level down (1.19). Pairs 1, 3, 4 and 5 miss at level 2 too, each second level's
+    # minimum one level down at 1.0.
     table = {
         0: [(1.0, True), (1.02, True)],
         1: [(1.0, True), (1.5, True), (1.51, False), (1.52, True)],
@@ -454,9 +459,12 @@ def test_one_levels_loop_lets_each_pair_leave_when_it_resolves():
         3: [(1.0, True), (2.0, True), (3.0, True), (4.0, True)],
         4: [(1.0, True), (1.2, True), (1.0, True)],
         5: [(1.0, True), (1.2, True), (1.0, True), (1.01, True)],
+        6: [(1.0, True), (1.2, True)],
     }
     # (pair, finer level, level below) -> (distance, converged), or None: cannot continue.
     again = {
+        **{(i, 1, 0): (1.0, True) for i in (1, 3, 4, 5)},
+        (6, 1, 0): (1.19, True),
         (3, 2, 1): (2.0, True),
         (3, 2, 0): (1.0, True),
         (3, 3, 2): (3.0, True),
@@ -481,10 +489,11 @@ def test_one_levels_loop_lets_each_pair_leave_when_it_resolves():
                 out.append(LevelOutcome(*table[i][index], 10.0, (i, index)))
         return out
 
-    tracks = run_levels(6, levels, 0.03, [0.0] * 6, lambda *a, again=False: solve(*a, again))
+    tracks = run_levels(7, levels, 0.03, [0.0] * 7, lambda *a, again=False: solve(*a, again))
     assert calls == [
-        (0, (9, 17), [0, 1, 2, 3, 4, 5], False),
-        (1, (13, 25), [0, 1, 2, 3, 4, 5], False),
+        (0, (9, 17), [0, 1, 2, 3, 4, 5, 6], False),
+        (1, (13, 25), [0, 1, 2, 3, 4, 5, 6], False),
+        (0, (9, 17), [1, 3, 4, 5, 6], True),
         (2, (17, 33), [1, 3, 4, 5], False),
         (1, (13, 25), [3, 4, 5], True),
         (0, (9, 17), [3, 4, 5], True),
@@ -493,7 +502,7 @@ def test_one_levels_loop_lets_each_pair_leave_when_it_resolves():
         (1, (13, 25), [3], True),
         (0, (9, 17), [3], True),
     ]
-    assert [len(t.distances) for t in tracks] == [2, 4, 2, 4, 3, 4]
+    assert [len(t.distances) for t in tracks] == [2, 4, 2, 4, 3, 4, 2]
     assert tracks[0].estimate == pytest.approx(0.02 / 1.02)
     assert tracks[1].estimate == pytest.approx(0.01 / 1.52)
     assert np.isnan(tracks[2].distances[-1]) and tracks[2].grids[-1] == (13, 25)
@@ -502,3 +511,5 @@ def test_one_levels_loop_lets_each_pair_leave_when_it_resolves():
     assert tracks[4].estimate == pytest.approx(0.01) and tracks[4].solution == (4, 2)
     assert tracks[5].distances == tracks[5].ascent == [1.0, 1.2, 1.0, 1.01]
     assert tracks[5].estimate == pytest.approx(0.01 / 1.01)
+    assert tracks[6].distances == [1.19, 1.2] and tracks[6].ascent == [1.0, 1.2]
+    assert tracks[6].estimate == pytest.approx(0.01 / 1.2) and tracks[6].solution == (6, 1)

@@ -88,14 +88,15 @@ class LevelTrack:
 
 
 def turns(distances: Sequence[float]) -> bool:
-    """Whether the last three levels' distances are not one minimum refined: the last
-    change reverses the one before, or is more than half its size (an observed order
-    below 1). Levels that continue one another can still end in different minima (the
-    fsaverage5 pial pair: 3.746, 3.832, 3.628 on 13 x 25, 25 x 49, 49 x 97, the finest
-    level's minimum 3.223, 3.568, 3.628 on the same grids), and then their change is
-    the minima's difference, not the discretization's."""
+    """Whether the last levels' distances may not be one minimum refined: two levels
+    cannot tell (their change is a grid's error or two minima's), and of three, the
+    last change reverses the one before or is more than half its size (an observed
+    order below 1). Levels that continue one another can still end in different minima
+    (the fsaverage5 pial pair: 3.746, 3.832, 3.628 on 13 x 25, 25 x 49, 49 x 97, the
+    finest level's minimum 3.223, 3.568, 3.628 on the same grids), and then their change
+    is the minima's difference, not the discretization's."""
     if len(distances) < 3:
-        return False
+        return len(distances) == 2
     before, last = distances[-2] - distances[-3], distances[-1] - distances[-2]
     return bool(before * last < 0 or abs(last) > 0.5 * abs(before))
 
@@ -119,8 +120,9 @@ def run_levels(
     solve, or when its distance is not finite (RESULTS.nonfinite ends its levels too);
     the others go on to the next grid. ``noise[i]``: pair i's :func:`noise_distance`.
 
-    Where three levels' distances :func:`turns` and the last change misses rtol at a
-    converged solve, the change is two minima's: every level below is solved again
+    Where the levels' distances :func:`turns` (two levels, or three whose changes do not
+    halve) and the last change misses rtol at a converged solve, the change may be two
+    minima's: every level below is solved again
     from the last level's solution (``again=True``: ``below`` holds that finer
     solution; an outcome of None where it cannot be continued on that grid, whose
     distance is then NaN), those distances replace the track's first ones, and the

@@ -52,10 +52,11 @@ class Levels(NamedTuple):
         distances: ``(L,)`` the distance of the last level's minimum on each level:
             each level's own where the levels continued one minimum, else the levels
             below solved again from the last one (its registration and path) when the
-            last three levels' changes turned back or stopped halving (an observed
-            order below 1) and the last change missed rtol: the change of levels that
-            ended in different minima is the minima's, not the grid's (NaN where the
-            last gamma folds between a coarser grid's points).
+            last change missed rtol at a converged solve and either only two levels
+            had run or the last three levels' changes turned back or stopped halving
+            (an observed order below 1): the change of levels that ended in different
+            minima is the minima's, not the grid's (NaN where the last gamma folds
+            between a coarser grid's points).
         ascent: ``(L,)`` each level's distance as first solved, going up (equal to
             ``distances`` unless the levels below were solved again).
         refined: ``(L,)`` each level's registration and path as first solved, read by

@@ -253,7 +253,7 @@ def rtol_option(parser: argparse.ArgumentParser, what: str) -> None:
         "--rtol",
         type=_rtol,
         default=SHAPE_DEFAULTS.rtol,
-        help=f"{what}: working grids 13 x 25 ... 97 x 193 until two levels' distances agree "
+        help=f"{what}: working grids 25 x 49 ... 97 x 193 until two levels' distances agree "
         "within this; 'none': one working grid, the inputs'",
     )
 
