@@ -122,14 +122,13 @@ def run_levels(
 
     Where the levels' distances :func:`turns` (two levels, or three whose changes do not
     halve) and the last change misses rtol at a converged solve, the change may be two
-    minima's: every level below is solved again
-    from the last level's solution (``again=True``: ``below`` holds that finer
-    solution; an outcome of None where it cannot be continued on that grid, whose
-    distance is then NaN), those distances replace the track's first ones, and the
-    estimate is the change between the last two of the last level's own minimum. The
-    next level continues the last level's solution either way. Each pair's seconds are
-    its level's wall time (the whole group's, when several share it), the levels
-    solved again included.
+    minima's: every level below is solved again from the last level's solution
+    (``again=True``: ``below`` holds that finer solution; an outcome of None where it
+    cannot be continued on that grid, whose distance is then NaN), those distances
+    replace the track's first ones, and the estimate is the change between the last two
+    of the last level's own minimum. The next level continues the last level's solution
+    either way. Each pair's seconds are its level's wall time (the whole group's, when
+    several share it), the levels solved again included.
     """
     tracks = [LevelTrack() for _ in range(count)]
     going = list(range(count))
