@@ -15,6 +15,14 @@ Pairs: those of bench_order.py (``cats``, ``cat-horse``, ``horse-cat``, ``horse-
 ``--turn D`` reads f1 through a rotation of its parameter sphere by D degrees about
 (1, 2, 3) (bench_order.turned: at 99 x 197 by its spline), f2 as given.
 
+Inputs the levels were not tuned on: ``--perturb SEED`` adds 1e-10 times a standard
+normal draw (numpy's generator with that seed) to f1; ``--rotate SEED`` turns f2 in
+space by ``shapes.random_rotation(SEED)``; ``--moebius A`` replaces f1 by f1 read at
+99 x 197 (its spline) through the Moebius map with boost A (0.3, 0.4, ...) along
+(0.36, -0.48, 0.8) and turned by ``shapes.random_rotation(7)``: with ``first:first`` a
+surface against its own read. ``--degree`` and ``--vf-degree`` set the path's and the
+Diff step's degrees (default: ``ShapeOptions()``'s).
+
 ``--times N`` sets the path's time points (default: ``ShapeOptions().n_times``).
 ``--calls K`` solves each pair K times in one process (default 1): the first call
 compiles, the later ones are warm. Each record has ``call`` (1, 2, ...) and ``phases``:
@@ -25,6 +33,7 @@ them; levels solved again are marked ``again``).
 
 Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
      [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193] [--times 13] [--calls 1]
+     [--perturb SEED] [--rotate SEED] [--moebius A] [--degree 7] [--vf-degree 8]
 """
 
 from __future__ import annotations
@@ -67,13 +76,38 @@ def phase_seconds(events: list[dict]) -> list[dict]:
     ]
 
 
-def run_pair(name: str, options: ej.ShapeOptions, turn: float, call: int = 1) -> dict | None:
+MOEBIUS_DIRECTION = np.array([0.36, -0.48, 0.8])
+
+
+def varied(f1, f2, variant: dict):
+    """(f1, f2) with the variant's perturbation, Moebius read and rotation applied."""
+    if variant.get("moebius"):
+        boost = variant["moebius"] * MOEBIUS_DIRECTION / np.linalg.norm(MOEBIUS_DIRECTION)
+        points = ej.moebius(ej.sphere_points(99, 197), jnp.asarray(boost))
+        read = np.asarray(ej.reparametrize(jnp.asarray(f1), points, method="spline"))
+        f1 = np.einsum("ij,jmn->imn", ej.shapes.random_rotation(7), read)
+    if variant.get("perturb") is not None:
+        noise = np.random.default_rng(variant["perturb"]).standard_normal(np.shape(f1))
+        f1 = np.asarray(f1) + 1e-10 * noise
+    if variant.get("rotate") is not None:
+        f2 = np.einsum("ij,jmn->imn", ej.shapes.random_rotation(variant["rotate"]), f2)
+    return f1, f2
+
+
+def run_pair(
+    name: str,
+    options: ej.ShapeOptions,
+    turn: float,
+    call: int = 1,
+    variant: dict | None = None,
+) -> dict | None:
     first, second = PAIRS[name] if name in PAIRS else name.split(":")
     f1, f2 = load(first), load(second)
     if f1 is None or f2 is None:
         return None
     if turn:
         f1 = turned(f1, turn)
+    f1, f2 = varied(f1, f2, variant or {})
     events: list[dict] = []
     begin = time.perf_counter()
     with warnings.catch_warnings():
@@ -95,6 +129,8 @@ def run_pair(name: str, options: ej.ShapeOptions, turn: float, call: int = 1) ->
         "benchmark": "levels",
         "pair": name,
         "turn": turn,
+        **(variant or {}),
+        "parametrized_distance": float(res.parametrized_distance),
         "distance": float(res.distance),
         "converged": bool(res.converged),
         "result": str(res.result).split("<")[-1].split(":")[0].rstrip(">"),
@@ -120,19 +156,33 @@ def main() -> None:
     )
     parser.add_argument("--times", type=int, default=ej.ShapeOptions().n_times)
     parser.add_argument("--calls", type=int, default=1)
+    parser.add_argument("--perturb", type=int, default=None)
+    parser.add_argument("--rotate", type=int, default=None)
+    parser.add_argument("--moebius", type=float, default=0.0)
+    parser.add_argument("--degree", type=int, default=ej.ShapeOptions().degree)
+    parser.add_argument("--vf-degree", type=int, default=ej.ShapeOptions().vf_degree)
     args = parser.parse_args()
+    if not 0.0 <= args.moebius < 1.0:
+        parser.error(f"--moebius must be in [0, 1); got {args.moebius}")
     if args.calls < 1:
         parser.error(f"--calls must be at least 1; got {args.calls}")
     levels = tuple(tuple(int(k) for k in grid.split("x")) for grid in args.levels.split(","))
     try:
-        options = ej.ShapeOptions(rtol=args.rtol, levels=levels, n_times=args.times)
+        options = ej.ShapeOptions(
+            rtol=args.rtol,
+            levels=levels,
+            n_times=args.times,
+            degree=args.degree,
+            vf_degree=args.vf_degree,
+        )
     except ValueError as err:
         parser.error(str(err))
     settings = {"rtol": args.rtol, "levels": [list(g) for g in levels], "dtype": "float64"}
-    settings["n_times"] = args.times
+    settings.update(n_times=args.times, degree=args.degree, vf_degree=args.vf_degree)
+    variant = {"perturb": args.perturb, "rotate": args.rotate, "moebius": args.moebius}
     for name in args.pairs.split(","):
         for call in range(1, args.calls + 1):
-            record = run_pair(name, options, args.turn, call)
+            record = run_pair(name, options, args.turn, call, variant)
             if record is not None:
                 emit({**record, "settings": settings, "environment": environment()})
 
