@@ -60,6 +60,12 @@ class KarcherResult(NamedTuple):
         velocities: ``(K, 3, m, n)`` initial velocities of the geodesics at the mean
             (second-order one-sided differences, ``initial_velocity()``).
         geodesics_converged: ``(K,)`` whether each inner solve at the mean converged.
+        geodesics_resolution_limited: ``(K,)`` whether each inner solve at the mean ended
+            ``resolution_limited`` (its registration stopped at the stretch the grid
+            resolves, :class:`ShapeGeodesicResult`; not converged, its distance an upper
+            bound): a shape whose registration to the mean would collapse a region ends
+            so on every grid, where a False entry of ``geodesics_converged`` that is not
+            flagged here is a solve that failed.
         history: ``(steps + 1, 3)`` per mean visited (the start first): sum of squared
             distances (non-increasing), norm of the mean velocity sqrt(G_mean(v, v)), and
             the step size that led there (0 for the start; step_size / 2^j after j halvings).
@@ -85,6 +91,7 @@ class KarcherResult(NamedTuple):
     registered: Array
     velocities: Array
     geodesics_converged: Array
+    geodesics_resolution_limited: Array
     history: np.ndarray
     num_solves: int
     level_distances: np.ndarray | None
@@ -421,6 +428,7 @@ class _KarcherJob(NamedTuple):
             registered=solved.registered,
             velocities=solved.velocities,
             geodesics_converged=solved.converged,
+            geodesics_resolution_limited=solved.limited,
             history=np.asarray(state.history),
             converged=jnp.asarray(RESULTS.name(code) in _CONVERGED),
             num_steps=jnp.asarray(state.step, jnp.int32),

@@ -110,6 +110,7 @@ def solve_karcher(args, progress: Progress):
                 registered=np.asarray(res.registered),
                 velocities=np.asarray(res.velocities),
                 geodesics_converged=np.asarray(res.geodesics_converged),
+                geodesics_resolution_limited=np.asarray(res.geodesics_resolution_limited),
                 history=np.asarray(res.history),
                 result=result,
                 converged=bool(res.converged),
@@ -145,6 +146,9 @@ def solve_karcher(args, progress: Progress):
         if res.level_distances is None
         else json_floats(res.level_distances),
         "geodesics_converged": [bool(c) for c in np.asarray(res.geodesics_converged)],
+        "geodesics_resolution_limited": [
+            bool(c) for c in np.asarray(res.geodesics_resolution_limited)
+        ],
         "seconds": seconds,
         "files": files,
         "environment": environment_record(),
