@@ -212,15 +212,15 @@ def test_resolved_mean_of_moebius_read_concentric_spheres(modulo, tmp_path, monk
     np.testing.assert_allclose(again.history[0], res.history[0], rtol=1e-9)
 
 
-@pytest.mark.slow  # about 2 minutes on 2 cores
+@pytest.mark.slow  # about 5 minutes on 2 cores
 def test_resolved_mean_of_the_shared_shapes_converges_below_every_member():
     """cat1, cat2, horse0 and hand4 as stored (50 x 99), modulo rigid, the levels capped
     at 25 x 49 for time (degree 4/4, N = 5): every step lowers the SSD, the iteration
     converges, and the mean is a better centre than any member (each member's SSD from
     the same levelled solves). Measured: SSD 14.02, 7.06, 6.70, 6.50, 6.44, 6.414,
-    6.411, sum_sq_stalled, 260 s alone; at the full defaults (levels to 97 x 193) 13.27 to
-    5.96 in 57 minutes (docs/guides/collections.md). With a start search per solve on one
-    grid the same four stopped line_search_failed after one step."""
+    6.411, sum_sq_stalled, 260-310 s alone; at the full defaults (levels to 97 x 193)
+    13.27 to 5.96 in 57 minutes (docs/guides/collections.md). With a start search per
+    solve on one grid the same four stopped line_search_failed after one step."""
     names = ("cat1", "cat2", "horse0", "hand4")
     coll = np.stack([load_shape(name) for name in names])
     options = ej.ShapeOptions(degree=4, vf_degree=4, n_times=5, levels=((13, 25), (25, 49)))

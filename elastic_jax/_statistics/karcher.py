@@ -63,8 +63,8 @@ class KarcherResult(NamedTuple):
         geodesics_resolution_limited: ``(K,)`` whether each inner solve at the mean ended
             ``resolution_limited`` (its registration stopped at the stretch the grid
             resolves, :class:`ShapeGeodesicResult`; not converged, its distance an upper
-            bound): a shape whose registration to the mean would collapse a region ends
-            so on every grid, where a False entry of ``geodesics_converged`` that is not
+            bound), as a shape whose registration to the mean would collapse a region
+            does on every grid. A False entry of ``geodesics_converged`` that is not
             flagged here is a solve that failed.
         history: ``(steps + 1, 3)`` per mean visited (the start first): sum of squared
             distances (non-increasing), norm of the mean velocity sqrt(G_mean(v, v)), and
