@@ -164,6 +164,9 @@ def main() -> None:
     args = parser.parse_args()
     if not 0.0 <= args.moebius < 1.0:
         parser.error(f"--moebius must be in [0, 1); got {args.moebius}")
+    for flag, seed in (("--perturb", args.perturb), ("--rotate", args.rotate)):
+        if seed is not None and seed < 0:
+            parser.error(f"{flag} must be a seed >= 0; got {seed}")
     if args.calls < 1:
         parser.error(f"--calls must be at least 1; got {args.calls}")
     levels = tuple(tuple(int(k) for k in grid.split("x")) for grid in args.levels.split(","))
