@@ -120,3 +120,19 @@ def deformed(base, rng, *, size: float = 0.0, method: str = "bilinear"):
     f = np.asarray(ej.reparametrize(base, ej.moebius(ej.sphere_points(m, n), a), method=method))
     rotation = shapes.random_rotation(int(rng.integers(1 << 30)))
     return np.einsum("ij,jk,kmn->imn", rotation, stretch, f)
+
+
+def moebius_read(f, boost, rotation, grid=None, method: str = "spline"):
+    """``rotation`` (f o phi_a) (math §9): f (3, m, n) read through the Moebius map with
+    boost a = ``boost`` (3,) at the points of ``grid`` (default: f's own) by ``method``,
+    its pole rows and seam column then made exact (every node of a pole row is one point,
+    the seam repeats the first column), and turned by the 3 x 3 ``rotation``."""
+    import jax.numpy as jnp
+
+    import elastic_jax as ej
+
+    points = ej.moebius(ej.sphere_points(*(grid or f.shape[-2:])), jnp.asarray(boost))
+    read = ej.reparametrize(jnp.asarray(f), points, method=method)
+    read = read.at[:, 0, :].set(read[:, 0, :1]).at[:, -1, :].set(read[:, -1, :1])
+    read = read.at[:, :, -1].set(read[:, :, 0])
+    return jnp.einsum("ij,jmn->imn", jnp.asarray(rotation), read)

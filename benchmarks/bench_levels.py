@@ -7,8 +7,9 @@ levels going up turned back or stopped halving, the coarser grids solved again f
 last level), ``ascent`` (the levels as first solved), ``refined`` (each of those read on the grid
 twice finer than its rule), ``refined_gaps`` (abs(refined / ascent - 1)) and their
 observed orders ``gap_orders`` (log2 of successive ratios), seconds, the estimate, the
-result's name and the total time (compiling included), next to the settings and the
-machine.
+last level's gamma's Jacobian determinant (``gamma_jacobian``: its least and largest
+value; ``gamma_jacobian_below_0.1``: how many points), the result's name and the total
+time (compiling included), next to the settings and the machine.
 
 Pairs: those of bench_order.py (``cats``, ``cat-horse``, ``horse-cat``, ``horse-hand``,
 ``pial``) or any two of the authors' surfaces as ``first:second`` (``cat2:horse0``).
@@ -21,7 +22,8 @@ space by ``shapes.random_rotation(SEED)``; ``--moebius A`` replaces f1 by f1 rea
 99 x 197 (its spline) through the Moebius map with boost A (0.3, 0.4, ...) along
 (0.36, -0.48, 0.8) and turned by ``shapes.random_rotation(7)``: with ``first:first`` a
 surface against its own read. ``--degree`` and ``--vf-degree`` set the path's and the
-Diff step's degrees (default: ``ShapeOptions()``'s).
+Diff step's degrees (default: ``ShapeOptions()``'s); ``--level-vf-degrees 8,16`` gives
+each level its own Diff step degree (``ShapeOptions.level_vf_degrees``).
 
 ``--times N`` sets the path's time points (default: ``ShapeOptions().n_times``).
 ``--calls K`` solves each pair K times in one process (default 1): the first call
@@ -34,6 +36,7 @@ them; levels solved again are marked ``again``).
 Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
      [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193] [--times 13] [--calls 1]
      [--perturb SEED] [--rotate SEED] [--moebius A] [--degree 7] [--vf-degree 8]
+     [--level-vf-degrees 8,16,32]
 """
 
 from __future__ import annotations
@@ -52,7 +55,7 @@ from bench_order import METRIC, PAIRS, load, turned  # noqa: E402
 
 import elastic_jax as ej  # noqa: E402
 
-from _common import emit, environment  # noqa: E402
+from _common import emit, environment, moebius_read  # noqa: E402
 
 
 def phase_seconds(events: list[dict]) -> list[dict]:
@@ -83,9 +86,7 @@ def varied(f1, f2, variant: dict):
     """(f1, f2) with the variant's perturbation, Moebius read and rotation applied."""
     if variant.get("moebius"):
         boost = variant["moebius"] * MOEBIUS_DIRECTION / np.linalg.norm(MOEBIUS_DIRECTION)
-        points = ej.moebius(ej.sphere_points(99, 197), jnp.asarray(boost))
-        read = np.asarray(ej.reparametrize(jnp.asarray(f1), points, method="spline"))
-        f1 = np.einsum("ij,jmn->imn", ej.shapes.random_rotation(7), read)
+        f1 = moebius_read(f1, boost, ej.shapes.random_rotation(7), (99, 197))
     if variant.get("perturb") is not None:
         noise = np.random.default_rng(variant["perturb"]).standard_normal(np.shape(f1))
         f1 = np.asarray(f1) + 1e-10 * noise
@@ -123,6 +124,8 @@ def run_pair(
     levels = res.levels
     # What each level's rule under-read: its registration and path on the grid twice finer.
     gaps = np.abs(np.asarray(levels.refined) / np.asarray(levels.ascent) - 1.0)
+    # How far the last level's registration stretches and compresses: its Jacobian.
+    jacobian = np.asarray(ej.jacobian_determinant(res.gamma))
     return {
         "call": call,
         "phases": phase_seconds(events),
@@ -142,6 +145,8 @@ def run_pair(
         "gap_orders": np.log2(gaps[:-1] / gaps[1:]).tolist(),
         "seconds": np.asarray(levels.seconds).tolist(),
         "estimate": float(levels.estimate),
+        "gamma_jacobian": [float(jacobian.min()), float(jacobian.max())],
+        "gamma_jacobian_below_0.1": int((jacobian < 0.1).sum()),
         "total_s": time.perf_counter() - begin,
     }
 
@@ -161,6 +166,9 @@ def main() -> None:
     parser.add_argument("--moebius", type=float, default=0.0)
     parser.add_argument("--degree", type=int, default=ej.ShapeOptions().degree)
     parser.add_argument("--vf-degree", type=int, default=ej.ShapeOptions().vf_degree)
+    parser.add_argument(
+        "--level-vf-degrees", default=None, help="one Diff step degree per level: 8,11,14"
+    )
     args = parser.parse_args()
     if not 0.0 <= args.moebius < 1.0:
         parser.error(f"--moebius must be in [0, 1); got {args.moebius}")
@@ -170,6 +178,12 @@ def main() -> None:
     if args.calls < 1:
         parser.error(f"--calls must be at least 1; got {args.calls}")
     levels = tuple(tuple(int(k) for k in grid.split("x")) for grid in args.levels.split(","))
+    level_vf_degrees = None
+    if args.level_vf_degrees:
+        try:
+            level_vf_degrees = tuple(int(d) for d in args.level_vf_degrees.split(","))
+        except ValueError:
+            parser.error(f"--level-vf-degrees must be integers: {args.level_vf_degrees}")
     try:
         options = ej.ShapeOptions(
             rtol=args.rtol,
@@ -177,11 +191,13 @@ def main() -> None:
             n_times=args.times,
             degree=args.degree,
             vf_degree=args.vf_degree,
+            level_vf_degrees=level_vf_degrees,
         )
     except ValueError as err:
         parser.error(str(err))
     settings = {"rtol": args.rtol, "levels": [list(g) for g in levels], "dtype": "float64"}
     settings.update(n_times=args.times, degree=args.degree, vf_degree=args.vf_degree)
+    settings["level_vf_degrees"] = None if level_vf_degrees is None else list(level_vf_degrees)
     variant = {"perturb": args.perturb, "rotate": args.rotate, "moebius": args.moebius}
     for name in args.pairs.split(","):
         for call in range(1, args.calls + 1):

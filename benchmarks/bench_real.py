@@ -71,7 +71,7 @@ from elastic_jax import shapes  # noqa: E402
 from elastic_jax._options import DIFFERENTIALS, INTERPOLATIONS  # noqa: E402
 from elastic_jax._runtime.cache import CompileCounter  # noqa: E402
 
-from _common import emit, environment, shape  # noqa: E402
+from _common import emit, environment, moebius_read, shape  # noqa: E402
 
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
 PAIRS = {
@@ -86,21 +86,13 @@ PAIRS = {
 CASES = ("grid25", "up49", "data", "moebius", "reversed", "self", "moebius99", "self99")
 
 
-def _grid_surface(f):
-    """Pole rows constant and the seam exact after sampling at arbitrary points."""
-    f = f.at[:, 0, :].set(f[:, 0, :1]).at[:, -1, :].set(f[:, -1, :1])
-    return f.at[:, :, -1].set(f[:, :, 0])
-
-
 def _moved(f, magnitude: float, seed: int, grid=None, method: str = "bicubic"):
     """R (f o phi_a): f read through a Moebius map with |a| = magnitude, then rotated, at
     the points of ``grid`` (default: f's own)."""
     rng = np.random.default_rng(seed)
     a = rng.standard_normal(3)
     a *= magnitude / np.linalg.norm(a)
-    r = ej.so3_exp(jnp.asarray(rng.standard_normal(3)))
-    where = ej.moebius(ej.sphere_points(*(grid or f.shape[-2:])), jnp.asarray(a))
-    return jnp.einsum("ij,jmn->imn", r, _grid_surface(ej.reparametrize(f, where, method)))
+    return moebius_read(f, a, ej.so3_exp(jnp.asarray(rng.standard_normal(3))), grid, method)
 
 
 def _fsaverage(surface: str = "infl"):

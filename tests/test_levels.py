@@ -515,3 +515,26 @@ def test_one_levels_loop_lets_each_pair_leave_when_it_resolves():
     assert tracks[5].estimate == pytest.approx(0.01 / 1.01)
     assert tracks[6].distances == [1.19, 1.2] and tracks[6].ascent == [1.0, 1.2]
     assert tracks[6].estimate == pytest.approx(0.01 / 1.2) and tracks[6].solution == (6, 1)
+
+
+@pytest.mark.slow  # about a minute on 2 cores: two degrees compile
+def test_a_level_solves_with_its_own_diff_step_degree():
+    """level_vf_degrees gives each level its Diff step: a level of a resolved distance
+    is the one-grid solve at that level's degree (to rounding), not at vf_degree's."""
+    f1 = shapes.sample(shapes.bumpy, 9, 17)
+    f2 = shapes.sample(shapes.ellipsoid, 9, 17, rotation=shapes.random_rotation(3))
+    levels = ((9, 17),)
+    resolved = OPTIONS.replace(rtol=1e-9, levels=levels, init="none", refinement=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        solves = [
+            ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
+            for options in (
+                resolved.replace(level_vf_degrees=(2,)),
+                resolved.replace(vf_degree=2).on_level((9, 17)),
+                resolved.on_level((9, 17)),
+            )
+        ]
+    levelled, own, other = (float(res.distance) for res in solves)
+    np.testing.assert_allclose(levelled, own, rtol=1e-12)
+    assert abs(other - own) > 1e-4 * own  # vf_degree's (4) is another solve

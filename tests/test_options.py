@@ -168,3 +168,24 @@ def test_the_levels_stop_their_rounds_at_a_fifth_of_rtol():
     assert one_grid.on_level((25, 49)).round_stop == 1e-3
     with pytest.raises(ej.InputError, match="rounds_tol must be a positive finite number"):
         ej.ShapeOptions(rounds_tol=0.0)
+
+
+def test_each_level_takes_its_own_diff_step_degree():
+    levels = ((13, 25), (25, 49), (49, 97))
+    options = ej.ShapeOptions(levels=levels, level_vf_degrees=[6, 12, 24])
+    assert options.level_vf_degrees == (6, 12, 24)
+    assert [options.on_level(grid).vf_degree for grid in levels] == [6, 12, 24]
+    # A grid that is not a level, and one working grid, keep vf_degree.
+    assert options.on_level((9, 17)).vf_degree == options.vf_degree == 8
+    assert options.replace(rtol=None).on_level((25, 49)).vf_degree == 8
+    assert ej.ShapeOptions().on_level((49, 97)).vf_degree == 8
+    with pytest.raises(ej.InputError, match="one degree per level: 3 levels, got 2"):
+        ej.ShapeOptions(levels=levels, level_vf_degrees=(6, 12))
+    with pytest.raises(ej.InputError, match="level_vf_degrees"):
+        ej.ShapeOptions(levels=levels, level_vf_degrees=(6, 0, 24))
+    # A degree beyond what a level's grid holds (min(m - 3, (n - 3) // 2): 10 at 13 x 25)
+    # is refused before any solve, naming the level.
+    f = shapes.sample(shapes.sphere, 13, 25)
+    too_fine = ej.ShapeOptions(levels=levels, level_vf_degrees=(11, 12, 24))
+    with pytest.raises(ej.InputError, match="the 13 x 25 level: vf_degree"):
+        ej.shape_geodesic(f, f, METRIC, options=too_fine)

@@ -218,7 +218,7 @@ def levels_solve(
         given_start(start, *own, f1.dtype, modulo == "rigid")
     for m, n in options.levels:
         try:
-            check_grid_options(options, m, n)
+            check_grid_options(options.on_level((m, n)), m, n)
         except InputError as error:
             raise InputError(f"levels: the {m} x {n} level: {error}") from None
     noise = noise_distance(f1, f2)

@@ -47,6 +47,7 @@ def _grid_setup(f1: ArrayLike, f2: ArrayLike, metric: SplitMetric, options: Shap
         grid=(m, n),
         rtol=None,
         levels=_ONE_GRID_LEVELS,
+        level_vf_degrees=None,
         quadrature=options.quadrature_factor,
         stretch_quadrature=options.stretch_fraction,
     )

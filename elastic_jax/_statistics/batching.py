@@ -484,7 +484,7 @@ def levelled_chunk(
     levels = options.levels
     for m, n in levels:
         try:
-            check_grid_options(options, m, n)
+            check_grid_options(options.on_level((m, n)), m, n)
         except InputError as error:
             raise InputError(f"levels: the {m} x {n} level: {error}") from None
     dtype = first.dtype
