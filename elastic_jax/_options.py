@@ -202,7 +202,7 @@ class ShapeOptions:
             one class of maps and the levels resolve the grid at that degree. Richer
             steps can lower a distance: fsaverage5's pial pair by 18 % at
             ``(16, 32)`` with registrations as mild as degree 8's, the authors'
-            animals by 6-18 % with registrations that compress regions towards the
+            animals by 2-16 % with registrations that compress regions towards the
             area floor (:doc:`/guides/registration_notes`, "The degrees"). The paper's
             multiresolution ``(8, 11, 14)`` resolved those pairs at 49 x 97.
 
