@@ -189,3 +189,5 @@ def test_each_level_takes_its_own_diff_step_degree():
     too_fine = ej.ShapeOptions(levels=levels, level_vf_degrees=(11, 12, 24))
     with pytest.raises(ej.InputError, match="the 13 x 25 level: vf_degree"):
         ej.shape_geodesic(f, f, METRIC, options=too_fine)
+    with pytest.raises(ej.InputError, match="the 13 x 25 level: vf_degree"):
+        ej.distance_matrix(np.stack([f, 1.5 * f]), METRIC, options=too_fine)

@@ -144,3 +144,17 @@ def check_grid_options(options: ShapeOptions, m: int, n: int) -> None:
     # The record made both ints >= 1 already; the grid sets their ceiling.
     degree_within(options.degree, m, n)
     degree_within(options.vf_degree, m, n, "vf_degree")
+
+
+def check_levels(options: ShapeOptions) -> None:
+    """:func:`check_grid_options` on every level of ``options.levels``, each with that
+    level's own options (``options.on_level``: its Diff step degree).
+
+    Raises:
+        InputError: naming the level's grid and the option over its limit.
+    """
+    for m, n in options.levels:
+        try:
+            check_grid_options(options.on_level((m, n)), m, n)
+        except InputError as error:
+            raise InputError(f"levels: the {m} x {n} level: {error}") from None

@@ -19,7 +19,7 @@ from .._checks import is_concrete
 from .._errors import InputError
 from .._geometry.metric import SplitMetric
 from .._geometry.units import in_units
-from .._geometry.validation import check_grid_options
+from .._geometry.validation import check_levels
 from .._options import ShapeOptions
 from .._results import RESULTS
 from .one_grid import one_grid_solve
@@ -216,11 +216,7 @@ def levels_solve(
         if len(own) != 2:
             own = options.levels[0]  # malformed: given_start names the problem
         given_start(start, *own, f1.dtype, modulo == "rigid")
-    for m, n in options.levels:
-        try:
-            check_grid_options(options.on_level((m, n)), m, n)
-        except InputError as error:
-            raise InputError(f"levels: the {m} x {n} level: {error}") from None
+    check_levels(options)
     noise = noise_distance(f1, f2)
 
     def solve(

@@ -20,7 +20,7 @@ from .._geodesics.geodesic import solve_geodesic
 from .._geometry.grid import sphere_points
 from .._geometry.metric import SplitMetric
 from .._geometry.numerics import default_tol
-from .._geometry.validation import as_surface, check_grid_options
+from .._geometry.validation import as_surface, check_grid_options, check_levels
 from .._options import ShapeOptions, check_choice, options_with
 from .._registration.levels import LevelOutcome, noise_distance, registration_at, run_levels
 from .._registration.one_grid import continued_geodesic
@@ -482,11 +482,7 @@ def levelled_chunk(
     first, second = jnp.asarray(first), jnp.asarray(second)
     count = first.shape[0]
     levels = options.levels
-    for m, n in levels:
-        try:
-            check_grid_options(options.on_level((m, n)), m, n)
-        except InputError as error:
-            raise InputError(f"levels: the {m} x {n} level: {error}") from None
+    check_levels(options)
     dtype = first.dtype
     noise = [noise_distance(first[i], second[i]) for i in range(count)]
     mode = "loop" if strategy == "map" else strategy
