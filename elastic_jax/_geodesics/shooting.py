@@ -66,7 +66,8 @@ class ShootingResult(NamedTuple):
             more Newton step, in coefficients of f's units; 0 on an exact solution; NaN
             for the steps after a failed one (not attempted).
         coefficients: ``(N - 2, L)`` the c of each step.
-        newton_steps: ``(N - 2,)`` Newton iterations per step (0: not attempted).
+        newton_steps: ``(N - 2,)`` iterations per step, Newton's and a rescue's (0: not
+            attempted).
         n_valid: ``()`` how many leading nodes of ``path`` are solutions: N when converged.
         converged: ``()`` every step's Newton solve met its tolerance.
         result: ``successful``, or the first failed step's Newton result
@@ -186,7 +187,7 @@ def node_solve(
 
     first = newton(c_guess, residual)
 
-    def rescued(_: None):
+    def followed(_: None):
         # Newton from the guess fails where a step's cells nearly collapse: on a real
         # horse's last node at 25 x 49 its first step was 4x too long and 67 degrees off
         # a root 0.4 guess-lengths away. The root is then followed from the guess,
@@ -201,7 +202,26 @@ def node_solve(
         )
         c, result, steps = _newton_from(gradient, jax.lax.stop_gradient(far), 0.0, newton)
         result = RESULTS.where(reached, result, first[1])
-        return c, result, steps + follow_steps + first[2]
+        return c, result, steps + follow_steps
+
+    def rescued(_: None):
+        # A trust region first: on the resolved cats' log (49 x 97) the last node's root
+        # lies 0.47 guess-lengths from the guess, and Newton's undamped steps wander
+        # there (16 iterations on the log's own nodes, none converging within 200 on
+        # nodes 1e-5 off them), where optimistix's dogleg reaches it in 11-12. The
+        # continuation is the last resort.
+        trust = optx.Dogleg(rtol=tol, atol=tol)
+        sol = optx.root_find(residual, trust, c_guess, max_steps=max_newton, throw=False)
+        second = (
+            sol.value,
+            RESULTS.promote(sol.result),
+            jnp.asarray(sol.stats["num_steps"], jnp.int32),
+        )
+        c, result, steps = jax.lax.cond(
+            second[1] == RESULTS.successful, lambda _: second, followed, None
+        )
+        steps = steps + jnp.where(second[1] == RESULTS.successful, 0, second[2])
+        return c, result, steps + first[2]
 
     c, result, steps = jax.lax.cond(first[1] == RESULTS.successful, lambda _: first, rescued, None)
     node = base + (c.reshape(3, -1) @ values).reshape(3, m, n)
@@ -393,13 +413,15 @@ def shoot(
             log back reproduces its path only from those (the nodes' differentials
             follow the nodes' own recursion).
 
-    A step whose Newton solve fails from the extrapolated guess is retried by
-    continuation: the root of the node's equation is followed from the guess (module
-    ``_follow_root``; docs/guides/shooting.md), at the cost of more Newton iterations.
+    A step whose Newton solve fails from the extrapolated guess is retried from the
+    guess by optimistix's dogleg trust region (at most ``max_newton`` iterations), then
+    by continuation: the root of the node's equation is followed from the guess (module
+    ``_follow_root``; docs/guides/shooting.md), at the cost of more iterations, all
+    counted in ``newton_steps``.
 
     Returns:
         :class:`ShootingResult`; a ConvergenceWarning when a step's solve failed, also
-        by continuation. The recursion stops there: that node and the later ones are
+        by the dogleg and by continuation. The recursion stops there: that node and the later ones are
         NaN and ``n_valid`` counts the solved nodes. Vmappable over f and v;
         differentiable (optimistix's implicit adjoint per step).
     """
