@@ -401,7 +401,8 @@ def shoot(
         scheme: ``"midpoint"`` (default) or ``"forward"``; ``"central"`` is refused.
         tol: each Newton solve's tolerance (``default_newton_tol()``); a limit of
             shooting's own, not the record's minimization tol.
-        max_newton: Newton iterations per step (shooting's own limit).
+        max_newton: iterations of each Newton solve, and of the dogleg's rescue
+            (shooting's own limit).
         options: a :class:`ShapeOptions` whose n_times, degree and scheme are the ones
             not given as keywords (None: its defaults), so that a path shot from a
             :func:`geodesic` or :func:`log` uses that solve's record.
@@ -421,8 +422,8 @@ def shoot(
 
     Returns:
         :class:`ShootingResult`; a ConvergenceWarning when a step's solve failed, also
-        by the dogleg and by continuation. The recursion stops there: that node and the later ones are
-        NaN and ``n_valid`` counts the solved nodes. Vmappable over f and v;
+        by the dogleg and by continuation. The recursion stops there: that node and the
+        later ones are NaN and ``n_valid`` counts the solved nodes. Vmappable over f and v;
         differentiable (optimistix's implicit adjoint per step).
     """
     settings = settings_from("shoot", options, n_times=n_times, degree=degree, scheme=scheme)
@@ -507,8 +508,9 @@ def _failure_message(result: ShootingResult, tol: float, max_newton: int) -> str
     last = result.path.shape[0] - 1
     residual = float(result.residuals[k - 2])
     return (
-        f"shoot: node {k} of {last} did not solve (Newton: {max_newton} iterations, step "
-        f"still {residual:.3g} in units of f's size, tol={tol:g}); nodes {k}..{last} are "
+        f"shoot: node {k} of {last} did not solve (Newton and the dogleg: {max_newton} "
+        f"iterations each, then continuation; step still {residual:.3g} in units of f's "
+        f"size, tol={tol:g}); nodes {k}..{last} are "
         f"NaN, path[:{k}] is the solved part. Measured on real surfaces: Newton fails at a "
         "step that makes a grid cell's area at the step's midpoint fall well below its "
         "area at the nodes (docs/guides/limitations.md); more time points do not avoid it."

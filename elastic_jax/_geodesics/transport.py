@@ -415,7 +415,8 @@ def parallel_transport(
     if is_concrete(converged) and not bool(converged):
         warn_user(
             f"parallel_transport: rung {int(n_valid)} of {path.shape[0] - 1} did not solve "
-            f"(Newton: {max_newton} iterations, step still {float(jnp.nanmax(residuals)):.3g}, "
+            f"(Newton and the dogleg: {max_newton} iterations each, then continuation; step "
+            f"still {float(jnp.nanmax(residuals)):.3g}, "
             f"tol={tol:g}); its vector and the later ones are NaN",
             ConvergenceWarning,
         )
