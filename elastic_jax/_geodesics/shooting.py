@@ -177,8 +177,8 @@ def node_solve(
     def residual(c: ArrayLike, _: None):
         return jax.scipy.linalg.lu_solve(factor, gradient(c))
 
-    def newton(c0: ArrayLike, solve: Callable):
-        sol = optx.root_find(solve, solver, c0, max_steps=max_newton, throw=False)
+    def newton(c0: ArrayLike, solve: Callable, method=solver):
+        sol = optx.root_find(solve, method, c0, max_steps=max_newton, throw=False)
         return (
             sol.value,
             RESULTS.promote(sol.result),
@@ -210,13 +210,7 @@ def node_solve(
         # there (16 iterations on the log's own nodes, none converging within 200 on
         # nodes 1e-5 off them), where optimistix's dogleg reaches it in 11-12. The
         # continuation is the last resort.
-        trust = optx.Dogleg(rtol=tol, atol=tol)
-        sol = optx.root_find(residual, trust, c_guess, max_steps=max_newton, throw=False)
-        second = (
-            sol.value,
-            RESULTS.promote(sol.result),
-            jnp.asarray(sol.stats["num_steps"], jnp.int32),
-        )
+        second = newton(c_guess, residual, optx.Dogleg(rtol=tol, atol=tol))
         c, result, steps = jax.lax.cond(
             second[1] == RESULTS.successful, lambda _: second, followed, None
         )
