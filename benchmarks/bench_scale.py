@@ -1,6 +1,6 @@
 """Scale-out and first calls: distance matrices on Dask clusters, time to first result, memory.
 
-Four measurements, one JSON record each (settings, figures, environment):
+Six measurements, one JSON record each (settings, figures, environment):
 
 1. ``matrix``: pairs per second of a distance matrix of K shapes at 25 x 49 (metric
    (1, 1, 0.1, 0), modulo "rigid", ShapeOptions(degree=5, vf_degree=5, n_times=7),
@@ -29,6 +29,15 @@ Four measurements, one JSON record each (settings, figures, environment):
    no persistent cache): one pair by shape_geodesic, and distance matrices of 3 and 5
    shapes one pair after another ("loop") and of 3 side by side ("vmap")
    (``--programs-solves`` picks them).
+6. ``resolved``: a resolved distance matrix of real shapes at the package's defaults
+   (levels to 97 x 193, rtol 3 %; metric (1, 1, 0.1, 0), modulo "rigid", float64): the
+   shared animals cat1, cat2, horse0 and hand4 at their own 50 x 99 grid, then deformed
+   copies (bench_karcher's ``--deformations``, seed 0) up to ``--resolved-shapes``
+   (default 5: 10 pairs), in a fresh process with an empty compilation cache, so the
+   wall time includes every first call. The record has each pair's distance, levels
+   estimate, finest grid and status, the XLA programs compiled, and the time at each
+   finished chunk (``--resolved-strategy loop``: one pair a chunk); with
+   ``--resolved-checkpoint PATH`` a run stopped part way resumes from the finished pairs.
 
 Measured (2026-11-23, 2 CPU cores, quiet, float64; each configuration's compilations
 included):
@@ -152,8 +161,19 @@ Measured (2026-12-02, 2 CPU cores, degree 4 / 4, N 5):
     programs at degree 7 / 8, N 13, all four levels (--programs-levels 4): one pair 58
         (80 s); a matrix of 3 shapes one pair after another 93 (158 s).
 
+Measured (2026-12-06, 2 CPU cores, quiet, float64;
+records/bench_scale_resolved5_cpu2_2026-12-06.jsonl):
+    resolved, 5 shapes (10 pairs, one pair a chunk, a fresh process and cache): 4095 s
+        in all, against the target of 20 minutes (3.4 times over). Per pair 103-1007 s:
+        the 3 pairs that resolved at 49 x 97 took 103-159 s, the 7 that went on to
+        97 x 193 took 259-1007 s, 3715 s (91 %) of the whole. 8 pairs converged;
+        cat2 -> hand4 and horse0 -> hand4 ended `resolution_limited` at 97 x 193
+        (estimates 0.15 % and 0.49 %). Distances 0.713-2.297, estimates 0.12-2.47 %;
+        151 XLA programs; peak RSS 5.7 GB.
+
 Run: python benchmarks/bench_scale.py [--shapes 32]
-     [--parts matrix,compile,first_call,memory,programs] [--workers 1,2]
+     [--parts matrix,compile,first_call,memory,programs,resolved] [--workers 1,2]
+     [--resolved-shapes 5] [--resolved-strategy loop] [--resolved-checkpoint PATH]
      [--programs-options 4,4,5] [--programs-levels 2] [--programs-solves 2:loop,3:vmap]
 """
 
@@ -161,6 +181,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -326,6 +347,40 @@ print(json.dumps({{"programs_compiled": programs.count, "seconds": time.perf_cou
                   "finest_grids": grids}}))
 """
 
+RESOLVED = r"""
+from _common import deformed
+from elastic_jax._runtime.cache import CompileCounter
+ej.enable_compilation_cache({cache!r})
+coll = [load_shape(name) for name in ("cat1", "cat2", "horse0", "hand4")]
+if any(f is None for f in coll):
+    raise FileNotFoundError("the authors' shapes cannot be had (elastic_jax.datasets)")
+coll = [np.asarray(f) for f in coll]
+# bench_karcher --resolved --deformations's fifth shape onward: seed 0, spline reads.
+rng = np.random.default_rng(0)
+coll += [deformed(coll[i % 4], rng, method="spline") for i in range({shapes} - 4)]
+coll = np.stack(coll[:{shapes}])
+chunks = []
+def progress(info):
+    chunks.append({{"pairs_done": info["pairs_done"], "seconds": info["seconds"]}})
+    print(json.dumps({{"progress": chunks[-1]}}), file=sys.stderr, flush=True)
+job = ej.JobOptions(strategy={strategy!r}, progress=progress, checkpoint={checkpoint!r},
+                    resume={resume})
+t0 = time.perf_counter()
+with CompileCounter() as programs:
+    res = ej.distance_matrix(coll, metric, modulo="rigid", job=job)
+seconds = time.perf_counter() - t0
+upper = np.triu_indices(len(coll), 1)
+print(json.dumps({{"seconds": seconds, "programs_compiled": programs.count,
+                  "pairs": len(upper[0]),
+                  "pair_indices": np.stack(upper, 1).tolist(),
+                  "distances": np.asarray(res.distances)[upper].tolist(),
+                  "estimates": np.asarray(res.estimate)[upper].tolist(),
+                  "finest_grids": np.asarray(res.grids)[upper].tolist(),
+                  "pairs_converged": np.asarray(res.pairs_converged)[upper].tolist(),
+                  "converged": bool(res.converged), "result": ej.RESULTS.name(res.result),
+                  "chunks": chunks, "rss_mb": rss_mb()}}))
+"""
+
 ROWS = {
     "low": {"grid": (12, 25), "degree": 5, "vf_degree": 5, "n_times": 5},
     "middle": {"grid": (25, 49), "degree": 7, "vf_degree": 8, "n_times": 10},
@@ -353,6 +408,15 @@ def main() -> None:
     parser.add_argument("--workers", default="1,2", help="LocalCluster sizes")
     parser.add_argument("--parts", default="matrix,compile,first_call,memory")
     parser.add_argument(
+        "--resolved-shapes", type=int, default=5, help="shapes of the resolved part (>= 4)"
+    )
+    parser.add_argument("--resolved-strategy", default="loop", choices=("loop", "map", "vmap"))
+    parser.add_argument(
+        "--resolved-checkpoint",
+        default=None,
+        help="the resolved part's checkpoint (.npz): a run stopped part way resumes there",
+    )
+    parser.add_argument(
         "--programs-options",
         default="4,4,5",
         help="degree,vf_degree,n_times of the programs part (the package's: 7,8,13)",
@@ -371,7 +435,8 @@ def main() -> None:
     )
     args = parser.parse_args()
     parts = args.parts.split(",")
-    unknown = sorted(set(parts) - {"matrix", "compile", "first_call", "memory", "programs"})
+    known = {"matrix", "compile", "first_call", "memory", "programs", "resolved"}
+    unknown = sorted(set(parts) - known)
     if unknown:
         parser.error(f"--parts: unknown part(s) {', '.join(unknown)}")
     env = environment()
@@ -493,6 +558,37 @@ def main() -> None:
                     "environment": env,
                 }
             )
+    if "resolved" in parts:
+        # The issue's collection target: a resolved matrix of real shapes at the package's
+        # defaults (levels to 97 x 193, rtol 3 %), modulo rigid, in a fresh process with an
+        # empty compilation cache (its first calls included).
+        if args.resolved_shapes < 4:
+            parser.error("--resolved-shapes: at least the four shared animals (4)")
+        checkpoint = args.resolved_checkpoint
+        with tempfile.TemporaryDirectory() as tmp:
+            settings = {
+                "shapes": args.resolved_shapes,
+                "strategy": args.resolved_strategy,
+                "checkpoint": checkpoint,
+                "resume": bool(checkpoint) and os.path.exists(checkpoint),
+            }
+            record = run(RESOLVED.format(cache=f"{tmp}/cache", **settings))
+        emit(
+            {
+                "benchmark": "resolved_matrix",
+                "settings": {
+                    **settings,
+                    "shapes_used": "cat1, cat2, horse0, hand4, then deformed copies "
+                    "(bench_karcher --resolved --deformations, seed 0)",
+                    "metric": [1.0, 1.0, 0.1, 0.0],
+                    "modulo": "rigid",
+                    "options": "ShapeOptions() (the defaults)",
+                    "dtype": "float64",
+                },
+                **record,
+                "environment": env,
+            }
+        )
     if "memory" in parts:
         for label, grid, shape in (
             ("geodesic 50 x 99, degree 7, N 13", (50, 99), False),
