@@ -47,7 +47,7 @@ included):
         already keeps both busy (XLA threads) and each worker compiles the solve itself:
         the cluster pays on more cores and machines, not here.
     first_call, low row: cold 49.5 s to the result (the solve call 47.8 s, RSS 2.17 GB),
-        warm 12.0 s (10.8 s, 1.14 GB); middle row: cold 58.4 s, warm 23.5 s. The issue's
+        warm 12.0 s (10.8 s, 1.14 GB); middle row: cold 58.4 s, warm 23.5 s. The
         targets (cold <= 6.9 s, warm <= 2 s at the low row) are not met.
     memory: geodesic 50 x 99, degree 7, N 13: 982 MB; shape_geodesic 25 x 49 at the
         defaults: 2010 MB.
@@ -559,7 +559,7 @@ def main() -> None:
                 }
             )
     if "resolved" in parts:
-        # The collection target: a resolved matrix of real shapes at the package's
+        # The collection target: a resolved matrix of real shapes at the package's
         # defaults (levels to 97 x 193, rtol 3 %), modulo rigid, in a fresh process with an
         # empty compilation cache (its first calls included).
         if args.resolved_shapes < 4:
