@@ -23,7 +23,10 @@ space by ``shapes.random_rotation(SEED)``; ``--moebius A`` replaces f1 by f1 rea
 (0.36, -0.48, 0.8) and turned by ``shapes.random_rotation(7)``: with ``first:first`` a
 surface against its own read. ``--degree`` and ``--vf-degree`` set the path's and the
 Diff step's degrees (default: ``ShapeOptions()``'s); ``--level-vf-degrees 8,16`` gives
-each level its own Diff step degree (``ShapeOptions.level_vf_degrees``).
+each level its own Diff step degree (``ShapeOptions.level_vf_degrees``);
+``--level-candidates K`` carries K of the first level's starts through the levels
+(``ShapeOptions.level_candidates``): the record then has every candidate's final
+distance (``candidates``) and their ``spread``.
 
 ``--times N`` sets the path's time points (default: ``ShapeOptions().n_times``).
 ``--calls K`` solves each pair K times in one process (default 1): the first call
@@ -36,7 +39,7 @@ them; levels solved again are marked ``again``).
 Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
      [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193] [--times 13] [--calls 1]
      [--perturb SEED] [--rotate SEED] [--moebius A] [--degree 7] [--vf-degree 8]
-     [--level-vf-degrees 8,16,32]
+     [--level-vf-degrees 8,16,32] [--level-candidates 1]
 """
 
 from __future__ import annotations
@@ -145,6 +148,8 @@ def run_pair(
         "gap_orders": np.log2(gaps[:-1] / gaps[1:]).tolist(),
         "seconds": np.asarray(levels.seconds).tolist(),
         "estimate": float(levels.estimate),
+        "candidates": np.asarray(levels.candidates).tolist(),
+        "spread": float(levels.spread),
         "gamma_jacobian": [float(jacobian.min()), float(jacobian.max())],
         "gamma_jacobian_below_0.1": int((jacobian < 0.1).sum()),
         "total_s": time.perf_counter() - begin,
@@ -169,6 +174,7 @@ def main() -> None:
     parser.add_argument(
         "--level-vf-degrees", default=None, help="one Diff step degree per level: 8,11,14"
     )
+    parser.add_argument("--level-candidates", type=int, default=1)
     args = parser.parse_args()
     if not 0.0 <= args.moebius < 1.0:
         parser.error(f"--moebius must be in [0, 1); got {args.moebius}")
@@ -192,12 +198,14 @@ def main() -> None:
             degree=args.degree,
             vf_degree=args.vf_degree,
             level_vf_degrees=level_vf_degrees,
+            level_candidates=args.level_candidates,
         )
     except ValueError as err:
         parser.error(str(err))
     settings = {"rtol": args.rtol, "levels": [list(g) for g in levels], "dtype": "float64"}
     settings.update(n_times=args.times, degree=args.degree, vf_degree=args.vf_degree)
     settings["level_vf_degrees"] = None if level_vf_degrees is None else list(level_vf_degrees)
+    settings["level_candidates"] = args.level_candidates
     variant = {"perturb": args.perturb, "rotate": args.rotate, "moebius": args.moebius}
     for name in args.pairs.split(","):
         for call in range(1, args.calls + 1):

@@ -48,7 +48,7 @@ from elastic_jax._geometry.energy import step_frames  # noqa: E402
 from elastic_jax._geometry.grid import interior_weights  # noqa: E402
 from elastic_jax._geometry.metric import split_residuals  # noqa: E402
 from elastic_jax._registration import problem as P  # noqa: E402
-from elastic_jax._registration.one_grid import _grid_setup  # noqa: E402
+from elastic_jax._registration.one_grid import grid_setup  # noqa: E402
 from elastic_jax._registration.starts import given_start  # noqa: E402
 from elastic_jax._registration.stretch import cell_corners, cell_frames  # noqa: E402
 
@@ -108,7 +108,7 @@ class _TruncatedCG(lx.CG):
 def first_round(name: str, f1, f2, below, grid: tuple):
     """The first round's objective and residuals on ``grid``, continuing ``below``."""
     options = ej.ShapeOptions().on_level(grid)
-    options, units, g1, g2, args = _grid_setup(f1, f2, METRIC, options)
+    options, units, g1, g2, args = grid_setup(f1, f2, METRIC, options)
     bases = args[-1]
     gammas, rotations, _ = given_start((below.gamma, below.rotation), *grid, f1.dtype, True)
     coefficients = jnp.asarray(below.coefficients) / units.scale

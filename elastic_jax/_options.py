@@ -205,6 +205,20 @@ class ShapeOptions:
             animals by 2-16 % with registrations that compress regions towards the
             area floor (:doc:`/guides/registration_notes`, "The degrees"). The paper's
             multiresolution ``(8, 11, 14)`` resolved those pairs at 49 x 97.
+        level_candidates: how many starts a resolved :func:`shape_geodesic` carries
+            through its levels (default 1: the start search's starts compete in the
+            coarse rounds and one goes on; one working grid ignores it). With K > 1
+            the first level's start search gives up to K of its starts (as many as it
+            makes at most: ``init_candidates``, twice that with ``init="energy"``), each
+            gets coarse rounds, rounds and levels of its own, and the lowest final
+            distance is the result; ``res.levels.candidates`` holds every candidate's,
+            ``res.levels.spread`` their range relative to the lowest, and the result is
+            converged only when that spread is within rtol too. About K times the
+            time. Which local minimum a solve ends in turns on rounding
+            (:doc:`/guides/registration_notes`, "Where rounding picks the basin"); the
+            spread says how far apart the minima the candidates found are.
+            ``distance_matrix``, ``karcher_mean``, ``fit_metric`` and ``log`` solve
+            one candidate per pair.
 
     Check fields:
         refinement: re-evaluate the result with every time step halved and on the
@@ -251,6 +265,7 @@ class ShapeOptions:
     rtol: float | None = 0.03
     levels: tuple[tuple[int, int], ...] = ((25, 49), (49, 97), (97, 193))
     level_vf_degrees: tuple[int, ...] | None = None
+    level_candidates: int = 1
 
     def __post_init__(self):
         ints = {
@@ -262,6 +277,7 @@ class ShapeOptions:
             "init_candidates": 1,
             "saddle_checks": 0,
             "stretch_subdivision": 2,
+            "level_candidates": 1,
         }
         for name, minimum in ints.items():
             object.__setattr__(self, name, check_int(name, getattr(self, name), minimum))

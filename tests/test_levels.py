@@ -538,3 +538,74 @@ def test_a_level_solves_with_its_own_diff_step_degree():
     levelled, own, other = (float(res.distance) for res in solves)
     np.testing.assert_allclose(levelled, own, rtol=1e-12)
     assert abs(other - own) > 1e-4 * own  # vf_degree's (4) is another solve
+
+
+@pytest.mark.slow  # about 85 s on 2 cores (the default tier: the spread's rule, below)
+def test_candidates_carried_through_the_levels_keep_the_lowest():
+    """``level_candidates=3``: three of the first level's starts each go through coarse
+    rounds, rounds and levels of their own. The result is the lowest candidate's, its
+    spread the candidates' range relative to the lowest, both computed here from the
+    recorded distances; a candidate is the levelled solve from its start alone; one
+    candidate records its own distance and no spread."""
+    from elastic_jax._registration.levels import first_level_starts
+
+    f1 = shapes.sample(shapes.bumpy, 13, 25)
+    f2 = shapes.sample(shapes.bumpy, 13, 25, rotation=shapes.random_rotation(5))
+    f2 = jnp.einsum("i,imn->imn", jnp.asarray([1.2, 1.0, 0.9]), f2)
+    options = OPTIONS.replace(rtol=0.03, levels=((9, 17), (13, 25)), level_candidates=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
+        starts = first_level_starts(f1, f2, METRIC, "rigid", options)
+        last = ej.shape_geodesic(
+            f1,
+            f2,
+            METRIC,
+            modulo="rigid",
+            options=options.replace(level_candidates=1),
+            start=starts[-1],
+        )
+    found = np.asarray(res.levels.candidates)
+    assert found.shape == (3,) and len(starts) == 3
+    assert float(res.distance) == found.min()
+    scale = max(found.min(), 0.05 * float(res.parametrized_distance))
+    np.testing.assert_allclose(res.spread, (found.max() - found.min()) / scale, rtol=1e-12)
+    np.testing.assert_allclose(found[-1], last.distance, rtol=1e-12)
+    np.testing.assert_allclose(last.levels.candidates, [last.distance], rtol=0)
+    assert float(last.spread) == 0.0
+    assert_area_bound(res.distance, f1, f2, METRIC)
+
+
+def test_candidates_apart_by_more_than_rtol_are_not_resolved():
+    """A converged, resolved result whose candidates ended further apart than rtol is
+    not converged (``not_resolved``): the minima found differ by more than the answer's
+    stated resolution. Within rtol it stays converged. The spread's closed forms:
+    (max - min) / max(min, floor) over the finite distances."""
+    from elastic_jax._registration.levels import candidate_spread, with_levels
+
+    assert candidate_spread([2.0, 2.2, np.nan]) == pytest.approx(0.1, rel=1e-14)
+    assert candidate_spread([1.5]) == 0.0 and np.isnan(candidate_spread([np.nan]))
+    assert candidate_spread([0.001, 0.002], floor=0.1) == pytest.approx(0.01, rel=1e-12)
+    e1 = ej.sphere_points(9, 17, dtype=jnp.float64)
+    options = ej.ShapeOptions(degree=3, vf_degree=3, n_times=5, grid=(9, 17))
+    res = ej.shape_geodesic(e1, 1.5 * e1, METRIC, modulo="rigid", options=options)
+    d = float(res.distance)
+    assert bool(res.converged) and d > 0
+    grids, seconds = [[9, 17], [9, 17]], [1.0, 1.0]
+    apart = with_levels(res, grids, [d, d], seconds, 0.03, candidates=[d, 1.05 * d])
+    near = with_levels(res, grids, [d, d], seconds, 0.03, candidates=[1.01 * d, d])
+    assert not bool(apart.converged) and apart.result == ej.RESULTS.not_resolved
+    assert float(apart.spread) == pytest.approx(0.05, rel=1e-12)
+    assert bool(near.converged) and near.result == res.result
+    assert float(near.spread) == pytest.approx(0.01, rel=1e-12)
+
+
+def test_collections_refuse_several_candidates():
+    """Several candidates are carried by one shape_geodesic's levels; a collection's
+    levelled solves take one start a pair and say so instead of ignoring the field."""
+    with pytest.raises(ej.InputError, match="level_candidates"):
+        ej.ShapeOptions(level_candidates=0)
+    f = ej.sphere_points(9, 17, dtype=jnp.float64)
+    options = OPTIONS.replace(rtol=0.03, levels=((9, 17),), level_candidates=2)
+    with pytest.raises(ej.InputError, match="level_candidates"):
+        ej.distance_matrix(jnp.stack([f, 1.2 * f, 1.4 * f]), METRIC, options=options)

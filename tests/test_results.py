@@ -397,8 +397,10 @@ def _records():
             jnp.asarray([10.0, 20.0, 60.0]),
             _scalar(0.0217),
             _scalar(0.03),
+            jnp.asarray([0.92, 0.95]),
+            _scalar(0.0326),
         ),
-        ["grids=i32[3,2]", "estimate=0.0217", "rtol=0.03"],
+        ["grids=i32[3,2]", "estimate=0.0217", "rtol=0.03", "spread=0.0326"],
     )
     for name, record in _mesh_records().items():
         records[name] = (record, ["f64[642,3]" if name != "MeshFrame" else "scale=1.25"])

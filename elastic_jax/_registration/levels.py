@@ -22,8 +22,9 @@ from .._geometry.units import in_units
 from .._geometry.validation import check_levels
 from .._options import ShapeOptions
 from .._results import RESULTS
-from .one_grid import one_grid_solve
-from .phases import Reporter
+from .._runtime.cache import phase_chain
+from .one_grid import grid_setup, one_grid_solve
+from .phases import PHASE_JITS, PHASES, Reporter
 from .records import Levels, ShapeGeodesicResult
 from .starts import given_start
 
@@ -197,9 +198,15 @@ def levels_solve(
     search, no coarse rounds; continuation_phase), until two successive distances agree
     within rtol (math §10). The first level starts from ``start`` or searches its own.
 
+    With ``options.level_candidates`` K > 1 (and no ``start``), the first level's start
+    search gives up to K starts (:func:`first_level_starts`) and each is a pair of
+    run_levels' batch: its own coarse rounds, rounds and levels. The candidate with the
+    lowest final distance is the result; ``levels.candidates`` holds every candidate's
+    final distance and ``levels.spread`` their range (:func:`candidate_spread`).
+
     The finest level's result, with ``levels`` recording every level; converged when
-    that level converged and the tolerance was met, else ``RESULTS.not_resolved`` when
-    only the tolerance was missed.
+    that level converged and the tolerance was met (the levels' change and the
+    candidates' spread), else ``RESULTS.not_resolved`` when only a tolerance was missed.
     """
     if not is_concrete(f1, f2, metric):
         raise InputError(
@@ -218,41 +225,56 @@ def levels_solve(
         given_start(start, *own, f1.dtype, modulo == "rigid")
     check_levels(options)
     noise = noise_distance(f1, f2)
+    starts = [start]
+    if start is None and options.level_candidates > 1:
+        starts = first_level_starts(f1, f2, metric, modulo, options)
+    many = len(starts) > 1
 
     def solve(
         index: int, grid: tuple[int, int], going: list, below: list, again: bool = False
     ) -> list:
-        if again and registration_at(below[0], grid, f1.dtype, modulo) is None:
-            return [None]  # the finer gamma folds between this grid's points
-        if reporter is not None:
-            reporter.level = {"level": index + 1, "levels": len(options.levels)}
-            if again:
-                reporter.level["again"] = True
-        result = level_solve(f1, f2, metric, modulo, options, grid, below[0], start, reporter)
-        distance = float(jax.block_until_ready(result.distance))
-        converged = bool(result.converged)
-        if reporter is not None:
-            reporter.send(
-                stage="level",
-                grid=tuple(grid),
-                energy=float(result.energy),
-                distance=distance,
-                converged=converged,
+        outcomes = []
+        for i, lower in zip(going, below, strict=True):
+            if again and registration_at(lower, grid, f1.dtype, modulo) is None:
+                outcomes.append(None)  # the finer gamma folds between this grid's points
+                continue
+            if reporter is not None:
+                reporter.level = {"level": index + 1, "levels": len(options.levels)}
+                if many:
+                    reporter.level["candidate"] = i + 1
+                if again:
+                    reporter.level["again"] = True
+            result = level_solve(f1, f2, metric, modulo, options, grid, lower, starts[i], reporter)
+            distance = float(jax.block_until_ready(result.distance))
+            converged = bool(result.converged)
+            if reporter is not None:
+                reporter.send(
+                    stage="level",
+                    grid=tuple(grid),
+                    energy=float(result.energy),
+                    distance=distance,
+                    converged=converged,
+                )
+            outcomes.append(
+                LevelOutcome(
+                    distance,
+                    converged,
+                    result.parametrized_distance,
+                    result,
+                    float(result.refinement.distance_grid),
+                    refinement_gap(result),
+                )
             )
-        outcome = LevelOutcome(
-            distance,
-            converged,
-            result.parametrized_distance,
-            result,
-            float(result.refinement.distance_grid),
-            refinement_gap(result),
-        )
-        return [outcome]
+        return outcomes
 
-    (track,) = run_levels(1, options.levels, options.rtol, [noise], solve)
+    tracks = run_levels(len(starts), options.levels, options.rtol, [noise] * len(starts), solve)
     if reporter is not None:
         reporter.level = {}
-    result = with_levels(
+    finals = [float(track.solution.distance) for track in tracks]
+    # The lowest final distance wins (NaN never does; all NaN: the first).
+    ranked = np.where(np.isfinite(finals), finals, np.inf)
+    track = tracks[int(np.argmin(ranked))]
+    return with_levels(
         track.solution,
         track.grids,
         track.distances,
@@ -262,8 +284,25 @@ def levels_solve(
         ascent=track.ascent,
         refined=track.refined,
         refined_gap=track.refined_gap,
+        candidates=finals,
     )
-    return result
+
+
+def first_level_starts(
+    f1: ArrayLike, f2: ArrayLike, metric: SplitMetric, modulo: str, options: ShapeOptions
+) -> list[tuple]:
+    """The first level's start search (phase 1 on ``options.levels[0]``): its first
+    ``options.level_candidates`` starts (at most as many as it gives) as (gamma
+    ``(3, m, n)``, R ``(3, 3)``) pairs, in its ranking's order."""
+    grid = tuple(options.levels[0])
+    level, _, _, _, args = grid_setup(f1, f2, metric, options.on_level(grid))
+    name, function, skeleton = PHASES[0]
+    static = {"options": level, "rigid": modulo == "rigid"}
+    gammas, rotations, _ = phase_chain(
+        [(name, function, PHASE_JITS[name], skeleton)], args, (), static
+    )
+    count = min(options.level_candidates, int(gammas.shape[0]))
+    return [(gammas[i], rotations[i]) for i in range(count)]
 
 
 # A pair of near-equal shapes (a distance below this fraction of the pair's parametrized
@@ -330,15 +369,21 @@ def with_levels(
     ascent: Sequence[float] | None = None,
     refined: Sequence[float] | None = None,
     refined_gap: float = np.nan,
+    candidates: Sequence[float] | None = None,
 ) -> ShapeGeodesicResult:
     """``result`` (the finest level's) with its :class:`Levels` record; converged when it
-    converged and the last change met rtol, ``RESULTS.not_resolved`` when only the
-    tolerance was missed. ``ascent``: the distances as first solved (``distances`` when
-    None); ``refined``: each of those read on the grid twice finer than its rule (NaN
-    when None); ``refined_gap``: the last level's refinement gap (level_change)."""
+    converged, the last change met rtol and the candidates' spread is within rtol,
+    ``RESULTS.not_resolved`` when only a tolerance was missed. ``ascent``: the
+    distances as first solved (``distances`` when None); ``refined``: each of those
+    read on the grid twice finer than its rule (NaN when None); ``refined_gap``: the
+    last level's refinement gap (level_change); ``candidates``: every candidate's final
+    distance (None: this result's alone)."""
     dtype = result.distance.dtype
     estimate = level_change(distances, result.parametrized_distance, noise, refined_gap)
-    met = bool(estimate <= rtol)
+    if candidates is None:
+        candidates = [float(result.distance)]
+    spread = candidate_spread(candidates, _NEAR_EQUAL * float(result.parametrized_distance))
+    met = bool(estimate <= rtol) and bool(spread <= rtol)
     levels = Levels(
         grids=jnp.asarray(grids, jnp.int32),
         distances=jnp.asarray(distances, dtype),
@@ -347,6 +392,8 @@ def with_levels(
         seconds=jnp.asarray(seconds, dtype),
         estimate=jnp.asarray(estimate, dtype),
         rtol=jnp.asarray(rtol, dtype),
+        candidates=jnp.asarray(candidates, dtype),
+        spread=jnp.asarray(spread, dtype),
     )
     code = result.result
     if not met and bool(result.converged):
@@ -354,6 +401,21 @@ def with_levels(
     return result._replace(
         converged=jnp.asarray(bool(result.converged) and met), result=code, levels=levels
     )
+
+
+def candidate_spread(distances: Sequence[float], floor: float = 0.0) -> float:
+    """(max - min) / max(min, floor) of the finite ``distances`` (0 for fewer than two;
+    NaN when none is finite): how far apart the candidates' minima are, relative to the
+    lowest, or to ``floor`` where that is larger (level_change's scale for near-equal
+    shapes, whose distance is near zero)."""
+    finite = np.asarray(distances, np.float64)
+    finite = finite[np.isfinite(finite)]
+    if finite.size == 0:
+        return np.nan
+    if finite.size == 1:
+        return 0.0
+    low = max(float(finite.min()), float(floor), np.finfo(np.float64).tiny)
+    return float(finite.max() - finite.min()) / low
 
 
 def registration_at(start: object, grid: tuple[int, int], dtype: DTypeLike, modulo: str):

@@ -35,7 +35,7 @@ def working_grid_of(options: ShapeOptions, f1: ArrayLike, f2: ArrayLike) -> tupl
     return max(grids, key=lambda grid: grid[0] * grid[1])
 
 
-def _grid_setup(f1: ArrayLike, f2: ArrayLike, metric: SplitMetric, options: ShapeOptions):
+def grid_setup(f1: ArrayLike, f2: ArrayLike, metric: SplitMetric, options: ShapeOptions):
     """(options, units, g1, g2, args) of a solve on options's working grid: the static record,
     f1 and f2 in the solve's units, and the phases' arguments (the metric, g1, g2 and the
     bases) as constants: the solve runs on constants and shape_finish differentiates."""
@@ -75,7 +75,7 @@ def one_grid_solve(
     instead of searching starts (``start`` is then not used): the level below's
     registration, path and parametrized path in the user's units (levels_solve), or an
     inverted registration from its straight line (None; _symmetric_solve)."""
-    options, units, g1, g2, args = _grid_setup(f1, f2, metric, options)
+    options, units, g1, g2, args = grid_setup(f1, f2, metric, options)
     m, n = options.grid
     dtype = f1.dtype
     rigid = modulo == "rigid"

@@ -75,6 +75,14 @@ class Levels(NamedTuple):
             levels can agree in a minimum that hides content between both grids'
             points): the stated resolution of the answer (NaN with one level).
         rtol: ``()`` the tolerance asked for.
+        candidates: ``(C,)`` the final distance of each candidate carried through the
+            levels (``ShapeOptions.level_candidates``; one entry, the distance, for
+            one candidate), in the order of the start search's ranking; the result is
+            the lowest (NaN for a candidate that ended non-finite).
+        spread: ``()`` (max - min) / max(min, 0.05 p_L) of the finite ``candidates``
+            (0 for one; p_L as in ``estimate``): how far apart the minima the
+            candidates reached are; the result is converged only when it is within
+            rtol.
     """
 
     grids: Int[Array, "L 2"]
@@ -84,6 +92,8 @@ class Levels(NamedTuple):
     seconds: Float[Array, " L"]
     estimate: Float[Array, ""]
     rtol: Float[Array, ""]
+    candidates: Float[Array, " C"]
+    spread: Float[Array, ""]
 
     __repr__ = record_repr
 
@@ -152,6 +162,14 @@ class ShapeGeodesicResult(NamedTuple):
     converged: Bool[Array, ""]
     result: RESULTS
     num_steps: Int[Array, ""]
+
+    @property
+    def spread(self) -> Array:
+        """``()`` the candidates' spread of a resolved distance (:class:`Levels`
+        ``spread``; ``ShapeOptions.level_candidates``), 0 on one working grid."""
+        if self.levels is None:
+            return jnp.zeros((), self.distance.dtype)
+        return self.levels.spread
 
     def _explain(self, words: str) -> str:
         # A converged result whose last round was refused (its full step, resolved by the

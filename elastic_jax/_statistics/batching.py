@@ -483,6 +483,12 @@ def levelled_chunk(
     count = first.shape[0]
     levels = options.levels
     check_levels(options)
+    if options.level_candidates > 1:
+        raise InputError(
+            "level_candidates > 1 carries several starts through one shape_geodesic's "
+            "levels; a collection's pairs are solved from one start each: give "
+            f"level_candidates=1 (got {options.level_candidates})"
+        )
     dtype = first.dtype
     noise = [noise_distance(first[i], second[i]) for i in range(count)]
     mode = "loop" if strategy == "map" else strategy
