@@ -217,8 +217,9 @@ class ShapeOptions:
             time. Which local minimum a solve ends in turns on rounding
             (:doc:`/guides/registration_notes`, "Where rounding picks the basin"); the
             spread says how far apart the minima the candidates found are.
-            ``distance_matrix``, ``karcher_mean``, ``fit_metric`` and ``log`` solve
-            one candidate per pair.
+            ``log`` carries them too (it runs shape_geodesic); ``distance_matrix``,
+            ``karcher_mean`` and ``fit_metric`` solve one start a pair and refuse
+            K > 1.
 
     Check fields:
         refinement: re-evaluate the result with every time step halved and on the

@@ -601,11 +601,17 @@ def test_candidates_apart_by_more_than_rtol_are_not_resolved():
 
 
 def test_collections_refuse_several_candidates():
-    """Several candidates are carried by one shape_geodesic's levels; a collection's
-    levelled solves take one start a pair and say so instead of ignoring the field."""
+    """Several candidates are carried by one shape_geodesic's levels (and so by log); a
+    collection's levelled solves take one start a pair and say so instead of ignoring
+    the field."""
     with pytest.raises(ej.InputError, match="level_candidates"):
         ej.ShapeOptions(level_candidates=0)
     f = ej.sphere_points(9, 17, dtype=jnp.float64)
     options = OPTIONS.replace(rtol=0.03, levels=((9, 17),), level_candidates=2)
+    stack = jnp.stack([f, 1.2 * f, 1.4 * f, 1.1 * f])
     with pytest.raises(ej.InputError, match="level_candidates"):
-        ej.distance_matrix(jnp.stack([f, 1.2 * f, 1.4 * f]), METRIC, options=options)
+        ej.distance_matrix(stack, METRIC, options=options)
+    with pytest.raises(ej.InputError, match="level_candidates"):
+        ej.karcher_mean(stack, METRIC, modulo="rigid", options=options)
+    with pytest.raises(ej.InputError, match="level_candidates"):
+        ej.fit_metric(stack, jnp.asarray([0, 0, 1, 1]), modulo="rigid", options=options)

@@ -122,7 +122,8 @@ def shape_geodesic(
             energy the phase reached in the inputs' units, None after the start search)
             and after each level (``stage`` "level", ``level`` and ``levels`` counted
             from 1, ``distance``, ``converged``); every dict has ``seconds`` since the
-            call began, and during levels ``level`` and ``levels``; with ``symmetric``,
+            call began, and during levels ``level`` and ``levels`` (and ``candidate``,
+            counted from 1, with ``ShapeOptions.level_candidates`` > 1); with ``symmetric``,
             ``order`` ("f1 -> f2", "f2 -> f1", "f1 -> f2 from f2 -> f1"). Concrete inputs
             only (no report inside a caller's trace). None (default): silent.
         **changes: fields of ShapeOptions as keywords, e.g. ``degree=5, n_times=9``:
