@@ -26,7 +26,10 @@ Diff step's degrees (default: ``ShapeOptions()``'s); ``--level-vf-degrees 8,16``
 each level its own Diff step degree (``ShapeOptions.level_vf_degrees``);
 ``--level-candidates K`` carries K of the first level's starts through the levels
 (``ShapeOptions.level_candidates``): the record then has every candidate's final
-distance (``candidates``) and their ``spread``.
+distance (``candidates``), their ``spread`` and each candidate's distance on every level
+it solved (``candidate_levels``: [grid, distance, solved again] in order);
+``--both-orders`` adds the other order's starts, inverted, as candidates
+(``ShapeOptions.both_orders``).
 
 ``--times N`` sets the path's time points (default: ``ShapeOptions().n_times``).
 ``--calls K`` solves each pair K times in one process (default 1): the first call
@@ -39,7 +42,7 @@ them; levels solved again are marked ``again``).
 Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
      [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193] [--times 13] [--calls 1]
      [--perturb SEED] [--rotate SEED] [--moebius A] [--degree 7] [--vf-degree 8]
-     [--level-vf-degrees 8,16,32] [--level-candidates 1]
+     [--level-vf-degrees 8,16,32] [--level-candidates 1] [--both-orders]
 """
 
 from __future__ import annotations
@@ -80,6 +83,17 @@ def phase_seconds(events: list[dict]) -> list[dict]:
         for level in levels
         for _, again, grid in [level["key"]]
     ]
+
+
+def candidate_levels(events: list[dict]) -> list[list]:
+    """Each candidate's levels, in order, as [grid, distance, solved again], from the
+    level events of shape_geodesic's progress (one candidate: its own)."""
+    found: dict[int, list] = {}
+    for event in events:
+        if event["stage"] == "level":
+            row = [list(event["grid"]), event["distance"], bool(event.get("again", False))]
+            found.setdefault(event.get("candidate", 1), []).append(row)
+    return [found[k] for k in sorted(found)]
 
 
 MOEBIUS_DIRECTION = np.array([0.36, -0.48, 0.8])
@@ -149,6 +163,7 @@ def run_pair(
         "seconds": np.asarray(levels.seconds).tolist(),
         "estimate": float(levels.estimate),
         "candidates": np.asarray(levels.candidates).tolist(),
+        "candidate_levels": candidate_levels(events),
         "spread": float(levels.spread),
         "gamma_jacobian": [float(jacobian.min()), float(jacobian.max())],
         "gamma_jacobian_below_0.1": int((jacobian < 0.1).sum()),
@@ -175,6 +190,7 @@ def main() -> None:
         "--level-vf-degrees", default=None, help="one Diff step degree per level: 8,11,14"
     )
     parser.add_argument("--level-candidates", type=int, default=1)
+    parser.add_argument("--both-orders", action="store_true")
     args = parser.parse_args()
     if not 0.0 <= args.moebius < 1.0:
         parser.error(f"--moebius must be in [0, 1); got {args.moebius}")
@@ -199,6 +215,7 @@ def main() -> None:
             vf_degree=args.vf_degree,
             level_vf_degrees=level_vf_degrees,
             level_candidates=args.level_candidates,
+            both_orders=args.both_orders,
         )
     except ValueError as err:
         parser.error(str(err))
@@ -206,6 +223,7 @@ def main() -> None:
     settings.update(n_times=args.times, degree=args.degree, vf_degree=args.vf_degree)
     settings["level_vf_degrees"] = None if level_vf_degrees is None else list(level_vf_degrees)
     settings["level_candidates"] = args.level_candidates
+    settings["both_orders"] = args.both_orders
     variant = {"perturb": args.perturb, "rotate": args.rotate, "moebius": args.moebius}
     for name in args.pairs.split(","):
         for call in range(1, args.calls + 1):

@@ -576,6 +576,51 @@ def test_candidates_carried_through_the_levels_keep_the_lowest():
     assert_area_bound(res.distance, f1, f2, METRIC)
 
 
+@pytest.mark.slow  # about 60 s on 2 cores (the default tier: the inverted starts, below)
+def test_both_orders_add_the_other_orders_starts_as_candidates():
+    """``both_orders=True`` with one candidate an order: the first candidate is the
+    default solve itself, the second the levelled solve from the other order's best
+    start inverted, and the result the lower; it is never above the default's."""
+    from elastic_jax._registration.levels import other_order_starts
+
+    f1 = shapes.sample(shapes.bumpy, 13, 25)
+    f2 = shapes.sample(shapes.bumpy, 13, 25, rotation=shapes.random_rotation(5))
+    f2 = jnp.einsum("i,imn->imn", jnp.asarray([1.2, 1.0, 0.9]), f2)
+    options = OPTIONS.replace(rtol=0.03, levels=((9, 17), (13, 25)), both_orders=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
+        one = options.replace(both_orders=False)
+        default = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=one)
+        (start,) = other_order_starts(f1, f2, METRIC, "rigid", options)
+        other = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=one, start=start)
+    found = np.asarray(res.levels.candidates)
+    assert found.shape == (2,)
+    np.testing.assert_allclose(found, [default.distance, other.distance], rtol=1e-12)
+    assert float(res.distance) == found.min() <= float(default.distance)
+    assert_area_bound(res.distance, f1, f2, METRIC)
+
+
+def test_the_other_orders_starts_are_inverted():
+    """other_order_starts: each of f2 -> f1's starts (gamma, R) becomes (gamma^-1, R^T):
+    gamma o gamma^-1 is the identity at the grid's points (to Newton's rounding), and
+    the rotations are transposed."""
+    from elastic_jax._registration.levels import first_level_starts, other_order_starts
+
+    f1 = shapes.sample(shapes.bumpy, 9, 17)
+    f2 = shapes.sample(shapes.bumpy, 9, 17, rotation=shapes.random_rotation(3))
+    options = OPTIONS.replace(rtol=0.03, levels=((9, 17),), level_candidates=2)
+    found = first_level_starts(f2, f1, METRIC, "rigid", options)
+    inverted = other_order_starts(f1, f2, METRIC, "rigid", options)
+    assert len(found) == len(inverted) == 2
+    points = ej.sphere_points(9, 17, dtype=jnp.float64)
+    for (gamma, rotation), (inverse, transposed) in zip(found, inverted, strict=True):
+        back = ej.reparametrize(gamma, inverse, method="bicubic")
+        back = back / jnp.linalg.norm(back, axis=0, keepdims=True)
+        assert float(jnp.max(jnp.abs(back - points))) < 1e-9
+        np.testing.assert_allclose(transposed, np.asarray(rotation).T, rtol=0, atol=0)
+
+
 def test_candidates_apart_by_more_than_rtol_are_not_resolved():
     """A converged, resolved result whose candidates ended further apart than rtol is
     not converged (``not_resolved``): the minima found differ by more than the answer's
@@ -615,3 +660,8 @@ def test_collections_refuse_several_candidates():
         ej.karcher_mean(stack, METRIC, modulo="rigid", options=options)
     with pytest.raises(ej.InputError, match="level_candidates"):
         ej.fit_metric(stack, jnp.asarray([0, 0, 1, 1]), modulo="rigid", options=options)
+    both = options.replace(level_candidates=1, both_orders=True)
+    with pytest.raises(ej.InputError, match="both_orders"):
+        ej.distance_matrix(stack, METRIC, options=both)
+    with pytest.raises(ej.InputError, match="both_orders"):
+        ej.ShapeOptions(both_orders=1)

@@ -18,6 +18,7 @@ from jaxtyping import Array, ArrayLike
 from .._checks import is_concrete
 from .._errors import InputError
 from .._geometry.metric import SplitMetric
+from .._geometry.reparam import jacobian_determinant_unchecked
 from .._geometry.units import in_units
 from .._geometry.validation import check_levels
 from .._options import ShapeOptions
@@ -26,7 +27,7 @@ from .._runtime.cache import phase_chain
 from .one_grid import grid_setup, one_grid_solve
 from .phases import PHASE_JITS, PHASES, Reporter
 from .records import Levels, ShapeGeodesicResult
-from .starts import given_start
+from .starts import given_start, inverse_gamma
 
 
 def level_solve(
@@ -200,8 +201,10 @@ def levels_solve(
 
     With ``options.level_candidates`` K > 1 (and no ``start``), the first level's start
     search gives up to K starts (:func:`first_level_starts`) and each is a pair of
-    run_levels' batch: its own coarse rounds, rounds and levels. The candidate with the
-    lowest final distance is the result; ``levels.candidates`` holds every candidate's
+    run_levels' batch: its own coarse rounds, rounds and levels. With
+    ``options.both_orders`` the other order's K best-ranked starts, inverted, follow them
+    (:func:`other_order_starts`). The candidate with the lowest final distance is the
+    result; ``levels.candidates`` holds every candidate's
     final distance and ``levels.spread`` their range (:func:`candidate_spread`).
 
     The finest level's result, with ``levels`` recording every level; converged when
@@ -228,6 +231,8 @@ def levels_solve(
     starts = [start]
     if start is None and options.level_candidates > 1:
         starts = first_level_starts(f1, f2, metric, modulo, options)
+    if start is None and options.both_orders:
+        starts = starts + other_order_starts(f1, f2, metric, modulo, options)
     many = len(starts) > 1
 
     def solve(
@@ -303,6 +308,25 @@ def first_level_starts(
     )
     count = min(options.level_candidates, int(gammas.shape[0]))
     return [(gammas[i], rotations[i]) for i in range(count)]
+
+
+def other_order_starts(
+    f1: ArrayLike, f2: ArrayLike, metric: SplitMetric, modulo: str, options: ShapeOptions
+) -> list[tuple]:
+    """The other order's first-level starts as starts of this order: the start search
+    of f2 to f1 on ``options.levels[0]`` (:func:`first_level_starts`, its first
+    ``level_candidates``), each (gamma, R) with f2 o gamma ~ R f1 turned into
+    (gamma^-1, R^T), since then f1 o gamma^-1 ~ R^T f2 (modulo "diff" R is the identity).
+    gamma^-1 is solved on gamma's interpolant (:func:`inverse_gamma`); a start whose
+    inverse misses rounding's tolerance or folds on the grid is left out."""
+    found = first_level_starts(f2, f1, metric, modulo, options)
+    tol = 10.0 * float(np.sqrt(np.finfo(np.dtype(f1.dtype)).eps))
+    starts = []
+    for gamma, rotation in found:
+        inverse, residual = inverse_gamma(gamma)
+        if float(residual) <= tol and float(jnp.min(jacobian_determinant_unchecked(inverse))) > 0:
+            starts.append((inverse, rotation.T))
+    return starts
 
 
 # A pair of near-equal shapes (a distance below this fraction of the pair's parametrized

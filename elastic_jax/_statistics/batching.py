@@ -489,6 +489,12 @@ def levelled_chunk(
             "levels; a collection's pairs are solved from one start each: give "
             f"level_candidates=1 (got {options.level_candidates})"
         )
+    if options.both_orders:
+        raise InputError(
+            "both_orders=True carries the other order's starts through one "
+            "shape_geodesic's levels; a collection's pairs are solved from one start "
+            "each: give both_orders=False"
+        )
     dtype = first.dtype
     noise = [noise_distance(first[i], second[i]) for i in range(count)]
     mode = "loop" if strategy == "map" else strategy
