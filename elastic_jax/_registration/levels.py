@@ -18,7 +18,6 @@ from jaxtyping import Array, ArrayLike
 from .._checks import is_concrete
 from .._errors import InputError
 from .._geometry.metric import SplitMetric
-from .._geometry.reparam import jacobian_determinant_unchecked
 from .._geometry.units import in_units
 from .._geometry.validation import check_levels
 from .._options import ShapeOptions
@@ -27,7 +26,7 @@ from .._runtime.cache import phase_chain
 from .one_grid import grid_setup, one_grid_solve
 from .phases import PHASE_JITS, PHASES, Reporter
 from .records import Levels, ShapeGeodesicResult
-from .starts import given_start, inverse_gamma
+from .starts import given_start, usable_inverse
 
 
 def level_solve(
@@ -319,12 +318,10 @@ def other_order_starts(
     (gamma^-1, R^T), since then f1 o gamma^-1 ~ R^T f2 (modulo "diff" R is the identity).
     gamma^-1 is solved on gamma's interpolant (:func:`inverse_gamma`); a start whose
     inverse misses rounding's tolerance or folds on the grid is left out."""
-    found = first_level_starts(f2, f1, metric, modulo, options)
-    tol = 10.0 * float(np.sqrt(np.finfo(np.dtype(f1.dtype)).eps))
     starts = []
-    for gamma, rotation in found:
-        inverse, residual = inverse_gamma(gamma)
-        if float(residual) <= tol and float(jnp.min(jacobian_determinant_unchecked(inverse))) > 0:
+    for gamma, rotation in first_level_starts(f2, f1, metric, modulo, options):
+        inverse = usable_inverse(gamma)
+        if inverse is not None:
             starts.append((inverse, rotation.T))
     return starts
 

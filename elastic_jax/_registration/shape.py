@@ -13,21 +13,19 @@ import functools
 import time
 from collections.abc import Callable
 
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._checks import check_progress, is_concrete
 from .._errors import InputError
 from .._geometry.metric import SplitMetric
-from .._geometry.reparam import jacobian_determinant_unchecked
 from .._geometry.validation import check_pair
 from .._options import ShapeOptions, check_choice, options_with
 from .levels import levels_solve, noise_distance, refinement_gap, with_levels
 from .one_grid import one_grid_solve
 from .phases import Reporter
 from .records import MODULI, ShapeGeodesicResult, warn_unless_converged
-from .starts import inverse_gamma
+from .starts import usable_inverse
 
 
 def shape_geodesic(
@@ -206,9 +204,8 @@ def _symmetric_solve(
     best = solve(f1, f2, start=start, progress=order("f1 -> f2"))
     other = solve(f2, f1, progress=order("f2 -> f1"))
     if float(other.distance) < float(best.distance):
-        inverse, residual = inverse_gamma(other.gamma)
-        tol = 10.0 * float(np.sqrt(np.finfo(np.dtype(inverse.dtype)).eps))
-        if float(residual) <= tol and float(jnp.min(jacobian_determinant_unchecked(inverse))) > 0:
+        inverse = usable_inverse(other.gamma)
+        if inverse is not None:
             # A continuation: the coarse rounds would re-register on the L2
             # mismatch and leave the inverted registration's basin.
             grid = tuple(other.gamma.shape[-2:])

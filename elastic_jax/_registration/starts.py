@@ -322,6 +322,18 @@ def inverse_gamma(gamma: Array) -> tuple[Array, Array]:
     return x.reshape(3, m, n), jnp.max(residual)
 
 
+def usable_inverse(gamma: Array) -> Array | None:
+    """gamma^-1 on the grid (:func:`inverse_gamma`) where it is usable as a registration:
+    its Newton residual within 10 sqrt(eps) of gamma's dtype and its Jacobian positive at
+    every grid point; None otherwise (gamma's interpolant folds, or a point's solve did
+    not converge)."""
+    inverse, residual = inverse_gamma(gamma)
+    tol = 10.0 * float(np.sqrt(np.finfo(np.dtype(inverse.dtype)).eps))
+    if float(residual) <= tol and float(jnp.min(jacobian_determinant_unchecked(inverse))) > 0:
+        return inverse
+    return None
+
+
 def given_start(start: object, m: int, n: int, dtype: DTypeLike, rigid: bool):
     """A caller's registration as the starts of the rounds: (gamma[None], R[None], 0).
 
