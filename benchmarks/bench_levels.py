@@ -29,7 +29,9 @@ each level its own Diff step degree (``ShapeOptions.level_vf_degrees``);
 distance (``candidates``), their ``spread`` and each candidate's distance on every level
 it solved (``candidate_levels``: [grid, distance, solved again] in order);
 ``--both-orders`` adds the other order's starts, inverted, as candidates
-(``ShapeOptions.both_orders``).
+(``ShapeOptions.both_orders``). ``--search-smoothing 1,0.5,0.25`` graduates each level's own
+start search: the level is solved first on the inputs low-passed by those kernel widths
+(in its latitude spacings; ``ShapeOptions.search_smoothing``).
 
 ``--times N`` sets the path's time points (default: ``ShapeOptions().n_times``).
 ``--calls K`` solves each pair K times in one process (default 1): the first call
@@ -37,12 +39,14 @@ compiles, the later ones are warm. Each record has ``call`` (1, 2, ...) and ``ph
 for each level, in order, the seconds of each of its phases as shape_geodesic's
 progress reports them (start search, coarse registration or the registration carried
 from the level below, registration rounds, geodesics, checks, and the result after
-them; levels solved again are marked ``again``).
+them; levels solved again are marked ``again``, and a level's solves of the low-passed
+inputs carry their kernel width as ``smoothing``).
 
 Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
      [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193] [--times 13] [--calls 1]
      [--perturb SEED] [--rotate SEED] [--moebius A] [--degree 7] [--vf-degree 8]
      [--level-vf-degrees 8,16,32] [--level-candidates 1] [--both-orders]
+     [--search-smoothing 1,0.5,0.25]
 """
 
 from __future__ import annotations
@@ -73,15 +77,20 @@ def phase_seconds(events: list[dict]) -> list[dict]:
         # The level's own event closes it: the time after its checks (the result's
         # energy evaluated again, differentiably) is its "result".
         stage = "result" if event["stage"] == "level" else event["stage"]
-        key = (event.get("level"), bool(event.get("again", False)), tuple(event["grid"]))
+        key = (
+            event.get("level"),
+            bool(event.get("again", False)),
+            tuple(event["grid"]),
+            event.get("smoothing"),
+        )
         if not levels or levels[-1]["key"] != key:
             levels.append({"key": key, "phases": {}})
         phases = levels[-1]["phases"]
         phases[stage] = phases.get(stage, 0.0) + seconds
     return [
-        {"grid": list(grid), "again": again, "phases": level["phases"]}
+        {"grid": list(grid), "again": again, "smoothing": width, "phases": level["phases"]}
         for level in levels
-        for _, again, grid in [level["key"]]
+        for _, again, grid, width in [level["key"]]
     ]
 
 
@@ -191,6 +200,9 @@ def main() -> None:
     )
     parser.add_argument("--level-candidates", type=int, default=1)
     parser.add_argument("--both-orders", action="store_true")
+    parser.add_argument(
+        "--search-smoothing", default="", help="kernel widths, wide to narrow: 1,0.5,0.25"
+    )
     args = parser.parse_args()
     if not 0.0 <= args.moebius < 1.0:
         parser.error(f"--moebius must be in [0, 1); got {args.moebius}")
@@ -200,6 +212,10 @@ def main() -> None:
     if args.calls < 1:
         parser.error(f"--calls must be at least 1; got {args.calls}")
     levels = tuple(tuple(int(k) for k in grid.split("x")) for grid in args.levels.split(","))
+    try:
+        widths = tuple(float(w) for w in args.search_smoothing.split(",") if w)
+    except ValueError:
+        parser.error(f"--search-smoothing must be numbers: {args.search_smoothing}")
     level_vf_degrees = None
     if args.level_vf_degrees:
         try:
@@ -216,6 +232,7 @@ def main() -> None:
             level_vf_degrees=level_vf_degrees,
             level_candidates=args.level_candidates,
             both_orders=args.both_orders,
+            search_smoothing=widths,
         )
     except ValueError as err:
         parser.error(str(err))
@@ -224,6 +241,7 @@ def main() -> None:
     settings["level_vf_degrees"] = None if level_vf_degrees is None else list(level_vf_degrees)
     settings["level_candidates"] = args.level_candidates
     settings["both_orders"] = args.both_orders
+    settings["search_smoothing"] = list(widths)
     variant = {"perturb": args.perturb, "rotate": args.rotate, "moebius": args.moebius}
     for name in args.pairs.split(","):
         for call in range(1, args.calls + 1):

@@ -44,6 +44,7 @@ from ._geometry.reparam import jacobian_determinant as jacobian_determinant
 from ._geometry.reparam import moebius as moebius
 from ._geometry.reparam import reparametrize as reparametrize
 from ._geometry.reparam import rotate_parametrization as rotate_parametrization
+from ._geometry.smoothing import smooth_surface as smooth_surface
 from ._geometry.so3 import hat as hat
 from ._geometry.so3 import icosahedral_group as icosahedral_group
 from ._geometry.so3 import so3_exp as so3_exp
@@ -144,6 +145,7 @@ __all__ = [
     "shape_geodesic",
     "shoot",
     "sigmas_reached",
+    "smooth_surface",
     "so3_exp",
     "so3_log",
     "sphere_points",

@@ -18,6 +18,7 @@ from jaxtyping import Array, ArrayLike
 from .._checks import is_concrete
 from .._errors import InputError
 from .._geometry.metric import SplitMetric
+from .._geometry.smoothing import smooth_surface
 from .._geometry.units import in_units
 from .._geometry.validation import check_levels
 from .._options import ShapeOptions
@@ -48,13 +49,60 @@ def level_solve(
     The coarser gamma's interpolant can fold between its points (the cats at 13 x 25 read
     at 25 x 49, chain rule), and so can a fine start read on a coarse level: that level
     then searches its own start.
+
+    With ``options.search_smoothing``, a level that would search its own start (the
+    first without a start, or one whose carry folds) continues the solves of the inputs
+    low-passed instead (:func:`graduated_search`).
     """
     carried = registration_at(start if below is None else below, grid, f1.dtype, modulo)
+    if carried is None and options.search_smoothing:
+        below = graduated_search(f1, f2, metric, modulo, options, grid, reporter)
+        carried = registration_at(below, grid, f1.dtype, modulo)
     level = options.on_level(grid)
     if below is not None and carried is not None:
         carry = (*carried, below.coefficients, below.parametrized_coefficients)
         return one_grid_solve(f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter)
     return one_grid_solve(f1, f2, metric, modulo, level, carried, reporter=reporter)
+
+
+def graduated_search(
+    f1: ArrayLike,
+    f2: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    grid: tuple[int, int],
+    reporter: Reporter | None = None,
+) -> ShapeGeodesicResult:
+    """A level's own start search, graduated: for each width c of
+    ``options.search_smoothing`` (wide to narrow), f1 and f2 averaged by
+    :func:`smooth_surface` with the kernel width c pi / (m - 1) on the m x n level and
+    solved there, each solve continuing the one before (the widest searches its start).
+    The level then continues the last (:func:`level_solve`), on the data.
+
+    A blurred pair has fewer local minima, and one that moves continuously with the
+    data is followed as the blur narrows, where a start search on the data lands in
+    whichever basin rounding picks (:doc:`/guides/registration_notes`, "Graduated
+    start searches")."""
+    level = options.on_level(grid)
+    spacing = np.pi / (grid[0] - 1)
+    saved = None if reporter is None else reporter.level
+    below = None
+    for width in options.search_smoothing:
+        if reporter is not None:
+            reporter.level = {**saved, "smoothing": width}
+        g1, g2 = (smooth_surface(f, width * spacing) for f in (f1, f2))
+        carried = None if below is None else registration_at(below, grid, f1.dtype, modulo)
+        if carried is None:  # the widest: a search of its own
+            below = one_grid_solve(g1, g2, metric, modulo, level, None, reporter=reporter)
+        else:
+            carry = (*carried, below.coefficients, below.parametrized_coefficients)
+            below = one_grid_solve(
+                g1, g2, metric, modulo, level, None, carry=carry, reporter=reporter
+            )
+    if reporter is not None:
+        reporter.level = saved
+    return below
 
 
 class LevelOutcome(NamedTuple):

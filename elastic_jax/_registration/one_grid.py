@@ -48,6 +48,9 @@ def grid_setup(f1: ArrayLike, f2: ArrayLike, metric: SplitMetric, options: Shape
         rtol=None,
         levels=_ONE_GRID_LEVELS,
         level_vf_degrees=None,
+        level_candidates=1,
+        both_orders=False,
+        search_smoothing=(),
         quadrature=options.quadrature_factor,
         stretch_quadrature=options.stretch_fraction,
     )

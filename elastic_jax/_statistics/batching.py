@@ -495,6 +495,12 @@ def levelled_chunk(
             "shape_geodesic's levels; a collection's pairs are solved from one start "
             "each: give both_orders=False"
         )
+    if options.search_smoothing:
+        raise InputError(
+            "search_smoothing graduates one shape_geodesic's start searches through "
+            "low-passed inputs; a collection's pairs search on the data: give "
+            f"search_smoothing=() (got {options.search_smoothing})"
+        )
     dtype = first.dtype
     noise = [noise_distance(first[i], second[i]) for i in range(count)]
     mode = "loop" if strategy == "map" else strategy
