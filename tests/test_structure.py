@@ -205,8 +205,8 @@ PUBLIC = {
         hat icosahedral_group integrate jacobian_determinant karcher_mean log max_degree
         metric_inner mode_path moebius parallel_transport path_energy path_length
         quadrature_weights real_sph_harm reparametrize resample retrieval_scores
-        rotate_parametrization shape_geodesic shoot sigmas_reached so3_exp so3_log sphere_points
-        split_inner split_parts srnf srnf_distance srnf_geodesic srnf_invert
+        rotate_parametrization shape_geodesic shoot sigmas_reached smooth_surface so3_exp
+        so3_log sphere_points split_inner split_parts srnf srnf_distance srnf_geodesic srnf_invert
         srnf_path_length straight_path surface_area surface_basis tangent_pca
         upsample_coefficients validate_surface vector_field_basis vee warmup""",
     "elastic_jax.io": """MESH_FORMATS DegenerateFaceError FrameWarning InconsistentWindingError
