@@ -84,7 +84,7 @@ def graduated_search(
     data is followed as the blur narrows, where a start search on the data lands in
     whichever basin rounding picks (:doc:`/guides/registration_notes`, "Graduated
     start searches")."""
-    level = options.on_level(grid)
+    plain = options.replace(search_smoothing=())
     spacing = np.pi / (grid[0] - 1)
     saved = None if reporter is None else reporter.level
     below = None
@@ -92,14 +92,8 @@ def graduated_search(
         if reporter is not None:
             reporter.level = {**saved, "smoothing": width}
         g1, g2 = (smooth_surface(f, width * spacing) for f in (f1, f2))
-        carried = None if below is None else registration_at(below, grid, f1.dtype, modulo)
-        if carried is None:  # the widest: a search of its own
-            below = one_grid_solve(g1, g2, metric, modulo, level, None, reporter=reporter)
-        else:
-            carry = (*carried, below.coefficients, below.parametrized_coefficients)
-            below = one_grid_solve(
-                g1, g2, metric, modulo, level, None, carry=carry, reporter=reporter
-            )
+        # level_solve's own continuation: the widest (below None) searches its start.
+        below = level_solve(g1, g2, metric, modulo, plain, grid, below, reporter=reporter)
     if reporter is not None:
         reporter.level = saved
     return below
