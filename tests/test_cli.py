@@ -266,6 +266,35 @@ def test_sigterm_is_handled_like_ctrl_c(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["distances_checkpoint.npz"]
 
 
+def test_a_signal_python_drops_still_stops_the_command(tmp_path, capsys, monkeypatch):
+    # Python runs a handler wherever the main thread is, a __del__ or a garbage collector's
+    # callback included, and there it prints the exception and drops it.
+    files = [_save(tmp_path, f"s{i}.npz", shapes.sample(shapes.sphere, M, N)) for i in range(2)]
+    out = tmp_path / "out"
+    reached = []
+
+    class SignalledWhileCollected:
+        def __del__(self):
+            signal.raise_signal(signal.SIGTERM)
+
+    def command(args, progress):
+        SignalledWhileCollected()
+        reached.append("after the dropped exception")
+        progress("the next stage")
+        reached.append("the next stage")
+        return {"converged": True}
+
+    monkeypatch.setitem(cli.COMMANDS, "distances", command)
+    before = signal.getsignal(signal.SIGTERM), sys.unraisablehook
+    code = cli.main(["distances", *files, *SHAPE, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == cli.EXIT_TERMINATED and reached == ["after the dropped exception"]
+    assert "terminated" in err and "Traceback" not in err and "ignored" not in err
+    assert not (out / "summary.json").exists()
+    # The handler and the unraisable hook are the caller's again.
+    assert (signal.getsignal(signal.SIGTERM), sys.unraisablehook) == before
+
+
 def test_a_nan_solve_exits_3_with_valid_json(tmp_path, capsys, monkeypatch):
     from elastic_jax.cli import geodesic as _geodesic
 

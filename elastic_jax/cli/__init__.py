@@ -22,7 +22,6 @@ checkpoint there without --resume or --overwrite), reported in one line before a
 from __future__ import annotations
 
 import contextlib
-import signal
 import sys
 import warnings
 from collections.abc import Sequence
@@ -42,12 +41,11 @@ from .process import (
     EXIT_OK,
     EXIT_TERMINATED,
     LOCK_NAME,
-    Terminated,
     claim_out,
     dask_client,
     preflight,
-    raise_terminated,
 )
+from .signals import Terminated, handled_signals, raise_if_signalled
 
 __all__ = [
     "COMMANDS",
@@ -90,7 +88,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
 
     progress = Progress(args.quiet)
-    previous = signal.signal(signal.SIGTERM, raise_terminated)
+    with handled_signals():
+        return _run(args, progress)
+
+
+def _run(args, progress: Progress) -> int:
     try:
         # Every function a command calls is public (the package's and io's), and each
         # traces its float32 products at full precision itself (_runtime/precision.py).
@@ -101,7 +103,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             claim_out(args, stack)
             args.client = dask_client(args, stack, progress)
             summary = COMMANDS[args.command](args, progress)
+            raise_if_signalled()
             write_summary(args.out, summary)
+            progress(f"done; summary in {args.out / 'summary.json'}")
     except (BadInput, InputError) as err:
         print(f"elastic-jax {args.command}: bad input: {one_line(err)}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -113,7 +117,4 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return EXIT_TERMINATED if isinstance(err, Terminated) else EXIT_INTERRUPTED
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-    progress(f"done; summary in {args.out / 'summary.json'}")
     return EXIT_NOT_CONVERGED if summary.get("converged") is not True else EXIT_OK

@@ -17,6 +17,7 @@ import jax
 import numpy as np
 
 from .. import RESULTS, InputError, JobOptions, ShapeOptions, SplitMetric, io, max_degree
+from .signals import raise_if_signalled
 
 CHECKPOINTS = {
     "karcher": "karcher_checkpoint.npz",
@@ -87,6 +88,7 @@ class Progress:
         return time.perf_counter() - self.start
 
     def __call__(self, message: str) -> None:
+        raise_if_signalled()
         if not self.quiet:
             print(f"[{self.elapsed():7.1f} s] {message}", file=sys.stderr, flush=True)
 

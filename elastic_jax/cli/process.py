@@ -291,11 +291,3 @@ def _locked(path: pathlib.Path):
     finally:
         path.unlink(missing_ok=True)
         fh.close()
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, handled like Ctrl-C (complete files only, exit 143)."""
-
-
-def raise_terminated(signum, frame):
-    raise Terminated()
