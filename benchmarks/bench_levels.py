@@ -29,9 +29,11 @@ each level its own Diff step degree (``ShapeOptions.level_vf_degrees``);
 distance (``candidates``), their ``spread`` and each candidate's distance on every level
 it solved (``candidate_levels``: [grid, distance, solved again] in order);
 ``--both-orders`` adds the other order's starts, inverted, as candidates
-(``ShapeOptions.both_orders``). ``--search-smoothing 1,0.5,0.25`` graduates each level's own
-start search: the level is solved first on the inputs low-passed by those kernel widths
-(in its latitude spacings; ``ShapeOptions.search_smoothing``).
+(``ShapeOptions.both_orders``). ``--search-smoothing 1,0.5,0.25`` adds a candidate that
+graduates each level's own start search: the level is solved first on the inputs
+low-passed by those kernel widths (in its latitude spacings;
+``ShapeOptions.search_smoothing``), by ``--smoothing-kernel sphere`` (the default) or
+``surface`` (``ShapeOptions.smoothing_kernel``).
 
 ``--times N`` sets the path's time points (default: ``ShapeOptions().n_times``).
 ``--calls K`` solves each pair K times in one process (default 1): the first call
@@ -46,7 +48,7 @@ Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
      [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193] [--times 13] [--calls 1]
      [--perturb SEED] [--rotate SEED] [--moebius A] [--degree 7] [--vf-degree 8]
      [--level-vf-degrees 8,16,32] [--level-candidates 1] [--both-orders]
-     [--search-smoothing 1,0.5,0.25]
+     [--search-smoothing 1,0.5,0.25] [--smoothing-kernel sphere]
 """
 
 from __future__ import annotations
@@ -203,6 +205,9 @@ def main() -> None:
     parser.add_argument(
         "--search-smoothing", default="", help="kernel widths, wide to narrow: 1,0.5,0.25"
     )
+    parser.add_argument(
+        "--smoothing-kernel", default="sphere", choices=ej.ShapeOptions.CHOICES["smoothing_kernel"]
+    )
     args = parser.parse_args()
     if not 0.0 <= args.moebius < 1.0:
         parser.error(f"--moebius must be in [0, 1); got {args.moebius}")
@@ -233,6 +238,7 @@ def main() -> None:
             level_candidates=args.level_candidates,
             both_orders=args.both_orders,
             search_smoothing=widths,
+            smoothing_kernel=args.smoothing_kernel,
         )
     except ValueError as err:
         parser.error(str(err))
@@ -242,6 +248,7 @@ def main() -> None:
     settings["level_candidates"] = args.level_candidates
     settings["both_orders"] = args.both_orders
     settings["search_smoothing"] = list(widths)
+    settings["smoothing_kernel"] = args.smoothing_kernel
     variant = {"perturb": args.perturb, "rotate": args.rotate, "moebius": args.moebius}
     for name in args.pairs.split(","):
         for call in range(1, args.calls + 1):

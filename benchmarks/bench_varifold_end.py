@@ -40,10 +40,10 @@ import elastic_jax as ej  # noqa: E402
 from elastic_jax._geometry.bases import basis_np, path_from_coefficients  # noqa: E402
 from elastic_jax._geometry.energy import _path_energy  # noqa: E402
 from elastic_jax._geometry.grid import distinct_points  # noqa: E402
+from elastic_jax._geometry.grid import grid_faces as _grid_faces  # noqa: E402
 from elastic_jax._geometry.harmonics import harmonics_np  # noqa: E402
 from elastic_jax._geometry.so3 import so3_exp_unchecked  # noqa: E402
 from elastic_jax._geometry.srnf import center_unchecked  # noqa: E402
-from elastic_jax._meshes.resample import grid_faces as _grid_faces  # noqa: E402
 
 from _common import emit, environment, shape  # noqa: E402
 

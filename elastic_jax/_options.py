@@ -37,6 +37,7 @@ METHODS = ("joint", "coordinate")
 INITS = ("moebius", "energy", "icosahedral", "none")
 INTERPOLATIONS = ("bilinear", "bicubic", "spline")
 DIFFERENTIALS = ("chain", "grid")
+SMOOTHING_KERNELS = ("sphere", "surface")  # smooth_surface's kernels
 # The fraction of the finer nodes' cells, those where gamma stretches most, that a resolved
 # distance's levels integrate 4 x 4 finer by default (ShapeOptions.level_stretch).
 LEVEL_STRETCH = 0.03
@@ -272,6 +273,7 @@ class ShapeOptions:
             "init": INITS,
             "interpolation": INTERPOLATIONS,
             "differential": DIFFERENTIALS,
+            "smoothing_kernel": SMOOTHING_KERNELS,
         }
     )
 
@@ -302,6 +304,7 @@ class ShapeOptions:
     level_candidates: int = 1
     both_orders: bool = False
     search_smoothing: tuple[float, ...] = ()
+    smoothing_kernel: str = "sphere"
 
     def __post_init__(self):
         ints = {

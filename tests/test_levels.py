@@ -671,30 +671,35 @@ def test_collections_refuse_several_candidates():
     for widths, problem in (((0.5, 1.0),), "wide to narrow"), (((1.0, -1.0),), "positive"):
         with pytest.raises(ej.InputError, match=problem):
             ej.ShapeOptions(search_smoothing=widths[0])
+    with pytest.raises(ej.InputError, match="smoothing_kernel"):
+        ej.ShapeOptions(smoothing_kernel="gaussian")
     with pytest.raises(ej.InputError, match="search_smoothing"):
         ej.ShapeOptions(search_smoothing=1.0)
 
 
-@pytest.mark.slow  # about 130 s on 2 cores (the default tier: tests/test_smoothing.py)
-def test_the_first_level_continues_its_solves_of_the_inputs_low_passed():
-    """search_smoothing=(c,): the first level is the solve of f1 and f2 averaged by
-    the kernel of width c pi / (m - 1), then the solve on the data continuing it
-    (continued_geodesic from its registration and path), to rounding; the levels
-    record the data's distance."""
+@pytest.mark.slow  # about 150 s on 2 cores (the default tier: tests/test_smoothing.py)
+def test_the_graduated_candidate_continues_its_solves_of_the_inputs_low_passed():
+    """search_smoothing=(c,) adds one candidate to the default's: its first level is the
+    solve of f1 and f2 averaged by the kernel of width c pi / (m - 1), then the solve on
+    the data continuing it (continued_geodesic from its registration and path), to
+    rounding; the default's candidate is the solve without the option; the result is
+    the lower, and the spread their range."""
     from elastic_jax._registration.one_grid import continued_geodesic
 
     f1 = shapes.sample(shapes.bumpy, 9, 17)
     f2 = shapes.sample(shapes.bumpy, 9, 17, rotation=shapes.random_rotation(5))
     f2 = jnp.einsum("i,imn->imn", jnp.asarray([1.2, 1.0, 0.9]), f2)
-    options = OPTIONS.replace(rtol=0.03, levels=((9, 17),), search_smoothing=(1.0,))
+    plain = OPTIONS.replace(rtol=0.03, levels=((9, 17),))
+    options = plain.replace(search_smoothing=(1.0,), smoothing_kernel="surface")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
         res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
-        level = options.on_level((9, 17)).replace(search_smoothing=())
+        default = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=plain)
+        level = plain.on_level((9, 17))
         width = np.pi / 8
         blurred = ej.shape_geodesic(
-            ej.smooth_surface(f1, width),
-            ej.smooth_surface(f2, width),
+            ej.smooth_surface(f1, width, kernel="surface"),
+            ej.smooth_surface(f2, width, kernel="surface"),
             METRIC,
             modulo="rigid",
             options=level,
@@ -710,8 +715,11 @@ def test_the_first_level_continues_its_solves_of_the_inputs_low_passed():
             blurred.coefficients,
             blurred.parametrized_coefficients,
         )
-    assert float(blurred.distance) < float(res.distance)  # the blur lowers it
-    np.testing.assert_allclose(res.distance, again.distance, rtol=1e-10)
-    assert float(res.levels.distances[-1]) == float(res.distance)
+    assert float(blurred.distance) < float(again.distance)  # the blur lowers it
+    candidates = np.asarray(res.levels.candidates)
+    np.testing.assert_allclose(candidates, [default.distance, again.distance], rtol=1e-10)
+    assert float(res.distance) == candidates.min()
+    spread = (candidates.max() - candidates.min()) / candidates.min()
+    np.testing.assert_allclose(res.spread, spread, rtol=1e-12)
     assert_area_bound(res.distance, f1, f2, METRIC)
     assert float(res.distance) <= float(res.parametrized_distance)

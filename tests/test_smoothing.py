@@ -1,4 +1,5 @@
-"""smooth_surface: the von Mises-Fisher kernel average of a gridded surface."""
+"""smooth_surface: the von Mises-Fisher kernel average over the parameter sphere, and the
+surface's own heat flow."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -54,3 +55,65 @@ def test_bad_widths_and_surfaces_are_refused():
         ej.smooth_surface(f, 0.2, batch_size=0)
     with pytest.raises(ej.InputError, match="finite|NaN"):
         ej.smooth_surface(f.at[0, 3, 3].set(jnp.nan), 0.2)
+    with pytest.raises(ej.InputError, match="kernel"):
+        ej.smooth_surface(f, 0.2, kernel="gaussian")
+    # Two rows at one place: the triangles between them have no area, no cotangent.
+    with pytest.raises(ej.InputError, match="zero area"):
+        ej.smooth_surface(f.at[:, 4].set(f[:, 3]), 0.2, kernel="surface")
+
+
+def test_the_surface_kernel_keeps_a_sphere_round_by_the_closed_form():
+    # Coordinates on a sphere of radius r are eigenfunctions of Delta (eigenvalue 2 / r^2):
+    # four backward Euler steps of (width r)^2 / 8 scale them by (1 + width^2 / 4)^(-4).
+    # The cotangent Laplacian's error falls at about second order (measured 1.4e-2,
+    # 4.6e-3, 1.4e-3 at 13 x 25, 25 x 49, 49 x 97).
+    width, errors = 0.4, []
+    for m, n in ((13, 25), (25, 49), (49, 97)):
+        sphere = 2.0 * ej.sphere_points(m, n, dtype=jnp.float64)
+        radius = jnp.linalg.norm(ej.smooth_surface(sphere, width, kernel="surface"), axis=0)
+        errors.append(float(jnp.max(jnp.abs(radius / (2.0 * (1 + width**2 / 4) ** -4) - 1.0))))
+    assert errors[0] < 2e-2
+    assert errors[0] / errors[1] > 2.5 and errors[1] / errors[2] > 2.5
+
+
+def test_the_surface_kernel_commutes_with_similarities_and_batches():
+    f = shapes.sample(shapes.bumpy, 13, 25)
+    rotation = jnp.asarray(shapes.random_rotation(4))
+    shift = jnp.asarray([0.3, -1.0, 2.0])[:, None, None]
+    moved = 3.0 * jnp.einsum("ij,jmn->imn", rotation, f) + shift
+    smooth = ej.smooth_surface(f, 0.3, kernel="surface")
+    expected = 3.0 * jnp.einsum("ij,jmn->imn", rotation, smooth) + shift
+    found = ej.smooth_surface(moved, 0.3, kernel="surface")
+    np.testing.assert_allclose(found, expected, atol=1e-12)
+    np.testing.assert_array_equal(smooth[:, -1, :], jnp.broadcast_to(smooth[:, -1, :1], (3, 25)))
+    np.testing.assert_array_equal(smooth[:, :, -1], smooth[:, :, 0])
+    both = ej.smooth_surface(jnp.stack([f, moved]), 0.3, kernel="surface")
+    np.testing.assert_allclose(both, jnp.stack([smooth, expected]), atol=1e-12)
+    # float32 in, float32 out (the flow itself runs in float64 on the host).
+    single = ej.smooth_surface(f.astype(jnp.float32), 0.3, kernel="surface")
+    assert single.dtype == jnp.float32
+    np.testing.assert_allclose(single, smooth, atol=1e-5)
+
+
+def test_only_the_surface_kernel_is_independent_of_the_parametrization():
+    """smooth(f o phi) against smooth(f) o phi for a Moebius map phi (abs(a) = 0.3),
+    relative to how far the blur moved f: measured 5.4e-3, 1.4e-3 for the surface
+    kernel at 25 x 49, 49 x 97 (the discretization's, falling at second order) and 0.51
+    at both for the sphere kernel, which averages the parametrization."""
+    ratios = {"surface": [], "sphere": []}
+    for m, n in ((25, 49), (49, 97)):
+        f = shapes.sample(shapes.bumpy, m, n)
+        boost = jnp.asarray([0.1, -0.2, 0.2])
+        phi = ej.moebius(ej.sphere_points(m, n), 0.3 * boost / jnp.linalg.norm(boost))
+        weights = jnp.asarray(ej.quadrature_weights(m, n))
+
+        def size(d, weights=weights):
+            return float(jnp.sqrt(jnp.sum(weights * jnp.sum(d**2, axis=0))))
+
+        for kernel, found in ratios.items():
+            smooth = ej.smooth_surface(f, 0.5, kernel=kernel)
+            read_then_smoothed = ej.smooth_surface(ej.reparametrize(f, phi), 0.5, kernel=kernel)
+            moved_apart = size(read_then_smoothed - ej.reparametrize(smooth, phi))
+            found.append(moved_apart / size(smooth - f))
+    assert ratios["surface"][0] < 2e-2 and ratios["surface"][0] / ratios["surface"][1] > 3
+    assert min(ratios["sphere"]) > 0.3

@@ -19,7 +19,7 @@ import trimesh
 
 import elastic_jax as ej
 from elastic_jax import io, shapes
-from elastic_jax._meshes.resample import grid_faces
+from elastic_jax._geometry.grid import grid_faces
 
 from .conftest import assert_area_bound, load_shape
 

@@ -162,6 +162,31 @@ def grid_directions(m: int, n: int) -> np.ndarray:
     return distinct_points(sphere_points_np(m, n))
 
 
+def grid_faces(m: int, n: int) -> np.ndarray:
+    """Triangles of the grid mesh, counterclockwise seen from outside (normal e_phi x e_theta).
+
+    Vertex k of an interior point (i, j), 1 <= i <= m - 2, 0 <= j <= n - 2, is
+    1 + (i - 1)(n - 1) + j; the north pole is vertex 0 and the south pole the last one.
+    """
+    c = n - 1
+    south = 1 + (m - 2) * c
+    j = np.arange(c)
+    jn = (j + 1) % c  # the seam: the last column's neighbour is column 0
+    # Along +phi then +theta: (e_phi, e_theta, e_r) is right-handed on the unit sphere.
+    north = np.stack([np.zeros(c, dtype=np.int64), 1 + j, 1 + jn], axis=1)
+    southfan = np.stack([south - c + j, np.full(c, south), south - c + jn], axis=1)
+    top = 1 + np.arange(m - 3)[:, None] * c  # first vertex of interior rows 1 .. m-3
+    a, b = top + j, top + jn  # (i, j), (i, j + 1)
+    lower, lower_next = a + c, b + c  # (i + 1, j), (i + 1, j + 1)
+    quads = np.concatenate(
+        [
+            np.stack([a, lower, b], axis=-1).reshape(-1, 3),
+            np.stack([lower, lower_next, b], axis=-1).reshape(-1, 3),
+        ]
+    )
+    return np.concatenate([north, quads, southfan])
+
+
 def from_distinct(points: np.ndarray, m: int, n: int) -> np.ndarray:
     """``(2 + (m - 2)(n - 1), 3)`` distinct grid points -> ``(3, m, n)`` with poles and seam."""
     f = np.empty((3, m, n))

@@ -15,7 +15,7 @@ import trimesh
 
 from .._checks import check_bool, check_choice, check_finite, check_grid_shape
 from .._errors import FrameWarning, InputError, warn_user
-from .._geometry.grid import distinct_points, from_distinct, grid_directions
+from .._geometry.grid import distinct_points, from_distinct, grid_directions, grid_faces
 from .._geometry.reparam import METHODS as INTERPOLATIONS
 from .._geometry.reparam import reparametrize_unchecked
 from .._geometry.validation import validate_surface
@@ -510,31 +510,6 @@ def _star_hint(local: trimesh.Trimesh, where: MeshFrame, center) -> str:
     if center is not None:
         return f"; it is star-shaped about {kernel} (star_center)"
     return f"; it is star-shaped about {kernel}: pass center=star_center(mesh)"
-
-
-def grid_faces(m: int, n: int) -> np.ndarray:
-    """Triangles of the grid mesh, counterclockwise seen from outside (normal e_phi x e_theta).
-
-    Vertex k of an interior point (i, j), 1 <= i <= m - 2, 0 <= j <= n - 2, is
-    1 + (i - 1)(n - 1) + j; the north pole is vertex 0 and the south pole the last one.
-    """
-    c = n - 1
-    south = 1 + (m - 2) * c
-    j = np.arange(c)
-    jn = (j + 1) % c  # the seam: the last column's neighbour is column 0
-    # Along +phi then +theta: (e_phi, e_theta, e_r) is right-handed on the unit sphere.
-    north = np.stack([np.zeros(c, dtype=np.int64), 1 + j, 1 + jn], axis=1)
-    southfan = np.stack([south - c + j, np.full(c, south), south - c + jn], axis=1)
-    top = 1 + np.arange(m - 3)[:, None] * c  # first vertex of interior rows 1 .. m-3
-    a, b = top + j, top + jn  # (i, j), (i, j + 1)
-    lower, lower_next = a + c, b + c  # (i + 1, j), (i + 1, j + 1)
-    quads = np.concatenate(
-        [
-            np.stack([a, lower, b], axis=-1).reshape(-1, 3),
-            np.stack([lower, lower_next, b], axis=-1).reshape(-1, 3),
-        ]
-    )
-    return np.concatenate([north, quads, southfan])
 
 
 def grid_to_mesh(f) -> trimesh.Trimesh:

@@ -65,6 +65,10 @@ def level_solve(
     return one_grid_solve(f1, f2, metric, modulo, level, carried, reporter=reporter)
 
 
+# The start of the candidate whose levels graduate their own start searches.
+GRADUATED = object()
+
+
 def graduated_search(
     f1: ArrayLike,
     f2: ArrayLike,
@@ -91,7 +95,7 @@ def graduated_search(
     for width in options.search_smoothing:
         if reporter is not None:
             reporter.level = {**saved, "smoothing": width}
-        g1, g2 = (smooth_surface(f, width * spacing) for f in (f1, f2))
+        g1, g2 = (smooth_surface(f, width * spacing, options.smoothing_kernel) for f in (f1, f2))
         # level_solve's own continuation: the widest (below None) searches its start.
         below = level_solve(g1, g2, metric, modulo, plain, grid, below, reporter=reporter)
     if reporter is not None:
@@ -244,8 +248,10 @@ def levels_solve(
     search gives up to K starts (:func:`first_level_starts`) and each is a pair of
     run_levels' batch: its own coarse rounds, rounds and levels. With
     ``options.both_orders`` the other order's K best-ranked starts, inverted, follow them
-    (:func:`other_order_starts`). The candidate with the lowest final distance is the
-    result; ``levels.candidates`` holds every candidate's
+    (:func:`other_order_starts`). With ``options.search_smoothing`` (and no ``start``)
+    one more candidate follows, whose levels graduate their own start searches
+    (:func:`graduated_search`); the others search as without it. The candidate with the
+    lowest final distance is the result; ``levels.candidates`` holds every candidate's
     final distance and ``levels.spread`` their range (:func:`candidate_spread`).
 
     The finest level's result, with ``levels`` recording every level; converged when
@@ -269,11 +275,16 @@ def levels_solve(
         given_start(start, *own, f1.dtype, modulo == "rigid")
     check_levels(options)
     noise = noise_distance(f1, f2)
+    # Only the graduated candidate's levels graduate their own start searches: the
+    # others search as the default does, so the lowest final is never above its.
+    plain = options.replace(search_smoothing=())
     starts = [start]
     if start is None and options.level_candidates > 1:
         starts = first_level_starts(f1, f2, metric, modulo, options)
     if start is None and options.both_orders:
         starts = starts + other_order_starts(f1, f2, metric, modulo, options)
+    if start is None and options.search_smoothing:
+        starts = starts + [GRADUATED]
     many = len(starts) > 1
 
     def solve(
@@ -290,7 +301,9 @@ def levels_solve(
                     reporter.level["candidate"] = i + 1
                 if again:
                     reporter.level["again"] = True
-            result = level_solve(f1, f2, metric, modulo, options, grid, lower, starts[i], reporter)
+            graduated = starts[i] is GRADUATED
+            own, first = (options, None) if graduated else (plain, starts[i])
+            result = level_solve(f1, f2, metric, modulo, own, grid, lower, first, reporter)
             distance = float(jax.block_until_ready(result.distance))
             converged = bool(result.converged)
             if reporter is not None:

@@ -51,6 +51,7 @@ def grid_setup(f1: ArrayLike, f2: ArrayLike, metric: SplitMetric, options: Shape
         level_candidates=1,
         both_orders=False,
         search_smoothing=(),
+        smoothing_kernel="sphere",
         quadrature=options.quadrature_factor,
         stretch_quadrature=options.stretch_fraction,
     )

@@ -78,7 +78,8 @@ class Levels(NamedTuple):
         candidates: ``(C,)`` the final distance of each candidate carried through the
             levels (``ShapeOptions.level_candidates``; one entry, the distance, for
             one candidate), in the order of the start search's ranking, then, with
-            ``ShapeOptions.both_orders``, the other order's starts in theirs; the
+            ``ShapeOptions.both_orders``, the other order's starts in theirs, then,
+            with ``ShapeOptions.search_smoothing``, the graduated candidate; the
             result is the lowest (NaN for a candidate that ended non-finite).
         spread: ``()`` (max - min) / max(min, 0.05 p_L) of the finite ``candidates``
             (0 for one; p_L as in ``estimate``): how far apart the minima the
@@ -167,7 +168,8 @@ class ShapeGeodesicResult(NamedTuple):
     @property
     def spread(self) -> Array:
         """``()`` the candidates' spread of a resolved distance (:class:`Levels`
-        ``spread``; ``ShapeOptions.level_candidates``, ``both_orders``), 0 on one
+        ``spread``; ``ShapeOptions.level_candidates``, ``both_orders``,
+        ``search_smoothing``), 0 on one
         working grid."""
         if self.levels is None:
             return jnp.zeros((), self.distance.dtype)
