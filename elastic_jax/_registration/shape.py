@@ -121,8 +121,10 @@ def shape_geodesic(
             and after each level (``stage`` "level", ``level`` and ``levels`` counted
             from 1, ``distance``, ``converged``); every dict has ``seconds`` since the
             call began, and during levels ``level`` and ``levels`` (and ``candidate``,
-            counted from 1, with ``ShapeOptions.level_candidates`` > 1 or
-            ``both_orders``); with ``symmetric``,
+            counted from 1, with ``ShapeOptions.level_candidates`` > 1,
+            ``both_orders`` or ``search_smoothing``, and ``smoothing``, the kernel
+            width, for the graduated candidate's solves of low-passed inputs); with
+            ``symmetric``,
             ``order`` ("f1 -> f2", "f2 -> f1", "f1 -> f2 from f2 -> f1"). Concrete inputs
             only (no report inside a caller's trace). None (default): silent.
         **changes: fields of ShapeOptions as keywords, e.g. ``degree=5, n_times=9``:
