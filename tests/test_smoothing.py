@@ -1,6 +1,7 @@
 """smooth_surface: the von Mises-Fisher kernel average over the parameter sphere, and the
 surface's own heat flow."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -57,6 +58,8 @@ def test_bad_widths_and_surfaces_are_refused():
         ej.smooth_surface(f.at[0, 3, 3].set(jnp.nan), 0.2)
     with pytest.raises(ej.InputError, match="kernel"):
         ej.smooth_surface(f, 0.2, kernel="gaussian")
+    with pytest.raises(ej.InputError, match="concrete"):
+        jax.jit(lambda g: ej.smooth_surface(g, 0.2, kernel="surface"))(f)
     # Two rows at one place: the triangles between them have no area, no cotangent.
     with pytest.raises(ej.InputError, match="zero area"):
         ej.smooth_surface(f.at[:, 4].set(f[:, 3]), 0.2, kernel="surface")
