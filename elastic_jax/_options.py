@@ -254,7 +254,8 @@ class ShapeOptions:
             kernel, the graduated candidate ended 4-9 % below the default's in all
             five runs (those answers are therefore ``not_resolved``) and moved by
             0.33 % under three 1e-10 perturbations (the default: 1.5 %), the two
-            candidates at 1.6 times the default's time; on horse0 against its own
+            candidates at 1.6 times the default's time (2.9-3.5 times on cat1 ->
+            horse0, where a folded level is graduated too); on horse0 against its own
             Moebius read the default's candidate ends lower
             (:doc:`/guides/registration_notes`, "Graduated start searches"). One
             working grid ignores it; the collections refuse it.
