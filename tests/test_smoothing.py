@@ -16,6 +16,20 @@ def _shrink(width):
     return 1.0 / np.tanh(kappa) - 1.0 / kappa
 
 
+def _moved_before_and_after(kernel: str, scale: float, seed: int):
+    """A bumpy surface f, its smoothing (width 0.3), f under a similarity x -> s R x + b,
+    and the smoothing under the same similarity."""
+    f = shapes.sample(shapes.bumpy, 13, 25)
+    rotation = jnp.asarray(shapes.random_rotation(seed))
+    shift = jnp.asarray([0.3, -1.0, 2.0])[:, None, None]
+
+    def similarity(g):
+        return scale * jnp.einsum("ij,jmn->imn", rotation, g) + shift
+
+    smooth = ej.smooth_surface(f, 0.3, kernel=kernel)
+    return f, smooth, similarity(f), similarity(smooth)
+
+
 def test_a_round_sphere_stays_round_and_shrinks_by_the_closed_form():
     # r e1 averaged is r (coth kappa - 1 / kappa) e1: the quadrature's error falls at
     # second order (measured 7.4e-3, 1.7e-3, 4.3e-4 relative at 13 x 25, 25 x 49, 49 x 97).
@@ -29,12 +43,7 @@ def test_a_round_sphere_stays_round_and_shrinks_by_the_closed_form():
 
 
 def test_rigid_motions_commute_and_the_grid_stays_well_formed():
-    f = shapes.sample(shapes.bumpy, 13, 25)
-    rotation = jnp.asarray(shapes.random_rotation(2))
-    shift = jnp.asarray([0.3, -1.0, 2.0])[:, None, None]
-    moved = jnp.einsum("ij,jmn->imn", rotation, f) + shift
-    smooth = ej.smooth_surface(f, 0.3)
-    expected = jnp.einsum("ij,jmn->imn", rotation, smooth) + shift
+    f, smooth, moved, expected = _moved_before_and_after(kernel="sphere", scale=1.0, seed=2)
     np.testing.assert_allclose(ej.smooth_surface(moved, 0.3), expected, atol=1e-12)
     np.testing.assert_array_equal(smooth[:, 0, :], jnp.broadcast_to(smooth[:, 0, :1], (3, 25)))
     np.testing.assert_array_equal(smooth[:, :, -1], smooth[:, :, 0])
@@ -80,12 +89,7 @@ def test_the_surface_kernel_keeps_a_sphere_round_by_the_closed_form():
 
 
 def test_the_surface_kernel_commutes_with_similarities_and_batches():
-    f = shapes.sample(shapes.bumpy, 13, 25)
-    rotation = jnp.asarray(shapes.random_rotation(4))
-    shift = jnp.asarray([0.3, -1.0, 2.0])[:, None, None]
-    moved = 3.0 * jnp.einsum("ij,jmn->imn", rotation, f) + shift
-    smooth = ej.smooth_surface(f, 0.3, kernel="surface")
-    expected = 3.0 * jnp.einsum("ij,jmn->imn", rotation, smooth) + shift
+    f, smooth, moved, expected = _moved_before_and_after(kernel="surface", scale=3.0, seed=4)
     found = ej.smooth_surface(moved, 0.3, kernel="surface")
     np.testing.assert_allclose(found, expected, atol=1e-12)
     np.testing.assert_array_equal(smooth[:, -1, :], jnp.broadcast_to(smooth[:, -1, :1], (3, 25)))

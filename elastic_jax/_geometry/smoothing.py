@@ -22,6 +22,7 @@ from .grid import (
     quadrature_weights_np,
     sphere_points_np,
 )
+from .triangles import corner_weight_matrix
 from .validation import as_surface, well_formed
 
 # Backward Euler steps of the surface's heat flow: each damps an eigenvalue lambda by
@@ -133,20 +134,13 @@ def _cotangent_laplacian(
             f"f: {int(np.sum(~(doubled_area > 0)))} triangles of the grid's mesh have zero "
             "area; the surface kernel needs a surface without degenerate triangles"
         )
-    rows, cols, weights = [], [], []
+    half_cot = np.empty(faces.shape)
     for k in range(3):
         u = corners[:, (k + 1) % 3] - corners[:, k]
         w = corners[:, (k + 2) % 3] - corners[:, k]
-        half_cot = 0.5 * np.einsum("ij,ij->i", u, w) / doubled_area
-        i, j = faces[:, (k + 1) % 3], faces[:, (k + 2) % 3]
-        rows += [i, j]
-        cols += [j, i]
-        weights += [half_cot, half_cot]
+        half_cot[:, k] = 0.5 * np.einsum("ij,ij->i", u, w) / doubled_area
     size = len(vertices)
-    adjacency = scipy.sparse.coo_matrix(
-        (np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
-        shape=(size, size),
-    ).tocsr()
+    adjacency = corner_weight_matrix(faces, half_cot, size)
     stiffness = scipy.sparse.diags(np.asarray(adjacency.sum(axis=1)).ravel()) - adjacency
     mass = np.zeros(size)
     np.add.at(mass, faces.ravel(), np.repeat(doubled_area / 6.0, 3))

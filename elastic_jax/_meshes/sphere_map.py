@@ -54,6 +54,7 @@ from jaxtyping import Bool
 from .._checks import check_grid_shape, check_int, check_positive
 from .._errors import ConvergenceWarning, InputError, warn_user
 from .._geometry.grid import from_distinct, grid_directions
+from .._geometry.triangles import corner_weight_matrix
 from .._results import RESULTS, status_record
 from .._runtime.cache import cached
 
@@ -439,18 +440,8 @@ def _stiffness(vertices: np.ndarray, faces: np.ndarray) -> scipy.sparse.csr_matr
     multigrid does not want), and delta, 1/600 of the median diagonal, makes K positive
     definite (the constants are its kernel).
     """
-    angle = _corner_angles(vertices[faces])
-    rows, cols, vals = [], [], []
-    for k in range(3):
-        half = 0.5 * np.maximum(1 / np.tan(angle[:, k]), _COT_FLOOR)
-        i, j = faces[:, (k + 1) % 3], faces[:, (k + 2) % 3]
-        rows += [i, j]
-        cols += [j, i]
-        vals += [half, half]
-    n = len(vertices)
-    weights = scipy.sparse.coo_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
-    ).tocsr()
+    half = 0.5 * np.maximum(1 / np.tan(_corner_angles(vertices[faces])), _COT_FLOOR)
+    weights = corner_weight_matrix(faces, half, len(vertices))
     diagonal = np.asarray(weights.sum(axis=1)).ravel()
     used = diagonal > 0  # vertices no face uses: identity rows
     shift = np.median(diagonal[used]) / 600
