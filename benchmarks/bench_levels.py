@@ -35,6 +35,11 @@ low-passed by those kernel widths (in its latitude spacings;
 ``ShapeOptions.search_smoothing``), by ``--smoothing-kernel sphere`` (the default) or
 ``surface`` (``ShapeOptions.smoothing_kernel``).
 
+``--matrix cat1,cat2,horse0`` runs ``distance_matrix`` of those surfaces instead, with
+the same options (its candidates too), by ``--strategy`` (default "loop"): one record
+with the matrix, each pair's levels estimate, candidates' spread, finest grid and
+status, and the total time; its entries are comparable to the pairs' own records.
+
 ``--times N`` sets the path's time points (default: ``ShapeOptions().n_times``).
 ``--calls K`` solves each pair K times in one process (default 1): the first call
 compiles, the later ones are warm. Each record has ``call`` (1, 2, ...) and ``phases``:
@@ -49,6 +54,7 @@ Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
      [--perturb SEED] [--rotate SEED] [--moebius A] [--degree 7] [--vf-degree 8]
      [--level-vf-degrees 8,16,32] [--level-candidates 1] [--both-orders]
      [--search-smoothing 1,0.5,0.25] [--smoothing-kernel sphere]
+     [--matrix cat1,cat2,horse0 [--strategy loop]]
 """
 
 from __future__ import annotations
@@ -182,6 +188,34 @@ def run_pair(
     }
 
 
+def run_matrix(names: list[str], options: ej.ShapeOptions, strategy: str) -> dict | None:
+    surfaces = [load(name) for name in names]
+    if any(f is None for f in surfaces):
+        return None
+    begin = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        res = ej.distance_matrix(
+            jnp.asarray(np.stack(surfaces)),
+            METRIC,
+            modulo="rigid",
+            options=options,
+            job=ej.JobOptions(strategy=strategy),
+        )
+    return {
+        "benchmark": "levels_matrix",
+        "shapes": names,
+        "strategy": strategy,
+        "distances": np.asarray(res.distances).tolist(),
+        "estimate": np.asarray(res.estimate).tolist(),
+        "spread": np.asarray(res.spread).tolist(),
+        "grids": np.asarray(res.grids).tolist(),
+        "pairs_converged": np.asarray(res.pairs_converged).tolist(),
+        "result": str(res.result).split("<")[-1].split(":")[0].rstrip(">"),
+        "total_s": time.perf_counter() - begin,
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", default="cats,cat-horse,pial")
@@ -208,6 +242,8 @@ def main() -> None:
     parser.add_argument(
         "--smoothing-kernel", default="sphere", choices=ej.ShapeOptions.CHOICES["smoothing_kernel"]
     )
+    parser.add_argument("--matrix", default="", help="distance_matrix of these surfaces")
+    parser.add_argument("--strategy", default="loop", choices=("loop", "map", "vmap"))
     args = parser.parse_args()
     if not 0.0 <= args.moebius < 1.0:
         parser.error(f"--moebius must be in [0, 1); got {args.moebius}")
@@ -249,6 +285,11 @@ def main() -> None:
     settings["both_orders"] = args.both_orders
     settings["search_smoothing"] = list(widths)
     settings["smoothing_kernel"] = args.smoothing_kernel
+    if args.matrix:
+        record = run_matrix(args.matrix.split(","), options, args.strategy)
+        if record is not None:
+            emit({**record, "settings": settings, "environment": environment()})
+        return
     variant = {"perturb": args.perturb, "rotate": args.rotate, "moebius": args.moebius}
     for name in args.pairs.split(","):
         for call in range(1, args.calls + 1):

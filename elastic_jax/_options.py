@@ -218,9 +218,10 @@ class ShapeOptions:
             time. Which local minimum a solve ends in turns on rounding
             (:doc:`/guides/registration_notes`, "Where rounding picks the basin"); the
             spread says how far apart the minima the candidates found are.
-            ``log`` carries them too (it runs shape_geodesic); ``distance_matrix``,
-            ``karcher_mean`` and ``fit_metric`` solve one start a pair and refuse
-            K > 1.
+            The collections carry them too: each pair of ``distance_matrix`` (its
+            ``spread``), each first solve of ``karcher_mean``, each registration of
+            ``fit_metric`` and ``log`` is then that pair's resolved shape_geodesic,
+            candidates and all, every candidate one more item of the levels' batch.
         both_orders: a resolved :func:`shape_geodesic` also searches the starts of the
             other order, f2 to f1, and carries each, inverted (gamma^-1 by Newton's
             method on gamma's interpolant, R^T), through this order's levels as one
@@ -235,8 +236,8 @@ class ShapeOptions:
             runs, and the answer moved by 0.70 % under 1e-10 perturbations against
             1.5 % (:doc:`/guides/registration_notes`, "Candidates from both orders").
             Twice the candidates: 1.5-4.1 times the time on 2 CPU cores (more where
-            the other order's candidate needs a finer level). Refused by the
-            collections, as ``level_candidates`` > 1 is.
+            the other order's candidate needs a finer level). The collections carry
+            them as ``level_candidates`` says.
         search_smoothing: kernel widths, wide to narrow, in a level's latitude
             spacings (pi / (m - 1) on an m x n level); default () (none). A resolved
             :func:`shape_geodesic` without a ``start`` then carries one more
@@ -246,7 +247,9 @@ class ShapeOptions:
             low-passed by each width in turn (:func:`smooth_surface`, by
             ``smoothing_kernel``), each solve continuing the one before, and then on
             the data, continuing the narrowest: graduated inputs, as image
-            registration's pyramids. Blurred inputs have fewer basins, and the data's
+            registration's pyramids. With ``both_orders`` one more candidate: the
+            other order's graduated solve of each such level, inverted (gamma^-1,
+            R^T) and continued in this order, so that either order carries both. Blurred inputs have fewer basins, and the data's
             level continues the minimum followed down from the widest instead of
             whichever one rounding picks. The lowest final distance wins, so the
             answer is never above the default's, and ``spread`` says how far apart
@@ -258,7 +261,8 @@ class ShapeOptions:
             horse0, where a folded level is graduated too); on horse0 against its own
             Moebius read the default's candidate ends lower
             (:doc:`/guides/registration_notes`, "Graduated start searches"). One
-            working grid ignores it; the collections refuse it.
+            working grid ignores it; the collections carry the graduated candidate
+            as ``level_candidates`` says (its low-passed solves one pair at a time).
         smoothing_kernel: ``"sphere"`` (default) or ``"surface"``: the kernel of
             ``search_smoothing`` (:func:`smooth_surface`'s ``kernel``). The sphere
             kernel averages the parametrization, so f and f o phi blur into

@@ -399,6 +399,7 @@ def test_distances_reports_each_pair_and_exits_3_when_one_did_not_converge(
             change,
             estimate=np.full((3, 3), np.nan),
             grids=np.zeros((3, 3, 2), np.int32),
+            spread=np.full((3, 3), np.nan),
             converged=np.asarray(False),
             result=ej.RESULTS.nonlinear_max_steps_reached,
             num_steps=np.asarray(30),

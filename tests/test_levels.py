@@ -342,6 +342,7 @@ def _spheres_by_rotation(radii, m=13, n=25):
     return jnp.stack(out)
 
 
+@pytest.mark.slow  # about 75 s on 2 cores (the default tier: the candidates' matrix, below)
 def test_a_resolved_matrix_is_its_pairs_resolved_distances():
     """distance_matrix at the default rtol: the pairs go through the levels together and
     each entry is shape_geodesic's resolved distance of that pair (same levels, same
@@ -645,29 +646,38 @@ def test_candidates_apart_by_more_than_rtol_are_not_resolved():
     assert float(near.spread) == pytest.approx(0.01, rel=1e-12)
 
 
-def test_collections_refuse_several_candidates():
-    """Several candidates are carried by one shape_geodesic's levels (and so by log); a
-    collection's levelled solves take one start a pair and say so instead of ignoring
-    the field."""
+def test_a_matrix_carries_each_pairs_candidates_as_shape_geodesic_does():
+    """distance_matrix with level_candidates=2 and both_orders: each pair carries the
+    candidates a resolved shape_geodesic carries (the first level's two best starts and
+    the other order's two, inverted), each one more item of the levels' batch; the
+    pair's distance, estimate, spread and status are shape_geodesic's with the same
+    options, the spread the candidates' range (closed form of their recorded finals),
+    and the distance the lowest candidate's. Option values are checked by name."""
     with pytest.raises(ej.InputError, match="level_candidates"):
         ej.ShapeOptions(level_candidates=0)
-    f = ej.sphere_points(9, 17, dtype=jnp.float64)
-    options = OPTIONS.replace(rtol=0.03, levels=((9, 17),), level_candidates=2)
-    stack = jnp.stack([f, 1.2 * f, 1.4 * f, 1.1 * f])
-    with pytest.raises(ej.InputError, match="level_candidates"):
-        ej.distance_matrix(stack, METRIC, options=options)
-    with pytest.raises(ej.InputError, match="level_candidates"):
-        ej.karcher_mean(stack, METRIC, modulo="rigid", options=options)
-    with pytest.raises(ej.InputError, match="level_candidates"):
-        ej.fit_metric(stack, jnp.asarray([0, 0, 1, 1]), modulo="rigid", options=options)
-    both = options.replace(level_candidates=1, both_orders=True)
-    with pytest.raises(ej.InputError, match="both_orders"):
-        ej.distance_matrix(stack, METRIC, options=both)
     with pytest.raises(ej.InputError, match="both_orders"):
         ej.ShapeOptions(both_orders=1)
-    smoothing = options.replace(level_candidates=1, search_smoothing=(1.0, 0.5))
-    with pytest.raises(ej.InputError, match="search_smoothing"):
-        ej.distance_matrix(stack, METRIC, options=smoothing)
+    f1 = shapes.sample(shapes.bumpy, 9, 17)
+    f2 = shapes.sample(shapes.bumpy, 9, 17, rotation=shapes.random_rotation(5))
+    f2 = jnp.einsum("i,imn->imn", jnp.asarray([1.2, 1.0, 0.9]), f2)
+    options = OPTIONS.replace(rtol=0.03, levels=((9, 17),), level_candidates=2, both_orders=True)
+    job = ej.JobOptions(strategy="loop")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        res = ej.distance_matrix(jnp.stack([f1, f2]), METRIC, options=options, job=job)
+        single = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
+    found = np.asarray(single.levels.candidates)
+    assert found.shape == (4,)
+    assert float(single.distance) == found.min()
+    scale = max(found.min(), 0.05 * float(single.parametrized_distance))
+    np.testing.assert_allclose(single.spread, np.ptp(found) / scale, rtol=1e-12)
+    assert float(res.distances[0, 1]) == pytest.approx(float(single.distance), rel=1e-10)
+    assert float(res.spread[0, 1]) == pytest.approx(float(single.spread), rel=1e-8, abs=1e-12)
+    np.testing.assert_allclose(res.estimate[0, 1], single.levels.estimate, rtol=1e-8)
+    assert bool(res.pairs_converged[0, 1]) == bool(single.converged)
+    assert np.isnan(np.diag(np.asarray(res.spread))).all()
+    assert res.spread[1, 0] == res.spread[0, 1]
+    assert_area_bound(res.distances[0, 1], f1, f2, METRIC)
     for widths, problem in (((0.5, 1.0),), "wide to narrow"), (((1.0, -1.0),), "positive"):
         with pytest.raises(ej.InputError, match=problem):
             ej.ShapeOptions(search_smoothing=widths[0])
@@ -675,6 +685,42 @@ def test_collections_refuse_several_candidates():
         ej.ShapeOptions(smoothing_kernel="gaussian")
     with pytest.raises(ej.InputError, match="search_smoothing"):
         ej.ShapeOptions(search_smoothing=1.0)
+
+
+@pytest.mark.slow  # about 340 s on 2 cores: the candidates' batched programs compile
+def test_a_matrix_carries_candidates_side_by_side_as_one_after_another():
+    """Three pairs, each with five candidates (two starts an order and the graduated
+    one), through two levels: vmapped side by side (each level's groups solved three
+    at a time, the chunk's compiled shape) and one after another give the same matrix
+    and spreads, each entry that pair's shape_geodesic (measured: 7e-12 relative)."""
+    f1 = shapes.sample(shapes.bumpy, 9, 17)
+    f2 = shapes.sample(shapes.bumpy, 9, 17, rotation=shapes.random_rotation(5))
+    f2 = jnp.einsum("i,imn->imn", jnp.asarray([1.2, 1.0, 0.9]), f2)
+    f3 = shapes.sample(shapes.ellipsoid, 9, 17)
+    stack = jnp.stack([f1, f2, f3])
+    options = OPTIONS.replace(
+        rtol=0.03,
+        levels=((9, 17), (13, 25)),
+        level_candidates=2,
+        both_orders=True,
+        search_smoothing=(1.0,),
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        side = ej.distance_matrix(
+            stack, METRIC, options=options, job=ej.JobOptions(strategy="vmap")
+        )
+        loop = ej.distance_matrix(
+            stack, METRIC, options=options, job=ej.JobOptions(strategy="loop")
+        )
+        single = ej.shape_geodesic(f2, f3, METRIC, modulo="rigid", options=options)
+    np.testing.assert_allclose(side.distances, loop.distances, rtol=1e-9)
+    np.testing.assert_allclose(side.spread, loop.spread, rtol=0, atol=1e-6)
+    assert np.asarray(single.levels.candidates).shape == (5,)
+    assert float(loop.distances[1, 2]) == pytest.approx(float(single.distance), rel=1e-10)
+    assert float(loop.spread[1, 2]) == pytest.approx(float(single.spread), abs=1e-10)
+    upper = np.triu_indices(3, 1)
+    assert (np.asarray(loop.spread)[upper] > 0).all()
 
 
 @pytest.mark.slow  # about 150 s on 2 cores (the default tier: tests/test_smoothing.py)
@@ -721,5 +767,58 @@ def test_the_graduated_candidate_continues_its_solves_of_the_inputs_low_passed()
     assert float(res.distance) == candidates.min()
     spread = (candidates.max() - candidates.min()) / candidates.min()
     np.testing.assert_allclose(res.spread, spread, rtol=1e-12)
+    assert_area_bound(res.distance, f1, f2, METRIC)
+    assert float(res.distance) <= float(res.parametrized_distance)
+
+
+@pytest.mark.slow  # about 150 s on 2 cores
+def test_both_orders_carry_the_other_orders_graduated_solve_inverted():
+    """search_smoothing with both_orders: four candidates, the default's, the other
+    order's start, the graduated one and the other order's graduated one. The last is
+    f2 -> f1 solved on the low-passed inputs and then on the data, its registration
+    inverted (gamma^-1, R^T) and continued in this order from the straight line, to
+    rounding; the result is the lowest of the four."""
+    from elastic_jax._registration.one_grid import continued_geodesic
+    from elastic_jax._registration.starts import usable_inverse
+
+    f1 = shapes.sample(shapes.bumpy, 9, 17)
+    f2 = shapes.sample(shapes.bumpy, 9, 17, rotation=shapes.random_rotation(5))
+    f2 = jnp.einsum("i,imn->imn", jnp.asarray([1.2, 1.0, 0.9]), f2)
+    plain = OPTIONS.replace(rtol=0.03, levels=((9, 17),))
+    options = plain.replace(search_smoothing=(1.0,), both_orders=True)
+    level = plain.on_level((9, 17))
+    width = np.pi / 8
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ej.ConvergenceWarning)
+        res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
+        blurred = ej.shape_geodesic(
+            ej.smooth_surface(f2, width),
+            ej.smooth_surface(f1, width),
+            METRIC,
+            modulo="rigid",
+            options=level,
+        )
+        data = continued_geodesic(
+            f2,
+            f1,
+            METRIC,
+            "rigid",
+            level,
+            blurred.gamma,
+            blurred.rotation,
+            blurred.coefficients,
+            blurred.parametrized_coefficients,
+        )
+        inverse = usable_inverse(data.gamma)
+        again = continued_geodesic(
+            f1, f2, METRIC, "rigid", level, inverse, data.rotation.T, None, None
+        )
+    back = ej.reparametrize(data.gamma, inverse, method="bicubic")
+    back = back / jnp.linalg.norm(back, axis=0, keepdims=True)
+    assert float(jnp.max(jnp.abs(back - ej.sphere_points(9, 17, dtype=jnp.float64)))) < 1e-9
+    candidates = np.asarray(res.levels.candidates)
+    assert candidates.shape == (4,)
+    np.testing.assert_allclose(candidates[3], again.distance, rtol=1e-10)
+    assert float(res.distance) == candidates.min()
     assert_area_bound(res.distance, f1, f2, METRIC)
     assert float(res.distance) <= float(res.parametrized_distance)

@@ -372,6 +372,7 @@ def _records():
                 _f64(30, 30),
                 _f64(30, 30),
                 jnp.zeros((30, 30, 2), jnp.int32),
+                _f64(30, 30),
                 ok,
                 successful,
                 _scalar(9000),

@@ -40,6 +40,7 @@ def level_solve(
     below: ShapeGeodesicResult | None,
     start: object = None,
     reporter: Reporter | None = None,
+    other_order: bool = False,
 ) -> ShapeGeodesicResult:
     """One level of a resolved distance: the solve on ``grid`` continuing the level
     ``below`` (its registration, path and parametrized path, without a new start search
@@ -52,21 +53,37 @@ def level_solve(
 
     With ``options.search_smoothing``, a level that would search its own start (the
     first without a start, or one whose carry folds) continues the solves of the inputs
-    low-passed instead (:func:`graduated_search`).
+    low-passed instead (:func:`graduated_search`); with ``other_order`` too, it
+    continues the other order's graduated solve, inverted (:func:`other_order_graduated`;
+    a search of its own where that inverse is not usable).
     """
     carried = registration_at(start if below is None else below, grid, f1.dtype, modulo)
-    if carried is None and options.search_smoothing:
+    level = options.on_level(grid)
+    if carried is None and options.search_smoothing and other_order:
+        carry = other_order_graduated(f1, f2, metric, modulo, options, grid, reporter)
+        if carry is not None:
+            return one_grid_solve(
+                f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter
+            )
+    elif carried is None and options.search_smoothing:
         below = graduated_search(f1, f2, metric, modulo, options, grid, reporter)
         carried = registration_at(below, grid, f1.dtype, modulo)
-    level = options.on_level(grid)
     if below is not None and carried is not None:
         carry = (*carried, below.coefficients, below.parametrized_coefficients)
         return one_grid_solve(f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter)
     return one_grid_solve(f1, f2, metric, modulo, level, carried, reporter=reporter)
 
 
-# The start of the candidate whose levels graduate their own start searches.
+# The starts of the candidates whose levels graduate their own start searches: in this
+# order, and in the other order, inverted.
 GRADUATED = object()
+OTHER_GRADUATED = object()
+
+
+def graduates(start: object) -> bool:
+    """Whether a candidate's start is one of the graduated ones (GRADUATED or
+    OTHER_GRADUATED)."""
+    return start is GRADUATED or start is OTHER_GRADUATED
 
 
 def graduated_search(
@@ -101,6 +118,41 @@ def graduated_search(
     if reporter is not None:
         reporter.level = saved
     return below
+
+
+def other_order_graduated(
+    f1: ArrayLike,
+    f2: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    grid: tuple[int, int],
+    reporter: Reporter | None = None,
+) -> tuple | None:
+    """The other order's graduated level as a carry of this order: f2 -> f1 solved on
+    ``grid`` through the low-passed inputs (:func:`graduated_search`) and then on the
+    data; its registration (gamma, R), f2 o gamma ~ R f1, inverted into (gamma^-1, R^T),
+    since then f1 o gamma^-1 ~ R^T f2, with the straight line as the path (zero
+    coefficients ``(N - 2, L)``, as ``shape_geodesic(symmetric=True)`` continues an
+    inverted registration). None where
+    gamma^-1 misses rounding's tolerance or folds on the grid.
+
+    The sphere kernel blurs the parametrization, so the two orders blur different pairs
+    of functions and their graduated searches follow different minima; carrying both
+    makes the answer the lower of the two in either order."""
+    plain = options.replace(search_smoothing=())
+    saved = None if reporter is None else reporter.level
+    if reporter is not None:
+        reporter.level = {**saved, "order": "f2 -> f1"}
+    blurred = graduated_search(f2, f1, metric, modulo, options, grid, reporter)
+    data = level_solve(f2, f1, metric, modulo, plain, grid, blurred, reporter=reporter)
+    if reporter is not None:
+        reporter.level = saved
+    inverse = usable_inverse(data.gamma)
+    if inverse is None:
+        return None
+    zero = jnp.zeros_like
+    return inverse, data.rotation.T, zero(data.coefficients), zero(data.parametrized_coefficients)
 
 
 class LevelOutcome(NamedTuple):
@@ -250,7 +302,9 @@ def levels_solve(
     ``options.both_orders`` the other order's K best-ranked starts, inverted, follow them
     (:func:`other_order_starts`). With ``options.search_smoothing`` (and no ``start``)
     one more candidate follows, whose levels graduate their own start searches
-    (:func:`graduated_search`); the others search as without it. The candidate with the
+    (:func:`graduated_search`), and with both_orders one whose levels continue the
+    other order's graduated solve, inverted (:func:`other_order_graduated`); the others
+    search as without it. The candidate with the
     lowest final distance is the result; ``levels.candidates`` holds every candidate's
     final distance and ``levels.spread`` their range (:func:`candidate_spread`).
 
@@ -278,13 +332,7 @@ def levels_solve(
     # Only the graduated candidate's levels graduate their own start searches: the
     # others search as the default does, so the lowest final is never above its.
     plain = options.replace(search_smoothing=())
-    starts = [start]
-    if start is None and options.level_candidates > 1:
-        starts = first_level_starts(f1, f2, metric, modulo, options)
-    if start is None and options.both_orders:
-        starts = starts + other_order_starts(f1, f2, metric, modulo, options)
-    if start is None and options.search_smoothing:
-        starts = starts + [GRADUATED]
+    starts = candidate_starts(f1, f2, metric, modulo, options, start)
     many = len(starts) > 1
 
     def solve(
@@ -301,9 +349,11 @@ def levels_solve(
                     reporter.level["candidate"] = i + 1
                 if again:
                     reporter.level["again"] = True
-            graduated = starts[i] is GRADUATED
-            own, first = (options, None) if graduated else (plain, starts[i])
-            result = level_solve(f1, f2, metric, modulo, own, grid, lower, first, reporter)
+            other = starts[i] is OTHER_GRADUATED
+            own, first = (options, None) if graduates(starts[i]) else (plain, starts[i])
+            result = level_solve(
+                f1, f2, metric, modulo, own, grid, lower, first, reporter, other_order=other
+            )
             distance = float(jax.block_until_ready(result.distance))
             converged = bool(result.converged)
             if reporter is not None:
@@ -330,9 +380,7 @@ def levels_solve(
     if reporter is not None:
         reporter.level = {}
     finals = [float(track.solution.distance) for track in tracks]
-    # The lowest final distance wins (NaN never does; all NaN: the first).
-    ranked = np.where(np.isfinite(finals), finals, np.inf)
-    track = tracks[int(np.argmin(ranked))]
+    track = tracks[lowest(finals)]
     return with_levels(
         track.solution,
         track.grids,
@@ -345,6 +393,43 @@ def levels_solve(
         refined_gap=track.refined_gap,
         candidates=finals,
     )
+
+
+def candidate_starts(
+    f1: ArrayLike,
+    f2: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    start: object = None,
+) -> list:
+    """The first-level starts of a resolved solve's candidates, one per candidate: None (a
+    start search of its own), a (gamma ``(3, m, n)``, R ``(3, 3)``) pair, or
+    :data:`GRADUATED`. A given ``start``: that one alone. Else ``[None]`` by default;
+    ``options.level_candidates`` K > 1: the first level's K best-ranked starts
+    (:func:`first_level_starts`); ``options.both_orders``: then the other order's,
+    inverted (:func:`other_order_starts`); ``options.search_smoothing``: then GRADUATED,
+    and with ``both_orders`` OTHER_GRADUATED too (:func:`other_order_graduated`). The
+    one list a resolved shape_geodesic and a collection's pairs carry."""
+    if start is not None:
+        return [start]
+    starts = [None]
+    if options.level_candidates > 1:
+        starts = first_level_starts(f1, f2, metric, modulo, options)
+    if options.both_orders:
+        starts = starts + other_order_starts(f1, f2, metric, modulo, options)
+    if options.search_smoothing:
+        starts = starts + [GRADUATED]
+        if options.both_orders:
+            starts = starts + [OTHER_GRADUATED]
+    return starts
+
+
+def lowest(finals: Sequence[float]) -> int:
+    """The index of the candidate that wins: the lowest final distance (NaN never does;
+    all NaN: the first)."""
+    ranked = np.where(np.isfinite(finals), np.asarray(finals, np.float64), np.inf)
+    return int(np.argmin(ranked))
 
 
 def first_level_starts(
@@ -458,7 +543,7 @@ def with_levels(
     estimate = level_change(distances, result.parametrized_distance, noise, refined_gap)
     if candidates is None:
         candidates = [float(result.distance)]
-    spread = candidate_spread(candidates, _NEAR_EQUAL * float(result.parametrized_distance))
+    spread = spread_of(candidates, result.parametrized_distance)
     met = bool(estimate <= rtol) and bool(spread <= rtol)
     levels = Levels(
         grids=jnp.asarray(grids, jnp.int32),
@@ -492,6 +577,13 @@ def candidate_spread(distances: Sequence[float], floor: float = 0.0) -> float:
         return 0.0
     low = max(float(finite.min()), float(floor), np.finfo(np.float64).tiny)
     return float(finite.max() - finite.min()) / low
+
+
+def spread_of(finals: Sequence[float], parametrized: ArrayLike) -> float:
+    """The candidates' spread as a resolved result records it (:class:`Levels`
+    ``spread``): :func:`candidate_spread` of their ``finals``, with the near-equal floor
+    of the winner's ``parametrized`` distance."""
+    return candidate_spread(finals, _NEAR_EQUAL * float(parametrized))
 
 
 def registration_at(start: object, grid: tuple[int, int], dtype: DTypeLike, modulo: str):

@@ -22,7 +22,20 @@ from .._geometry.metric import SplitMetric
 from .._geometry.numerics import default_tol
 from .._geometry.validation import as_surface, check_grid_options, check_levels
 from .._options import ShapeOptions, check_choice, options_with
-from .._registration.levels import LevelOutcome, noise_distance, registration_at, run_levels
+from .._registration.levels import (
+    GRADUATED,
+    OTHER_GRADUATED,
+    LevelOutcome,
+    candidate_starts,
+    graduated_search,
+    graduates,
+    lowest,
+    noise_distance,
+    other_order_graduated,
+    registration_at,
+    run_levels,
+    spread_of,
+)
 from .._registration.one_grid import continued_geodesic
 from .._registration.records import turned_back
 from .._registration.shape import solve_shapes
@@ -298,15 +311,15 @@ def distance_chunk(
     strategy: str,
     size: int,
 ) -> tuple:
-    """Distance, status, refinement change, result code, solver steps, levels estimate
-    and finest grid of the pairs (first[i], second[i]): by levels (:func:`levelled_chunk`)
-    when ``options.resolves`` and modulo is not "none", else on ``options.grid`` or the
-    pairs' own grid (estimate NaN)."""
+    """Distance, status, refinement change, result code, solver steps, levels estimate,
+    finest grid and candidates' spread of the pairs (first[i], second[i]): by levels
+    (:func:`levelled_chunk`) when ``options.resolves`` and modulo is not "none", else on
+    ``options.grid`` or the pairs' own grid (estimate and spread NaN)."""
     if options.resolves and modulo != "none":
-        return levelled_chunk(first, second, metric, modulo, options, strategy, size)[:7]
+        return levelled_chunk(first, second, metric, modulo, options, strategy, size)[:8]
     b = np.shape(first)[0]
     grid = options.grid or tuple(np.shape(first)[-2:])
-    extra = (np.full(b, np.nan), np.tile(np.asarray(grid, np.int32), (b, 1)))
+    extra = (np.full(b, np.nan), np.tile(np.asarray(grid, np.int32), (b, 1)), np.full(b, np.nan))
 
     def batch_call(batch: tuple, mode: str):
         return _distances_batch(batch, metric, modulo=modulo, options=options, mode=mode)
@@ -368,10 +381,11 @@ def _level_pair(
     """One pair's solve on one level (``options.grid``): :func:`_registered_pair`'s
     outputs, then the parametrized distance and the refinement change, which the levels'
     estimate and the matrix's record need, and the parametrized geodesic's coefficients
-    (where the next level's starts). ``start``: (gamma, R, C, parametrized C) of the
-    level below."""
-    if start is None:
-        res = solve_shapes(a, b, metric, modulo, options)
+    (where the next level's starts). ``start``: None (a start search), (gamma, R) to
+    start the rounds from (a candidate's first level), or (gamma, R, C, parametrized C)
+    of the level below to continue."""
+    if start is None or len(start) == 2:
+        res = solve_shapes(a, b, metric, modulo, options, start)
     else:
         res = continued_geodesic(a, b, metric, modulo, options, *start)
     code = jnp.asarray(res.result._value, jnp.int32)
@@ -413,7 +427,8 @@ class _LevelSolution(NamedTuple):
 def _level_batch(
     batch: tuple, metric: SplitMetric, *, modulo: str, options: ShapeOptions, mode: str
 ):
-    """batch: (firsts, seconds) or (firsts, seconds, gammas, rotations, coefficients)."""
+    """batch: (firsts, seconds), with (gammas, rotations) to start from or (gammas,
+    rotations, coefficients, parametrized coefficients) to continue (:func:`_level_pair`)."""
 
     def one(item: tuple):
         return _level_pair(item[0], item[1], metric, modulo, options, item[2:] or None)
@@ -425,9 +440,11 @@ class LevelledPairs(NamedTuple):
     """What :func:`levelled_chunk` returns for b pairs solved by levels (math §10).
 
     ``distance``, ``converged``, ``refinement_change``, ``result`` (int codes) and
-    ``num_steps`` (over all levels) are ``(b,)``, the first five of a distance chunk;
+    ``num_steps`` (over all levels and candidates) are ``(b,)``, the first five of a
+    distance chunk;
     ``estimate`` ``(b,)`` the last two levels' relative change (NaN after one level);
-    ``grid`` ``(b, 2)`` the finest grid each pair reached; ``level_distances`` ``(b, L)``
+    ``grid`` ``(b, 2)`` the finest grid each pair reached; ``spread`` ``(b,)`` its
+    candidates' spread (:class:`Levels` ``spread``; 0 with one); ``level_distances`` ``(b, L)``
     each level's distance (of the last level's minimum, as :class:`Levels` ``distances``;
     NaN past the level where a pair resolved); ``gamma``
     ``(b, 3, m, n)`` on that finest grid when every pair reached the same one, else a
@@ -441,6 +458,7 @@ class LevelledPairs(NamedTuple):
     num_steps: np.ndarray
     estimate: np.ndarray
     grid: np.ndarray
+    spread: np.ndarray
     level_distances: np.ndarray
     gamma: list
     rotation: np.ndarray
@@ -460,99 +478,125 @@ def levelled_chunk(
     """The pairs (first[i], second[i]) by levels of working grids, all at once: the
     first level of ``options.levels`` searches each pair's start, every later level
     continues the pairs still going from their registration and path on the level
-    below (:func:`continued_geodesic`), and a pair leaves the batch once two successive
+    below (:func:`continued_geodesic`), and a pair leaves once two successive
     distances agree within ``options.rtol`` (as :func:`shape_geodesic` decides for one
     pair; its result code ``not_resolved`` when the last level converged but missed rtol).
 
+    Each pair carries the candidates a resolved shape_geodesic carries
+    (:func:`candidate_starts`: ``level_candidates``, ``both_orders``,
+    ``search_smoothing``): every candidate is one more item of each level's batch, the
+    lowest final distance is the pair's, and the pair is resolved only when its
+    candidates' ``spread`` is within rtol too. A pair is therefore shape_geodesic's
+    resolved distance of that pair, candidates and all.
+
     A carried registration whose interpolant folds between the next grid's points (the
-    check of ``shape_geodesic(start=...)``) searches a start of its own on that level.
+    check of ``shape_geodesic(start=...)``) searches a start of its own on that level
+    (graduated, for the graduated candidates: :func:`graduated_search`,
+    :func:`other_order_graduated`).
     "vmap" solves each level's pairs side by side, padded to ``size`` (traced: a pair
     whose rounds end above the pair as given is not solved again from it, as a concrete
     shape_geodesic would); "map" and "loop" one after another through shape_geodesic's
     own compiled phases (a vmapped step costs the batch's size on a CPU, and a padded
-    lax.map solves its padding).
+    lax.map solves its padding). The graduated candidate's low-passed solves run one
+    after another.
 
     The levels' loop is :func:`run_levels`, the one shape_geodesic's levels run (a
     single pair is a batch of one there); this function solves each level's pairs.
 
     ``report(i, info)``: after each level, for each pair i solved on it, as
     shape_geodesic's progress reports a level (``stage`` "level", ``level`` and
-    ``levels`` counted from 1, ``grid``, ``distance``, ``converged``).
+    ``levels`` counted from 1, ``grid``, ``distance``, ``converged``, and
+    ``candidate`` counted from 1 where a pair carries several).
     """
     first, second = jnp.asarray(first), jnp.asarray(second)
     count = first.shape[0]
     levels = options.levels
     check_levels(options)
-    if options.level_candidates > 1:
-        raise InputError(
-            "level_candidates > 1 carries several starts through one shape_geodesic's "
-            "levels; a collection's pairs are solved from one start each: give "
-            f"level_candidates=1 (got {options.level_candidates})"
-        )
-    if options.both_orders:
-        raise InputError(
-            "both_orders=True carries the other order's starts through one "
-            "shape_geodesic's levels; a collection's pairs are solved from one start "
-            "each: give both_orders=False"
-        )
-    if options.search_smoothing:
-        raise InputError(
-            "search_smoothing graduates one shape_geodesic's start searches through "
-            "low-passed inputs; a collection's pairs search on the data: give "
-            f"search_smoothing=() (got {options.search_smoothing})"
-        )
     dtype = first.dtype
+    # Every candidate of every pair is a track of the levels (owner: its pair). Only
+    # the graduated candidate graduates its searches: the others search as the default.
+    plain = options.replace(search_smoothing=())
+    owner, starts = [], []
+    for i in range(count):
+        own = candidate_starts(first[i], second[i], metric, modulo, options)
+        owner += [i] * len(own)
+        starts += own
+    owner = np.asarray(owner)
+    many = len(starts) > count
     noise = [noise_distance(first[i], second[i]) for i in range(count)]
     mode = "loop" if strategy == "map" else strategy
     steps = np.zeros(count, np.int64)
 
-    def solve_group(indices: list, level: ShapeOptions, starts: tuple | None):
+    def solve_group(tracks: list, level: ShapeOptions, given: tuple | None):
         def batch_call(batch: tuple, mode: str):
             return _level_batch(batch, metric, modulo=modulo, options=level, mode=mode)
 
         def single_call(item: tuple):
             return _level_pair(item[0], item[1], metric, modulo, level, item[2:] or None)
 
-        batch = (first[jnp.asarray(indices)], second[jnp.asarray(indices)])
-        if starts is not None:
-            batch = (*batch, *starts)
-        return _solve_chunk(batch_call, single_call, batch, mode, size)
+        pairs = jnp.asarray(owner[tracks])
+        batch = (first[pairs], second[pairs])
+        if given is not None:
+            batch = (*batch, *given)
+        # Candidates make a group longer than the chunk: solved ``size`` at a time, so
+        # that every group runs the one compiled batch shape.
+        parts = [
+            _solve_chunk(batch_call, single_call, _part(batch, a, b), mode, size)
+            for a, b in chunk_bounds(len(tracks), size)
+        ]
+        return tuple(
+            np.concatenate([np.asarray(x) for x in out]) for out in zip(*parts, strict=True)
+        )
 
     def solve(
         index: int, grid: tuple[int, int], going: list, below: list, again: bool = False
     ) -> list:
-        # A pair continues its solution below where that registration reads at this
-        # grid's points without folding; the others (and the first level) search. Solved
-        # again from a finer level (again=True), a pair that cannot continue it has no
-        # outcome: a search would find another minimum.
-        level = options.on_level(grid)
-        carried, searched = [], []
-        for i, sol in zip(going, below, strict=True):
-            read = (
-                None
-                if sol is None
-                else registration_at((sol.gamma, sol.rotation), grid, dtype, modulo)
+        # A track continues its solution below where that registration reads at this
+        # grid's points without folding; the others search (the first level from its
+        # candidate's start). Solved again from a finer level (again=True), a track that
+        # cannot continue it has no outcome: a search would find another minimum.
+        level = plain.on_level(grid)
+        searched, started, carried = [], [], []
+        for t, sol in zip(going, below, strict=True):
+            i = owner[t]
+            if sol is None and not graduates(starts[t]):
+                read = registration_at(starts[t], grid, dtype, modulo)
+                (searched if read is None else started).append((t, read))
+                continue
+            read = None if sol is None else _read_at(sol, grid, dtype, modulo)
+            carry = (
+                None if read is None else (*read, sol.coefficients, sol.parametrized_coefficients)
             )
-            (searched if read is None else carried).append((i, read, sol))
-        groups = []
-        if searched and not again:
-            groups.append(([i for i, *_ in searched], None))
-        if carried:
-            starts = (
-                jnp.stack([r[0] for _, r, _ in carried]),
-                jnp.stack([r[1] for _, r, _ in carried]),
-                jnp.stack([jnp.asarray(sol.coefficients) for *_, sol in carried]),
-                jnp.stack([jnp.asarray(sol.parametrized_coefficients) for *_, sol in carried]),
-            )
-            groups.append(([i for i, *_ in carried], starts))
+            if carry is None and not again and starts[t] is GRADUATED:
+                sol = graduated_search(first[i], second[i], metric, modulo, options, grid)
+                read = _read_at(sol, grid, dtype, modulo)
+                carry = (
+                    None
+                    if read is None
+                    else (*read, sol.coefficients, sol.parametrized_coefficients)
+                )
+            elif carry is None and not again and starts[t] is OTHER_GRADUATED:
+                carry = other_order_graduated(first[i], second[i], metric, modulo, options, grid)
+            if carry is not None:
+                carried.append((t, carry))
+            elif not again:
+                searched.append((t, None))
+        groups = [] if not searched else [([t for t, _ in searched], None)]
+        for group in (started, carried):
+            if group:
+                given = tuple(
+                    jnp.stack([jnp.asarray(x) for x in parts])
+                    for parts in zip(*[item for _, item in group], strict=True)
+                )
+                groups.append(([t for t, _ in group], given))
         outcomes = {}
-        for indices, starts in groups:
-            solved = _LevelSolution(*(np.asarray(x) for x in solve_group(indices, level, starts)))
-            for k, i in enumerate(indices):
+        for tracks, given in groups:
+            solved = _LevelSolution(*(np.asarray(x) for x in solve_group(tracks, level, given)))
+            for k, t in enumerate(tracks):
                 sol = _LevelSolution(*(x[k] for x in solved))
                 d, ok = float(sol.distance), bool(sol.converged)
-                steps[i] += sol.num_steps
-                outcomes[i] = LevelOutcome(
+                steps[owner[t]] += sol.num_steps
+                outcomes[t] = LevelOutcome(
                     d,
                     ok,
                     float(sol.parametrized_distance),
@@ -563,18 +607,31 @@ def levelled_chunk(
                 if report is not None:
                     info = {"level": index + 1, "levels": len(levels), "grid": tuple(grid)}
                     info.update({"again": True} if again else {})
-                    report(i, {"stage": "level", **info, "distance": d, "converged": ok})
-        return [outcomes.get(i) for i in going]
+                    info.update(
+                        {"candidate": int(t - np.argmax(owner == owner[t])) + 1} if many else {}
+                    )
+                    report(
+                        int(owner[t]), {"stage": "level", **info, "distance": d, "converged": ok}
+                    )
+        return [outcomes.get(t) for t in going]
 
-    tracks = run_levels(count, levels, options.rtol, noise, solve)
-    solutions = [t.solution for t in tracks]
-    estimate = np.asarray([t.estimate for t in tracks], np.float64)
+    tracks = run_levels(len(starts), levels, options.rtol, [noise[i] for i in owner], solve)
+    # Each pair's winner: its candidate with the lowest final distance.
+    winners, spread = [], np.zeros(count)
+    for i in range(count):
+        own = np.flatnonzero(owner == i)
+        finals = [float(tracks[t].solution.distance) for t in own]
+        best = tracks[own[lowest(finals)]]
+        winners.append(best)
+        spread[i] = spread_of(finals, best.solution.parametrized_distance)
+    solutions = [t.solution for t in winners]
+    estimate = np.asarray([t.estimate for t in winners], np.float64)
     level_distances = np.full((count, len(levels)), np.nan)
-    for i, t in enumerate(tracks):
+    for i, t in enumerate(winners):
         level_distances[i, : len(t.distances)] = t.distances
     converged = np.asarray([bool(sol.converged) for sol in solutions])
     result = np.asarray([int(sol.result) for sol in solutions], np.int32)
-    met = estimate <= options.rtol
+    met = (estimate <= options.rtol) & (spread <= options.rtol)
     result[converged & ~met] = RESULTS.not_resolved._value
     gammas = [sol.gamma for sol in solutions]
     same = len({g.shape for g in gammas}) == 1
@@ -585,12 +642,22 @@ def levelled_chunk(
         result=result,
         num_steps=steps,
         estimate=estimate,
-        grid=np.asarray([t.grids[-1] for t in tracks], np.int32),
+        grid=np.asarray([t.grids[-1] for t in winners], np.int32),
+        spread=spread,
         level_distances=level_distances,
         gamma=np.stack(gammas) if same else gammas,
         rotation=np.stack([np.asarray(sol.rotation) for sol in solutions]),
         coefficients=np.stack([np.asarray(sol.coefficients) for sol in solutions]),
     )
+
+
+def _part(batch: tuple, a: int, b: int) -> tuple:
+    return jax.tree_util.tree_map(lambda x: x[a:b], batch)
+
+
+def _read_at(solution: object, grid: tuple[int, int], dtype, modulo: str):
+    """A level's solution's registration (gamma, R) read at ``grid`` (registration_at)."""
+    return registration_at((solution.gamma, solution.rotation), grid, dtype, modulo)
 
 
 def chunk_bounds(n: int, size: int | None):

@@ -43,8 +43,12 @@ class DistanceMatrixResult(NamedTuple):
             level, and on one working grid).
         grids: ``(K, K, 2)`` the finest working grid each pair was solved on (its last
             level; the collection's grid without levels); 0 on the diagonal.
+        spread: ``(K, K)`` each pair's candidates' spread (``ShapeGeodesicResult.spread``:
+            how far apart the final distances of the candidates it carried through the
+            levels are, relative to the lowest; 0 with one candidate, NaN on the diagonal
+            and on one working grid).
         converged: ``()`` every pair converged (resolved: the last level converged and
-            its estimate met ``rtol``).
+            its estimate and its candidates' spread met ``rtol``).
         result: ``successful``, or the result code of the first pair (in row-major order
             of the upper triangle) that did not converge (``elastic_jax.RESULTS``).
         num_steps: ``()`` solver steps over all pairs.
@@ -55,6 +59,7 @@ class DistanceMatrixResult(NamedTuple):
     refinement_change: Float[Array, "K K"]
     estimate: Float[Array, "K K"]
     grids: Int[Array, "K K 2"]
+    spread: Float[Array, "K K"]
     converged: Bool[Array, ""]
     result: RESULTS
     num_steps: Int[Array, ""]
@@ -82,12 +87,13 @@ class _PairsState(NamedTuple):
     num_steps: np.ndarray
     estimate: np.ndarray
     grids: np.ndarray
+    spread: np.ndarray
     done: np.ndarray
     done_before: int = 0
     pending: Iterator | None = None
 
 
-_SAVED = _PairsState._fields[:8]
+_SAVED = _PairsState._fields[:9]
 
 
 class _PairsJob(NamedTuple):
@@ -141,6 +147,7 @@ class _PairsJob(NamedTuple):
             np.zeros(p, np.int64),
             nan.copy(),
             np.zeros((p, 2), np.int32),
+            nan.copy(),
             zeros.copy(),
         )
         return self._started(state)
@@ -161,7 +168,7 @@ class _PairsJob(NamedTuple):
         if finished is None:  # a failed chunk raises in next(): this is a bug if reached
             raise RuntimeError("distance_matrix: some chunks of pairs were never solved")
         (a, b), out = finished
-        for field, part in zip(state[:7], out, strict=True):
+        for field, part in zip(state[:8], out, strict=True):
             field[a:b] = np.asarray(part)[: b - a]
         state.done[a:b] = True
         return state, True
@@ -216,6 +223,7 @@ class _PairsJob(NamedTuple):
             ),
             estimate=jnp.asarray(symmetric(state.estimate, np.nan, np.float64), dtype=dtype),
             grids=jnp.asarray(symmetric(state.grids, 0, np.int32)),
+            spread=jnp.asarray(symmetric(state.spread, np.nan, np.float64), dtype=dtype),
             converged=jnp.asarray(state.converged.all()),
             result=RESULTS.successful if first is None else RESULTS.from_code(first),
             num_steps=jnp.asarray(state.num_steps.sum()),

@@ -68,6 +68,7 @@ def run_distances(args, progress: Progress) -> dict:
                 refinement_change=np.asarray(res.refinement_change),
                 estimate=np.asarray(res.estimate),
                 grids=np.asarray(res.grids),
+                spread=np.asarray(res.spread),
                 files=np.asarray(args.files),
                 settings=json.dumps(settings),
             )
@@ -98,6 +99,8 @@ def run_distances(args, progress: Progress) -> dict:
         # Each pair's levels estimate and finest grid (null: one working grid).
         "estimate": json_floats(res.estimate),
         "grids": np.asarray(res.grids).tolist(),
+        # Each pair's candidates' spread (0: one candidate; null: one working grid).
+        "spread": json_floats(res.spread),
         "seconds": seconds,
         "files": files,
         "environment": environment_record(),
