@@ -247,11 +247,12 @@ class ShapeOptions:
             low-passed by each width in turn (:func:`smooth_surface`, by
             ``smoothing_kernel``), each solve continuing the one before, and then on
             the data, continuing the narrowest: graduated inputs, as image
-            registration's pyramids. With ``both_orders`` one more candidate: the
-            other order's graduated solve of each such level, inverted (gamma^-1,
-            R^T) and continued in this order, so that either order carries both. Blurred inputs have fewer basins, and the data's
-            level continues the minimum followed down from the widest instead of
-            whichever one rounding picks. The lowest final distance wins, so the
+            registration's pyramids. Blurred inputs have fewer basins, and the
+            data's level continues the minimum followed down from the widest instead
+            of whichever one rounding picks. With ``both_orders``, one more
+            candidate continues the other order's graduated solve of each such
+            level, inverted (gamma^-1, R^T; left out where the inverse folds or
+            misses rounding's tolerance). The lowest final distance wins, so the
             answer is never above the default's, and ``spread`` says how far apart
             the two ended. On the shared cats, with ``(1, 0.5, 0.25)`` and the sphere
             kernel, the graduated candidate ended 4-9 % below the default's in all

@@ -55,10 +55,15 @@ def level_solve(
     first without a start, or one whose carry folds) continues the solves of the inputs
     low-passed instead (:func:`graduated_search`); with ``other_order`` too, it
     continues the other order's graduated solve, inverted (:func:`other_order_graduated`;
-    a search of its own where that inverse is not usable).
+    a search of its own where that inverse is not usable). A first level whose
+    ``start`` is :class:`OtherGraduated` continues its carry.
     """
-    carried = registration_at(start if below is None else below, grid, f1.dtype, modulo)
     level = options.on_level(grid)
+    if below is None and isinstance(start, OtherGraduated):
+        return one_grid_solve(
+            f1, f2, metric, modulo, level, None, carry=start.carry, reporter=reporter
+        )
+    carried = registration_at(start if below is None else below, grid, f1.dtype, modulo)
     if carried is None and options.search_smoothing and other_order:
         carry = other_order_graduated(f1, f2, metric, modulo, options, grid, reporter)
         if carry is not None:
@@ -74,16 +79,21 @@ def level_solve(
     return one_grid_solve(f1, f2, metric, modulo, level, carried, reporter=reporter)
 
 
-# The starts of the candidates whose levels graduate their own start searches: in this
-# order, and in the other order, inverted.
+# The start of the candidate whose levels graduate their own start searches.
 GRADUATED = object()
-OTHER_GRADUATED = object()
+
+
+class OtherGraduated(NamedTuple):
+    """The start of the candidate whose levels continue the other order's graduated
+    solve, inverted: its first level's carry (:func:`other_order_graduated`), where it
+    was usable."""
+
+    carry: tuple
 
 
 def graduates(start: object) -> bool:
-    """Whether a candidate's start is one of the graduated ones (GRADUATED or
-    OTHER_GRADUATED)."""
-    return start is GRADUATED or start is OTHER_GRADUATED
+    """Whether a candidate's start is a graduated one (GRADUATED or OtherGraduated)."""
+    return start is GRADUATED or isinstance(start, OtherGraduated)
 
 
 def graduated_search(
@@ -134,8 +144,8 @@ def other_order_graduated(
     data; its registration (gamma, R), f2 o gamma ~ R f1, inverted into (gamma^-1, R^T),
     since then f1 o gamma^-1 ~ R^T f2, with the straight line as the path (zero
     coefficients ``(N - 2, L)``, as ``shape_geodesic(symmetric=True)`` continues an
-    inverted registration). None where
-    gamma^-1 misses rounding's tolerance or folds on the grid.
+    inverted registration). None where gamma^-1 misses rounding's tolerance or folds on
+    the grid.
 
     The sphere kernel blurs the parametrization, so the two orders blur different pairs
     of functions and their graduated searches follow different minima; carrying both
@@ -332,7 +342,7 @@ def levels_solve(
     # Only the graduated candidate's levels graduate their own start searches: the
     # others search as the default does, so the lowest final is never above its.
     plain = options.replace(search_smoothing=())
-    starts = candidate_starts(f1, f2, metric, modulo, options, start)
+    starts = candidate_starts(f1, f2, metric, modulo, options, start, reporter)
     many = len(starts) > 1
 
     def solve(
@@ -349,8 +359,9 @@ def levels_solve(
                     reporter.level["candidate"] = i + 1
                 if again:
                     reporter.level["again"] = True
-            other = starts[i] is OTHER_GRADUATED
-            own, first = (options, None) if graduates(starts[i]) else (plain, starts[i])
+            other = isinstance(starts[i], OtherGraduated)
+            own = options if graduates(starts[i]) else plain
+            first = None if starts[i] is GRADUATED else starts[i]
             result = level_solve(
                 f1, f2, metric, modulo, own, grid, lower, first, reporter, other_order=other
             )
@@ -402,15 +413,18 @@ def candidate_starts(
     modulo: str,
     options: ShapeOptions,
     start: object = None,
+    reporter: Reporter | None = None,
 ) -> list:
-    """The first-level starts of a resolved solve's candidates, one per candidate: None (a
-    start search of its own), a (gamma ``(3, m, n)``, R ``(3, 3)``) pair, or
-    :data:`GRADUATED`. A given ``start``: that one alone. Else ``[None]`` by default;
-    ``options.level_candidates`` K > 1: the first level's K best-ranked starts
-    (:func:`first_level_starts`); ``options.both_orders``: then the other order's,
-    inverted (:func:`other_order_starts`); ``options.search_smoothing``: then GRADUATED,
-    and with ``both_orders`` OTHER_GRADUATED too (:func:`other_order_graduated`). The
-    one list a resolved shape_geodesic and a collection's pairs carry."""
+    """The first-level starts of a resolved solve's candidates, one per candidate: None
+    (a start search of its own), a (gamma ``(3, m, n)``, R ``(3, 3)``) pair,
+    :data:`GRADUATED` or an :class:`OtherGraduated`. A given ``start``: that one alone.
+    Else ``[None]`` by default; ``options.level_candidates`` K > 1: the first level's K
+    best-ranked starts (:func:`first_level_starts`); ``options.both_orders``: then the
+    other order's, inverted (:func:`other_order_starts`); ``options.search_smoothing``:
+    then GRADUATED, and with ``both_orders`` an OtherGraduated where the other order's
+    graduated first level inverts (:func:`other_order_graduated`, whose solves
+    ``reporter`` hears, marked ``order``). The one list a resolved shape_geodesic and a
+    collection's pairs carry."""
     if start is not None:
         return [start]
     starts = [None]
@@ -421,7 +435,9 @@ def candidate_starts(
     if options.search_smoothing:
         starts = starts + [GRADUATED]
         if options.both_orders:
-            starts = starts + [OTHER_GRADUATED]
+            first = tuple(options.levels[0])
+            carry = other_order_graduated(f1, f2, metric, modulo, options, first, reporter)
+            starts = starts + ([] if carry is None else [OtherGraduated(carry)])
     return starts
 
 

@@ -24,8 +24,8 @@ from .._geometry.validation import as_surface, check_grid_options, check_levels
 from .._options import ShapeOptions, check_choice, options_with
 from .._registration.levels import (
     GRADUATED,
-    OTHER_GRADUATED,
     LevelOutcome,
+    OtherGraduated,
     candidate_starts,
     graduated_search,
     graduates,
@@ -563,19 +563,13 @@ def levelled_chunk(
                 read = registration_at(starts[t], grid, dtype, modulo)
                 (searched if read is None else started).append((t, read))
                 continue
-            read = None if sol is None else _read_at(sol, grid, dtype, modulo)
-            carry = (
-                None if read is None else (*read, sol.coefficients, sol.parametrized_coefficients)
-            )
-            if carry is None and not again and starts[t] is GRADUATED:
+            carry = None if sol is None else _carry(sol, grid, dtype, modulo)
+            if sol is None and isinstance(starts[t], OtherGraduated):
+                carry = starts[t].carry
+            elif carry is None and not again and starts[t] is GRADUATED:
                 sol = graduated_search(first[i], second[i], metric, modulo, options, grid)
-                read = _read_at(sol, grid, dtype, modulo)
-                carry = (
-                    None
-                    if read is None
-                    else (*read, sol.coefficients, sol.parametrized_coefficients)
-                )
-            elif carry is None and not again and starts[t] is OTHER_GRADUATED:
+                carry = _carry(sol, grid, dtype, modulo)
+            elif carry is None and not again and isinstance(starts[t], OtherGraduated):
                 carry = other_order_graduated(first[i], second[i], metric, modulo, options, grid)
             if carry is not None:
                 carried.append((t, carry))
@@ -655,9 +649,14 @@ def _part(batch: tuple, a: int, b: int) -> tuple:
     return jax.tree_util.tree_map(lambda x: x[a:b], batch)
 
 
-def _read_at(solution: object, grid: tuple[int, int], dtype, modulo: str):
-    """A level's solution's registration (gamma, R) read at ``grid`` (registration_at)."""
-    return registration_at((solution.gamma, solution.rotation), grid, dtype, modulo)
+def _carry(solution: object, grid: tuple[int, int], dtype, modulo: str) -> tuple | None:
+    """A level's solution as the carry of a solve on ``grid``: its registration read at
+    the grid's points (registration_at), its path's and its parametrized path's
+    coefficients; None where the registration folds there."""
+    read = registration_at((solution.gamma, solution.rotation), grid, dtype, modulo)
+    if read is None:
+        return None
+    return (*read, solution.coefficients, solution.parametrized_coefficients)
 
 
 def chunk_bounds(n: int, size: int | None):
