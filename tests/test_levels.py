@@ -731,8 +731,6 @@ def test_the_graduated_candidate_continues_its_solves_of_the_inputs_low_passed()
     the data continuing it (continued_geodesic from its registration and path), to
     rounding; the default's candidate is the solve without the option; the result is
     the lower, and the spread their range."""
-    from elastic_jax._registration.one_grid import continued_geodesic
-
     f1 = shapes.sample(shapes.bumpy, 9, 17)
     f2 = shapes.sample(shapes.bumpy, 9, 17, rotation=shapes.random_rotation(5))
     f2 = jnp.einsum("i,imn->imn", jnp.asarray([1.2, 1.0, 0.9]), f2)
@@ -751,17 +749,7 @@ def test_the_graduated_candidate_continues_its_solves_of_the_inputs_low_passed()
             modulo="rigid",
             options=level,
         )
-        again = continued_geodesic(
-            f1,
-            f2,
-            METRIC,
-            "rigid",
-            level,
-            blurred.gamma,
-            blurred.rotation,
-            blurred.coefficients,
-            blurred.parametrized_coefficients,
-        )
+        again = _continued(f1, f2, level, blurred)
     assert float(blurred.distance) < float(again.distance)  # the blur lowers it
     candidates = np.asarray(res.levels.candidates)
     np.testing.assert_allclose(candidates, [default.distance, again.distance], rtol=1e-10)
@@ -799,17 +787,7 @@ def test_both_orders_carry_the_other_orders_graduated_solve_inverted():
             modulo="rigid",
             options=level,
         )
-        data = continued_geodesic(
-            f2,
-            f1,
-            METRIC,
-            "rigid",
-            level,
-            blurred.gamma,
-            blurred.rotation,
-            blurred.coefficients,
-            blurred.parametrized_coefficients,
-        )
+        data = _continued(f2, f1, level, blurred)
         inverse = usable_inverse(data.gamma)
         again = continued_geodesic(
             f1, f2, METRIC, "rigid", level, inverse, data.rotation.T, None, None
@@ -823,3 +801,21 @@ def test_both_orders_carry_the_other_orders_graduated_solve_inverted():
     assert float(res.distance) == candidates.min()
     assert_area_bound(res.distance, f1, f2, METRIC)
     assert float(res.distance) <= float(res.parametrized_distance)
+
+
+def _continued(f1, f2, level: ej.ShapeOptions, res: ej.ShapeGeodesicResult):
+    """continued_geodesic of (f1, f2) on ``level`` from a result's registration, path and
+    parametrized path."""
+    from elastic_jax._registration.one_grid import continued_geodesic
+
+    return continued_geodesic(
+        f1,
+        f2,
+        METRIC,
+        "rigid",
+        level,
+        res.gamma,
+        res.rotation,
+        res.coefficients,
+        res.parametrized_coefficients,
+    )
