@@ -40,7 +40,6 @@ def level_solve(
     below: ShapeGeodesicResult | None,
     start: object = None,
     reporter: Reporter | None = None,
-    other_order: bool = False,
 ) -> ShapeGeodesicResult:
     """One level of a resolved distance: the solve on ``grid`` continuing the level
     ``below`` (its registration, path and parametrized path, without a new start search
@@ -53,10 +52,11 @@ def level_solve(
 
     With ``options.search_smoothing``, a level that would search its own start (the
     first without a start, or one whose carry folds) continues the solves of the inputs
-    low-passed instead (:func:`graduated_search`); with ``other_order`` too, it
-    continues the other order's graduated solve, inverted (:func:`other_order_graduated`;
-    a search of its own where that inverse is not usable). A first level whose
-    ``start`` is :class:`OtherGraduated` continues its carry.
+    low-passed instead (:func:`graduated_search`); for the candidate whose ``start`` is
+    an :class:`OtherGraduated` (given on every level), its first level continues that
+    carry and such a level continues the other order's graduated solve, inverted
+    (:func:`other_order_graduated`; a search of its own where that inverse is not
+    usable).
     """
     level = options.on_level(grid)
     if below is None and isinstance(start, OtherGraduated):
@@ -64,7 +64,7 @@ def level_solve(
             f1, f2, metric, modulo, level, None, carry=start.carry, reporter=reporter
         )
     carried = registration_at(start if below is None else below, grid, f1.dtype, modulo)
-    if carried is None and options.search_smoothing and other_order:
+    if carried is None and options.search_smoothing and isinstance(start, OtherGraduated):
         carry = other_order_graduated(f1, f2, metric, modulo, options, grid, reporter)
         if carry is not None:
             return one_grid_solve(
@@ -359,12 +359,9 @@ def levels_solve(
                     reporter.level["candidate"] = i + 1
                 if again:
                     reporter.level["again"] = True
-            other = isinstance(starts[i], OtherGraduated)
             own = options if graduates(starts[i]) else plain
             first = None if starts[i] is GRADUATED else starts[i]
-            result = level_solve(
-                f1, f2, metric, modulo, own, grid, lower, first, reporter, other_order=other
-            )
+            result = level_solve(f1, f2, metric, modulo, own, grid, lower, first, reporter)
             distance = float(jax.block_until_ready(result.distance))
             converged = bool(result.converged)
             if reporter is not None:

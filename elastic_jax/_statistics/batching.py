@@ -516,10 +516,11 @@ def levelled_chunk(
     # Every candidate of every pair is a track of the levels (owner: its pair). Only
     # the graduated candidate graduates its searches: the others search as the default.
     plain = options.replace(search_smoothing=())
-    owner, starts = [], []
+    owner, rank, starts = [], [], []
     for i in range(count):
         own = candidate_starts(first[i], second[i], metric, modulo, options)
         owner += [i] * len(own)
+        rank += range(1, len(own) + 1)
         starts += own
     owner = np.asarray(owner)
     many = len(starts) > count
@@ -601,9 +602,7 @@ def levelled_chunk(
                 if report is not None:
                     info = {"level": index + 1, "levels": len(levels), "grid": tuple(grid)}
                     info.update({"again": True} if again else {})
-                    info.update(
-                        {"candidate": int(t - np.argmax(owner == owner[t])) + 1} if many else {}
-                    )
+                    info.update({"candidate": rank[t]} if many else {})
                     report(
                         int(owner[t]), {"stage": "level", **info, "distance": d, "converged": ok}
                     )
