@@ -158,6 +158,15 @@ def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, caps
         "shoot no v": (["shoot", good, good], "no array v"),
         "shoot shape": (["shoot", good, wrong], "shape (3, 9, 17)"),
         "workers": (["distances", good, good, "--workers", "0"], "--workers"),
+        "level-candidates": (
+            ["shape-geodesic", good, good, "--level-candidates", "0"],
+            "--level-candidates 0",
+        ),
+        "search-smoothing order": (
+            ["distances", good, good, "--search-smoothing", "0.5,1"],
+            "--search-smoothing (0.5, 1.0)",
+        ),
+        "search-smoothing text": (["karcher", good, good, "--search-smoothing", "a,b"], "a,b"),
         "warmup times": (["warmup", "--times", "2"], "--times 2"),
         "warmup rtol": (["warmup", "--rtol", "abc"], "--rtol abc"),
         "warmup vf-degree": (["warmup", "--vf-degree", "30"], "--vf-degree 30"),
@@ -387,7 +396,10 @@ def test_distances_reports_each_pair_and_exits_3_when_one_did_not_converge(
 ):
     from elastic_jax.cli import distances as _distances
 
+    seen = []
+
     def distance_matrix(shapes, metric, **kwargs):
+        seen.append(kwargs)
         converged = np.ones((3, 3), bool)
         converged[0, 2] = converged[2, 0] = False
         change = np.full((3, 3), 0.01)
@@ -408,8 +420,18 @@ def test_distances_reports_each_pair_and_exits_3_when_one_did_not_converge(
     monkeypatch.setattr(_distances, "distance_matrix", distance_matrix)
     files = [_save(tmp_path, f"s{i}.npz", shapes.sample(shapes.sphere, M, N)) for i in range(3)]
     out = tmp_path / "out"
-    assert cli.main(["distances", *files, *SHAPE, "--out", str(out)]) == cli.EXIT_NOT_CONVERGED
+    candidates = ["--level-candidates", "2", "--both-orders", "--search-smoothing", "1,0.5"]
+    argv = ["distances", *files, *SHAPE, *candidates, "--out", str(out)]
+    assert cli.main(argv) == cli.EXIT_NOT_CONVERGED
     summary = json.loads(capsys.readouterr().out)
+    # The candidates' flags reach the library's record, beside the shape flags.
+    (kwargs,) = seen
+    assert kwargs["options"] == SHAPE_OPTIONS.replace(
+        rtol=ej.ShapeOptions().rtol,
+        level_candidates=2,
+        both_orders=True,
+        search_smoothing=(1.0, 0.5),
+    )
     assert summary["converged"] is False
     assert summary["pairs_converged"][0] == [True, True, False]
     assert summary["refinement_change"][1] == [0.01, 0.0, None]  # NaN: not computed

@@ -30,6 +30,72 @@ from .records import Levels, ShapeGeodesicResult
 from .starts import given_start, usable_inverse
 
 
+class LevelStart(NamedTuple):
+    """How one candidate's solve on a level begins (:func:`level_start`): ``kind``
+    "search" (a start search of its own; ``given`` None), "start" (the rounds from
+    ``given`` = (gamma ``(3, m, n)``, R ``(3, 3)``)), "carry" (a continuation of
+    ``given`` = (gamma, R, the path's coefficients ``(N - 2, L)``, the parametrized
+    path's)) or "none" (solved again from a finer level whose registration folds on
+    this grid: no solve, since a search would find another minimum)."""
+
+    kind: str
+    given: tuple | None = None
+
+
+def level_start(
+    f1: ArrayLike,
+    f2: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    grid: tuple[int, int],
+    below: object,
+    start: object = None,
+    again: bool = False,
+    reporter: Reporter | None = None,
+) -> LevelStart:
+    """How a candidate's solve on ``grid`` begins, given the solution ``below`` it
+    continues (a result, or any record with ``gamma``, ``rotation``, ``coefficients``
+    and ``parametrized_coefficients``; None on the first level) and the candidate's
+    first-level ``start`` (:func:`candidate_starts`). The one decision a resolved
+    shape_geodesic (:func:`level_solve`) and a collection's levels make per candidate.
+
+    A level continues the solution below where its registration reads at this grid's
+    points without folding (the coarser gamma's interpolant can fold between its points:
+    the cats at 13 x 25 read at 25 x 49, chain rule). The first level starts from a
+    (gamma, R) start where it reads, else searches. Where a graduated candidate would
+    search (its first level, or a carry that folds), it continues instead the solves of
+    the inputs low-passed (:data:`GRADUATED`: :func:`graduated_search` with ``options``'
+    widths), or the other order's graduated solve, inverted (:class:`OtherGraduated`:
+    its own carry on the first level, :func:`other_order_graduated` above it), and
+    searches only where that carry is not usable."""
+    dtype = jnp.asarray(f1).dtype
+    if below is None and not graduates(start):
+        read = registration_at(start, grid, dtype, modulo)
+        return LevelStart("search") if read is None else LevelStart("start", read)
+    carry = None if below is None else carried(below, grid, dtype, modulo)
+    if below is None and isinstance(start, OtherGraduated):
+        carry = start.carry
+    elif carry is None and not again and start is GRADUATED:
+        searched = graduated_search(f1, f2, metric, modulo, options, grid, reporter)
+        carry = carried(searched, grid, dtype, modulo)
+    elif carry is None and not again and isinstance(start, OtherGraduated):
+        carry = other_order_graduated(f1, f2, metric, modulo, options, grid, reporter)
+    if carry is not None:
+        return LevelStart("carry", carry)
+    return LevelStart("none" if again else "search")
+
+
+def carried(solution: object, grid: tuple[int, int], dtype: DTypeLike, modulo: str) -> tuple | None:
+    """A level's solution as the carry of a solve on ``grid``: its registration read at
+    the grid's points (:func:`registration_at`), its path's and its parametrized path's
+    coefficients; None where the registration folds there."""
+    read = registration_at((solution.gamma, solution.rotation), grid, dtype, modulo)
+    if read is None:
+        return None
+    return (*read, solution.coefficients, solution.parametrized_coefficients)
+
+
 def level_solve(
     f1: ArrayLike,
     f2: ArrayLike,
@@ -40,43 +106,23 @@ def level_solve(
     below: ShapeGeodesicResult | None,
     start: object = None,
     reporter: Reporter | None = None,
-) -> ShapeGeodesicResult:
+    again: bool = False,
+) -> ShapeGeodesicResult | None:
     """One level of a resolved distance: the solve on ``grid`` continuing the level
     ``below`` (its registration, path and parametrized path, without a new start search
-    or coarse rounds: continuation_phase), or, for the first level, from ``start`` or a
-    search of its own.
-
-    The coarser gamma's interpolant can fold between its points (the cats at 13 x 25 read
-    at 25 x 49, chain rule), and so can a fine start read on a coarse level: that level
-    then searches its own start.
-
-    With ``options.search_smoothing``, a level that would search its own start (the
-    first without a start, or one whose carry folds) continues the solves of the inputs
-    low-passed instead (:func:`graduated_search`); for the candidate whose ``start`` is
-    an :class:`OtherGraduated` (given on every level), its first level continues that
-    carry and such a level continues the other order's graduated solve, inverted
-    (:func:`other_order_graduated`; a search of its own where that inverse is not
-    usable).
-    """
+    or coarse rounds: continuation_phase), or, for the first level, from the
+    candidate's ``start`` (:func:`candidate_starts`) or a search of its own, as
+    :func:`level_start` decides. None when solved ``again`` from a finer level whose
+    registration folds on this grid."""
+    plan = level_start(f1, f2, metric, modulo, options, grid, below, start, again, reporter)
+    if plan.kind == "none":
+        return None
     level = options.on_level(grid)
-    if below is None and isinstance(start, OtherGraduated):
+    if plan.kind == "carry":
         return one_grid_solve(
-            f1, f2, metric, modulo, level, None, carry=start.carry, reporter=reporter
+            f1, f2, metric, modulo, level, None, carry=plan.given, reporter=reporter
         )
-    carried = registration_at(start if below is None else below, grid, f1.dtype, modulo)
-    if carried is None and options.search_smoothing and isinstance(start, OtherGraduated):
-        carry = other_order_graduated(f1, f2, metric, modulo, options, grid, reporter)
-        if carry is not None:
-            return one_grid_solve(
-                f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter
-            )
-    elif carried is None and options.search_smoothing:
-        below = graduated_search(f1, f2, metric, modulo, options, grid, reporter)
-        carried = registration_at(below, grid, f1.dtype, modulo)
-    if below is not None and carried is not None:
-        carry = (*carried, below.coefficients, below.parametrized_coefficients)
-        return one_grid_solve(f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter)
-    return one_grid_solve(f1, f2, metric, modulo, level, carried, reporter=reporter)
+    return one_grid_solve(f1, f2, metric, modulo, level, plan.given, reporter=reporter)
 
 
 # The start of the candidate whose levels graduate their own start searches.
@@ -339,9 +385,9 @@ def levels_solve(
         given_start(start, *own, f1.dtype, modulo == "rigid")
     check_levels(options)
     noise = noise_distance(f1, f2)
-    # Only the graduated candidate's levels graduate their own start searches: the
-    # others search as the default does, so the lowest final is never above its.
-    plain = options.replace(search_smoothing=())
+    # Only the graduated candidates' levels graduate their own start searches
+    # (level_start): the others search as the default does, so the lowest final is
+    # never above its.
     starts = candidate_starts(f1, f2, metric, modulo, options, start, reporter)
     many = len(starts) > 1
 
@@ -350,18 +396,18 @@ def levels_solve(
     ) -> list:
         outcomes = []
         for i, lower in zip(going, below, strict=True):
-            if again and registration_at(lower, grid, f1.dtype, modulo) is None:
-                outcomes.append(None)  # the finer gamma folds between this grid's points
-                continue
             if reporter is not None:
                 reporter.level = {"level": index + 1, "levels": len(options.levels)}
                 if many:
                     reporter.level["candidate"] = i + 1
                 if again:
                     reporter.level["again"] = True
-            own = options if graduates(starts[i]) else plain
-            first = None if starts[i] is GRADUATED else starts[i]
-            result = level_solve(f1, f2, metric, modulo, own, grid, lower, first, reporter)
+            result = level_solve(
+                f1, f2, metric, modulo, options, grid, lower, starts[i], reporter, again
+            )
+            if result is None:
+                outcomes.append(None)  # the finer gamma folds between this grid's points
+                continue
             distance = float(jax.block_until_ready(result.distance))
             converged = bool(result.converged)
             if reporter is not None:

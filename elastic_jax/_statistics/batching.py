@@ -23,16 +23,11 @@ from .._geometry.numerics import default_tol
 from .._geometry.validation import as_surface, check_grid_options, check_levels
 from .._options import ShapeOptions, check_choice, options_with
 from .._registration.levels import (
-    GRADUATED,
     LevelOutcome,
-    OtherGraduated,
     candidate_starts,
-    graduated_search,
-    graduates,
+    level_start,
     lowest,
     noise_distance,
-    other_order_graduated,
-    registration_at,
     run_levels,
     spread_of,
 )
@@ -512,9 +507,8 @@ def levelled_chunk(
     count = first.shape[0]
     levels = options.levels
     check_levels(options)
-    dtype = first.dtype
-    # Every candidate of every pair is a track of the levels (owner: its pair). Only
-    # the graduated candidate graduates its searches: the others search as the default.
+    # Every candidate of every pair is a track of the levels (owner: its pair). The
+    # levels' solves share one static record whatever the candidates' options.
     plain = options.replace(search_smoothing=())
     owner, rank, starts = [], [], []
     for i in range(count):
@@ -552,30 +546,18 @@ def levelled_chunk(
     def solve(
         index: int, grid: tuple[int, int], going: list, below: list, again: bool = False
     ) -> list:
-        # A track continues its solution below where that registration reads at this
-        # grid's points without folding; the others search (the first level from its
-        # candidate's start). Solved again from a finer level (again=True), a track that
-        # cannot continue it has no outcome: a search would find another minimum.
+        # Each track begins as a lone shape_geodesic's candidate would (level_start);
+        # the tracks that begin alike are solved as one group.
         level = plain.on_level(grid)
         searched, started, carried = [], [], []
         for t, sol in zip(going, below, strict=True):
             i = owner[t]
-            if sol is None and not graduates(starts[t]):
-                read = registration_at(starts[t], grid, dtype, modulo)
-                (searched if read is None else started).append((t, read))
-                continue
-            carry = None if sol is None else _carry(sol, grid, dtype, modulo)
-            if sol is None and isinstance(starts[t], OtherGraduated):
-                carry = starts[t].carry
-            elif carry is None and not again and starts[t] is GRADUATED:
-                sol = graduated_search(first[i], second[i], metric, modulo, options, grid)
-                carry = _carry(sol, grid, dtype, modulo)
-            elif carry is None and not again and isinstance(starts[t], OtherGraduated):
-                carry = other_order_graduated(first[i], second[i], metric, modulo, options, grid)
-            if carry is not None:
-                carried.append((t, carry))
-            elif not again:
-                searched.append((t, None))
+            plan = level_start(
+                first[i], second[i], metric, modulo, options, grid, sol, starts[t], again
+            )
+            group = {"search": searched, "start": started, "carry": carried}.get(plan.kind)
+            if group is not None:
+                group.append((t, plan.given))
         groups = [] if not searched else [([t for t, _ in searched], None)]
         for group in (started, carried):
             if group:
@@ -646,16 +628,6 @@ def levelled_chunk(
 
 def _part(batch: tuple, a: int, b: int) -> tuple:
     return jax.tree_util.tree_map(lambda x: x[a:b], batch)
-
-
-def _carry(solution: object, grid: tuple[int, int], dtype, modulo: str) -> tuple | None:
-    """A level's solution as the carry of a solve on ``grid``: its registration read at
-    the grid's points (registration_at), its path's and its parametrized path's
-    coefficients; None where the registration folds there."""
-    read = registration_at((solution.gamma, solution.rotation), grid, dtype, modulo)
-    if read is None:
-        return None
-    return (*read, solution.coefficients, solution.parametrized_coefficients)
 
 
 def chunk_bounds(n: int, size: int | None):

@@ -160,6 +160,18 @@ def _rtol(text: str) -> float | str | None:
         return text
 
 
+def _widths(text: str) -> tuple[float, ...] | str:
+    """--search-smoothing's value: comma-separated numbers ('none' or '': no smoothing);
+    ShapeOptions checks they are positive and wide to narrow. Other text is passed on
+    for shape_options_from to refuse in one line."""
+    if text.strip().lower() in ("", "none"):
+        return ()
+    try:
+        return tuple(float(v) for v in text.split(","))
+    except ValueError:
+        return text
+
+
 def shape_options(
     parser: argparse.ArgumentParser,
     *,
@@ -255,6 +267,40 @@ def rtol_option(parser: argparse.ArgumentParser, what: str) -> None:
         default=SHAPE_DEFAULTS.rtol,
         help=f"{what}: working grids 25 x 49 ... 97 x 193 until two levels' distances agree "
         "within this; 'none': one working grid, the inputs'",
+    )
+    candidates = parser.add_argument_group(
+        "candidates",
+        "more starts carried through the levels beside the default's; the lowest final "
+        "distance wins and a spread of the candidates' finals above --rtol is not resolved "
+        "(ShapeOptions' fields of the same names)",
+    )
+    candidates.add_argument(
+        "--level-candidates",
+        type=int,
+        default=SHAPE_DEFAULTS.level_candidates,
+        metavar="K",
+        help="the first level's K best-ranked starts, each through its own levels",
+    )
+    candidates.add_argument(
+        "--both-orders",
+        action="store_true",
+        help="also the other order's starts, inverted (and its graduated solve, with "
+        "--search-smoothing)",
+    )
+    candidates.add_argument(
+        "--search-smoothing",
+        type=_widths,
+        default=None,
+        metavar="W,W,...",
+        help="one more candidate whose start searches run on the inputs low-passed by "
+        "these kernel widths, wide to narrow, in latitude spacings (e.g. 1,0.5,0.25; "
+        "default: none)",
+    )
+    candidates.add_argument(
+        "--smoothing-kernel",
+        choices=ShapeOptions.CHOICES["smoothing_kernel"],
+        default=SHAPE_DEFAULTS.smoothing_kernel,
+        help="the kernel of --search-smoothing: the sphere's or the surface's own heat flow",
     )
 
 

@@ -60,10 +60,19 @@ SHAPE_FLAGS = {
     "refinement": ("refinement", "--no-refinement"),
 }
 
+# The candidates' flags, given with --rtol (the commands that resolve by levels).
+CANDIDATE_FLAGS = {
+    "level_candidates": ("level_candidates", "--level-candidates"),
+    "both_orders": ("both_orders", "--both-orders"),
+    "search_smoothing": ("search_smoothing", "--search-smoothing"),
+    "smoothing_kernel": ("smoothing_kernel", "--smoothing-kernel"),
+}
+
 
 # Flags that pca on a karcher output takes from that run: giving them is refused.
 KARCHER_OWN_FLAGS = {
     **{dest: flag for dest, flag in SHAPE_FLAGS.values()},
+    **{dest: flag for dest, flag in CANDIDATE_FLAGS.values()},
     **{
         dest: "--" + dest.replace("_", "-")
         for dest in ("metric", "grid", "dtype", "modulo", "strategy", "batch_size", "workers")
@@ -225,11 +234,19 @@ def shape_options_from(args) -> ShapeOptions:
     # --rtol is the commands' that resolve by levels; the others solve on one grid
     # (rtol None, which is what they use).
     values["rtol"] = getattr(args, "rtol", None)
+    for field, (dest, _) in CANDIDATE_FLAGS.items():
+        if getattr(args, dest, None) is not None:
+            values[field] = getattr(args, dest)
+    if isinstance(values.get("search_smoothing"), str):
+        raise BadInput(
+            f"--search-smoothing {values['search_smoothing']}: wants kernel widths "
+            "w1,w2,... (numbers, wide to narrow)"
+        )
     try:
         return ShapeOptions(**values)
     except ValueError as err:
         field = str(err).split()[0]
-        flag = SHAPE_FLAGS.get(field, (field, f"--{field}"))[1]
+        flag = {**SHAPE_FLAGS, **CANDIDATE_FLAGS}.get(field, (field, f"--{field}"))[1]
         raise BadInput(f"{flag} {values.get(field)}: {err}") from err
 
 
