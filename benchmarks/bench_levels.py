@@ -33,7 +33,9 @@ it solved (``candidate_levels``: [grid, distance, solved again] in order);
 graduates each level's own start search: the level is solved first on the inputs
 low-passed by those kernel widths (in its latitude spacings;
 ``ShapeOptions.search_smoothing``), by ``--smoothing-kernel sphere`` (the default) or
-``surface`` (``ShapeOptions.smoothing_kernel``).
+``surface`` (``ShapeOptions.smoothing_kernel``). ``--alternations K`` continues each
+level's solve through at most K round trips between the orders
+(``ShapeOptions.alternations``).
 
 ``--matrix cat1,cat2,horse0`` runs ``distance_matrix`` of those surfaces instead, with
 the same options (its candidates too), by ``--strategy`` (default "loop"): one record
@@ -53,7 +55,7 @@ Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
      [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193] [--times 13] [--calls 1]
      [--perturb SEED] [--rotate SEED] [--moebius A] [--degree 7] [--vf-degree 8]
      [--level-vf-degrees 8,16,32] [--level-candidates 1] [--both-orders]
-     [--search-smoothing 1,0.5,0.25] [--smoothing-kernel sphere]
+     [--search-smoothing 1,0.5,0.25] [--smoothing-kernel sphere] [--alternations 0]
      [--matrix cat1,cat2,horse0 [--strategy loop]]
 """
 
@@ -242,6 +244,7 @@ def main() -> None:
     parser.add_argument(
         "--smoothing-kernel", default="sphere", choices=ej.ShapeOptions.CHOICES["smoothing_kernel"]
     )
+    parser.add_argument("--alternations", type=int, default=0)
     parser.add_argument("--matrix", default="", help="distance_matrix of these surfaces")
     parser.add_argument("--strategy", default="loop", choices=("loop", "map", "vmap"))
     args = parser.parse_args()
@@ -275,6 +278,7 @@ def main() -> None:
             both_orders=args.both_orders,
             search_smoothing=widths,
             smoothing_kernel=args.smoothing_kernel,
+            alternations=args.alternations,
         )
     except ValueError as err:
         parser.error(str(err))
@@ -285,6 +289,7 @@ def main() -> None:
     settings["both_orders"] = args.both_orders
     settings["search_smoothing"] = list(widths)
     settings["smoothing_kernel"] = args.smoothing_kernel
+    settings["alternations"] = args.alternations
     if args.matrix:
         record = run_matrix(args.matrix.split(","), options, args.strategy)
         if record is not None:

@@ -270,6 +270,24 @@ class ShapeOptions:
             different surfaces; the surface kernel is the surface's own heat flow,
             independent of the parametrization, but on the cats its candidate moved by
             1.6 % under the same perturbations (widths (2, 1, 0.5)).
+        alternations: at most this many round trips between the two orders after
+            each level's solve of a resolved :func:`shape_geodesic` (default 0:
+            none): the level's registration (gamma, R), inverted (gamma^-1, R^T),
+            is continued in the order f2 -> f1 from the straight line, that
+            registration inverted again is continued in this order, and a round trip
+            that ends lower is kept; they stop once one lowers the distance by less
+            than the levels' rounds stop (``level_rounds_tol``) or does not lower
+            it. A level's rounds compose gamma with steps of the degree-``vf_degree``
+            basis on the right (gamma o phi); the other order's rounds move gamma
+            on the left (phi o gamma), so a registration where neither order's
+            steps lower the energy is a minimum over both families. On cat1 ->
+            horse0 at 49 x 97 each order's rounds end where a restart of the same
+            order stays (1.8145, 1.8074, 1.8083) while the orders in turn go down
+            1.8145, 1.7576, 1.7430, 1.7363, 1.7247, 1.7224
+            (:doc:`/guides/registration_notes`, "Both orders in turn"). Two more
+            solves a round trip on every level; the collections carry them too.
+            The other order's solves and the graduated candidates' low-passed
+            solves do not alternate.
 
     Check fields:
         refinement: re-evaluate the result with every time step halved and on the
@@ -321,6 +339,7 @@ class ShapeOptions:
     both_orders: bool = False
     search_smoothing: tuple[float, ...] = ()
     smoothing_kernel: str = "sphere"
+    alternations: int = 0
 
     def __post_init__(self):
         ints = {
@@ -333,6 +352,7 @@ class ShapeOptions:
             "saddle_checks": 0,
             "stretch_subdivision": 2,
             "level_candidates": 1,
+            "alternations": 0,
         }
         for name, minimum in ints.items():
             object.__setattr__(self, name, check_int(name, getattr(self, name), minimum))

@@ -167,6 +167,7 @@ def test_bad_shape_options_exit_2_naming_the_flag_before_any_file(tmp_path, caps
             "--search-smoothing (0.5, 1.0)",
         ),
         "search-smoothing text": (["karcher", good, good, "--search-smoothing", "a,b"], "a,b"),
+        "alternations": (["distances", good, good, "--alternations", "-1"], "--alternations -1"),
         "warmup times": (["warmup", "--times", "2"], "--times 2"),
         "warmup rtol": (["warmup", "--rtol", "abc"], "--rtol abc"),
         "warmup vf-degree": (["warmup", "--vf-degree", "30"], "--vf-degree 30"),
@@ -421,6 +422,7 @@ def test_distances_reports_each_pair_and_exits_3_when_one_did_not_converge(
     files = [_save(tmp_path, f"s{i}.npz", shapes.sample(shapes.sphere, M, N)) for i in range(3)]
     out = tmp_path / "out"
     candidates = ["--level-candidates", "2", "--both-orders", "--search-smoothing", "1,0.5"]
+    candidates += ["--alternations", "2"]
     argv = ["distances", *files, *SHAPE, *candidates, "--out", str(out)]
     assert cli.main(argv) == cli.EXIT_NOT_CONVERGED
     summary = json.loads(capsys.readouterr().out)
@@ -431,6 +433,7 @@ def test_distances_reports_each_pair_and_exits_3_when_one_did_not_converge(
         level_candidates=2,
         both_orders=True,
         search_smoothing=(1.0, 0.5),
+        alternations=2,
     )
     assert summary["converged"] is False
     assert summary["pairs_converged"][0] == [True, True, False]

@@ -119,10 +119,82 @@ def level_solve(
         return None
     level = options.on_level(grid)
     if plan.kind == "carry":
-        return one_grid_solve(
+        result = one_grid_solve(
             f1, f2, metric, modulo, level, None, carry=plan.given, reporter=reporter
         )
-    return one_grid_solve(f1, f2, metric, modulo, level, plan.given, reporter=reporter)
+    else:
+        result = one_grid_solve(f1, f2, metric, modulo, level, plan.given, reporter=reporter)
+    return alternated(f1, f2, metric, modulo, options, grid, result, reporter)
+
+
+def alternated(
+    f1: ArrayLike,
+    f2: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    options: ShapeOptions,
+    grid: tuple[int, int],
+    result: object,
+    reporter: Reporter | None = None,
+) -> object:
+    """``result`` (a level's solve on ``grid``, f1 -> f2: a result or any record with
+    ``distance``, ``converged``, ``gamma`` and ``rotation``) after at most
+    ``options.alternations`` round trips between the orders: its registration inverted
+    (gamma^-1 by Newton's method on gamma's interpolant, R^T) continued in the order
+    f2 -> f1 from the straight line, and that one's inverted continued in this order
+    likewise. A round trip is kept where it ends lower (and converged, where the result
+    did); they stop at one that is not kept, at an inverse that folds or misses
+    rounding's tolerance, or once one lowered the distance by less than
+    ``options.level_rounds_tol`` (relative). ``result`` itself without alternations.
+
+    gamma o phi (this order's steps) and phi o gamma (the other order's, seen from this
+    one) are different families of moves of the degree-``vf_degree`` basis, and each
+    order's rounds end where their own family no longer lowers the energy."""
+    if not options.alternations:
+        return result
+    level = options.on_level(grid)
+    saved = None if reporter is None else reporter.level
+    best = result
+    for trip in range(1, options.alternations + 1):
+        inverse = usable_inverse(jnp.asarray(best.gamma))
+        if inverse is None:
+            break
+        if reporter is not None:
+            reporter.level = {**saved, "alternation": trip, "order": "f2 -> f1"}
+        other = one_grid_solve(
+            f2,
+            f1,
+            metric,
+            modulo,
+            level,
+            None,
+            carry=(inverse, best.rotation.T, None),
+            reporter=reporter,
+        )
+        back = usable_inverse(other.gamma)
+        if back is None:
+            break
+        if reporter is not None:
+            reporter.level = {**saved, "alternation": trip, "order": "f1 -> f2"}
+        trial = one_grid_solve(
+            f1,
+            f2,
+            metric,
+            modulo,
+            level,
+            None,
+            carry=(back, other.rotation.T, None),
+            reporter=reporter,
+        )
+        d, lower = float(trial.distance), float(best.distance)
+        if not d < lower or (bool(best.converged) and not bool(trial.converged)):
+            break
+        best = trial
+        if (lower - d) / max(lower, np.finfo(np.float64).tiny) < options.level_rounds_tol:
+            break
+    if reporter is not None:
+        reporter.level = saved
+    return best
 
 
 # The start of the candidate whose levels graduate their own start searches.
@@ -161,7 +233,7 @@ def graduated_search(
     data is followed as the blur narrows, where a start search on the data lands in
     whichever basin rounding picks (:doc:`/guides/registration_notes`, "Graduated
     start searches")."""
-    plain = options.replace(search_smoothing=())
+    plain = options.replace(search_smoothing=(), alternations=0)
     spacing = np.pi / (grid[0] - 1)
     saved = None if reporter is None else reporter.level
     below = None
@@ -196,7 +268,7 @@ def other_order_graduated(
     The sphere kernel blurs the parametrization, so the two orders blur different pairs
     of functions and their graduated searches follow different minima; carrying both
     makes the answer the lower of the two in either order."""
-    plain = options.replace(search_smoothing=())
+    plain = options.replace(search_smoothing=(), alternations=0)
     saved = None if reporter is None else reporter.level
     if reporter is not None:
         reporter.level = {**saved, "order": "f2 -> f1"}

@@ -52,6 +52,7 @@ def grid_setup(f1: ArrayLike, f2: ArrayLike, metric: SplitMetric, options: Shape
         both_orders=False,
         search_smoothing=(),
         smoothing_kernel="sphere",
+        alternations=0,
         quadrature=options.quadrature_factor,
         stretch_quadrature=options.stretch_fraction,
     )

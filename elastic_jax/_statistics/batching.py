@@ -24,6 +24,7 @@ from .._geometry.validation import as_surface, check_grid_options, check_levels
 from .._options import ShapeOptions, check_choice, options_with
 from .._registration.levels import (
     LevelOutcome,
+    alternated,
     candidate_starts,
     level_start,
     lowest,
@@ -32,7 +33,7 @@ from .._registration.levels import (
     spread_of,
 )
 from .._registration.one_grid import continued_geodesic
-from .._registration.records import turned_back
+from .._registration.records import ShapeGeodesicResult, turned_back
 from .._registration.shape import solve_shapes
 from .._results import RESULTS
 from .._runtime.cache import solver_jit
@@ -383,13 +384,16 @@ def _level_pair(
         res = solve_shapes(a, b, metric, modulo, options, start)
     else:
         res = continued_geodesic(a, b, metric, modulo, options, *start)
-    code = jnp.asarray(res.result._value, jnp.int32)
-    steps = jnp.asarray(res.num_steps, jnp.int32)
-    return (
+    return _solution_of(res)
+
+
+def _solution_of(res: ShapeGeodesicResult) -> _LevelSolution:
+    """A one-grid result as a level's solution (:class:`_LevelSolution`)."""
+    return _LevelSolution(
         res.distance,
         res.converged,
-        code,
-        steps,
+        jnp.asarray(res.result._value, jnp.int32),
+        jnp.asarray(res.num_steps, jnp.int32),
         res.gamma,
         res.rotation,
         res.coefficients,
@@ -571,6 +575,11 @@ def levelled_chunk(
             solved = _LevelSolution(*(np.asarray(x) for x in solve_group(tracks, level, given)))
             for k, t in enumerate(tracks):
                 sol = _LevelSolution(*(x[k] for x in solved))
+                i = owner[t]
+                # As a lone shape_geodesic's level does (level_solve), on the host.
+                better = alternated(first[i], second[i], metric, modulo, options, grid, sol)
+                if better is not sol:
+                    sol = _LevelSolution(*(np.asarray(x) for x in _solution_of(better)))
                 d, ok = float(sol.distance), bool(sol.converged)
                 steps[owner[t]] += sol.num_steps
                 outcomes[t] = LevelOutcome(

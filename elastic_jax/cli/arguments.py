@@ -297,6 +297,15 @@ def rtol_option(parser: argparse.ArgumentParser, what: str) -> None:
         "default: none)",
     )
     candidates.add_argument(
+        "--alternations",
+        type=int,
+        default=SHAPE_DEFAULTS.alternations,
+        metavar="K",
+        help="after each level's solve, at most K round trips through the other order "
+        "(the registration inverted, continued there and inverted back), each kept where "
+        "it ends lower",
+    )
+    candidates.add_argument(
         "--smoothing-kernel",
         choices=ShapeOptions.CHOICES["smoothing_kernel"],
         default=SHAPE_DEFAULTS.smoothing_kernel,

@@ -66,6 +66,7 @@ CANDIDATE_FLAGS = {
     "both_orders": ("both_orders", "--both-orders"),
     "search_smoothing": ("search_smoothing", "--search-smoothing"),
     "smoothing_kernel": ("smoothing_kernel", "--smoothing-kernel"),
+    "alternations": ("alternations", "--alternations"),
 }
 
 
