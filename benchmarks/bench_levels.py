@@ -48,8 +48,9 @@ compiles, the later ones are warm. Each record has ``call`` (1, 2, ...) and ``ph
 for each level, in order, the seconds of each of its phases as shape_geodesic's
 progress reports them (start search, coarse registration or the registration carried
 from the level below, registration rounds, geodesics, checks, and the result after
-them; levels solved again are marked ``again``, and a level's solves of the low-passed
-inputs carry their kernel width as ``smoothing``).
+them; levels solved again are marked ``again``, a level's solves of the low-passed
+inputs carry their kernel width as ``smoothing``, and its round trips between the orders
+their number as ``alternation``).
 
 Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
      [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193] [--times 13] [--calls 1]
@@ -92,15 +93,22 @@ def phase_seconds(events: list[dict]) -> list[dict]:
             bool(event.get("again", False)),
             tuple(event["grid"]),
             event.get("smoothing"),
+            event.get("alternation"),
         )
         if not levels or levels[-1]["key"] != key:
             levels.append({"key": key, "phases": {}})
         phases = levels[-1]["phases"]
         phases[stage] = phases.get(stage, 0.0) + seconds
     return [
-        {"grid": list(grid), "again": again, "smoothing": width, "phases": level["phases"]}
+        {
+            "grid": list(grid),
+            "again": again,
+            "smoothing": width,
+            "alternation": trip,
+            "phases": level["phases"],
+        }
         for level in levels
-        for _, again, grid, width in [level["key"]]
+        for _, again, grid, width, trip in [level["key"]]
     ]
 
 

@@ -512,8 +512,9 @@ def levelled_chunk(
     levels = options.levels
     check_levels(options)
     # Every candidate of every pair is a track of the levels (owner: its pair). The
-    # levels' solves share one static record whatever the candidates' options.
-    plain = options.replace(search_smoothing=())
+    # levels' solves share one static record whatever the candidates' options and
+    # round trips (which run on the host).
+    plain = options.replace(search_smoothing=(), alternations=0)
     owner, rank, starts = [], [], []
     for i in range(count):
         own = candidate_starts(first[i], second[i], metric, modulo, options)
