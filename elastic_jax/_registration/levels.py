@@ -117,13 +117,9 @@ def level_solve(
     plan = level_start(f1, f2, metric, modulo, options, grid, below, start, again, reporter)
     if plan.kind == "none":
         return None
+    start, carry = (None, plan.given) if plan.kind == "carry" else (plan.given, None)
     level = options.on_level(grid)
-    if plan.kind == "carry":
-        result = one_grid_solve(
-            f1, f2, metric, modulo, level, None, carry=plan.given, reporter=reporter
-        )
-    else:
-        result = one_grid_solve(f1, f2, metric, modulo, level, plan.given, reporter=reporter)
+    result = one_grid_solve(f1, f2, metric, modulo, level, start, carry=carry, reporter=reporter)
     return alternated(f1, f2, metric, modulo, options, grid, result, reporter)
 
 
@@ -156,36 +152,16 @@ def alternated(
     saved = None if reporter is None else reporter.level
     best = result
     for trip in range(1, options.alternations + 1):
-        inverse = usable_inverse(jnp.asarray(best.gamma))
-        if inverse is None:
-            break
         if reporter is not None:
             reporter.level = {**saved, "alternation": trip, "order": "f2 -> f1"}
-        other = one_grid_solve(
-            f2,
-            f1,
-            metric,
-            modulo,
-            level,
-            None,
-            carry=(inverse, best.rotation.T, None),
-            reporter=reporter,
-        )
-        back = usable_inverse(other.gamma)
-        if back is None:
+        other = turned(f2, f1, metric, modulo, level, best, reporter)
+        if other is None:
             break
         if reporter is not None:
             reporter.level = {**saved, "alternation": trip, "order": "f1 -> f2"}
-        trial = one_grid_solve(
-            f1,
-            f2,
-            metric,
-            modulo,
-            level,
-            None,
-            carry=(back, other.rotation.T, None),
-            reporter=reporter,
-        )
+        trial = turned(f1, f2, metric, modulo, level, other, reporter)
+        if trial is None:
+            break
         d, lower = float(trial.distance), float(best.distance)
         if not d < lower or (bool(best.converged) and not bool(trial.converged)):
             break
@@ -195,6 +171,36 @@ def alternated(
     if reporter is not None:
         reporter.level = saved
     return best
+
+
+def inverted(gamma: ArrayLike, rotation: ArrayLike) -> tuple | None:
+    """A registration of the other order, (gamma, R) with f2 o gamma ~ R f1, as one of
+    this order: (gamma^-1, R^T), since then f1 o gamma^-1 ~ R^T f2 (modulo "diff" R is
+    the identity). gamma^-1 is solved on gamma's interpolant (:func:`usable_inverse`);
+    None where it misses rounding's tolerance or folds on the grid."""
+    inverse = usable_inverse(jnp.asarray(gamma))
+    return None if inverse is None else (inverse, jnp.asarray(rotation).T)
+
+
+def turned(
+    f1: ArrayLike,
+    f2: ArrayLike,
+    metric: SplitMetric,
+    modulo: str,
+    level: ShapeOptions,
+    other: object,
+    reporter: Reporter | None = None,
+) -> ShapeGeodesicResult | None:
+    """The solve f1 -> f2 on ``level``'s one grid continuing ``other``, a solve of f2 ->
+    f1 (any record with ``gamma`` and ``rotation``), with its registration inverted
+    (:func:`inverted`) and the straight line as the path: a continuation, since coarse
+    rounds would re-register on the L2 mismatch and leave the inverted registration's
+    basin. None where the inverse is not usable."""
+    registration = inverted(other.gamma, other.rotation)
+    if registration is None:
+        return None
+    carry = (*registration, None)
+    return one_grid_solve(f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter)
 
 
 # The start of the candidate whose levels graduate their own start searches.
@@ -276,11 +282,12 @@ def other_order_graduated(
     data = level_solve(f2, f1, metric, modulo, plain, grid, blurred, reporter=reporter)
     if reporter is not None:
         reporter.level = saved
-    inverse = usable_inverse(data.gamma)
-    if inverse is None:
+    registration = inverted(data.gamma, data.rotation)
+    if registration is None:
         return None
+    # Zeros, not None, for the straight line: a collection stacks its candidates' carries.
     zero = jnp.zeros_like
-    return inverse, data.rotation.T, zero(data.coefficients), zero(data.parametrized_coefficients)
+    return *registration, zero(data.coefficients), zero(data.parametrized_coefficients)
 
 
 class LevelOutcome(NamedTuple):
@@ -589,12 +596,8 @@ def other_order_starts(
     (gamma^-1, R^T), since then f1 o gamma^-1 ~ R^T f2 (modulo "diff" R is the identity).
     gamma^-1 is solved on gamma's interpolant (:func:`inverse_gamma`); a start whose
     inverse misses rounding's tolerance or folds on the grid is left out."""
-    starts = []
-    for gamma, rotation in first_level_starts(f2, f1, metric, modulo, options):
-        inverse = usable_inverse(gamma)
-        if inverse is not None:
-            starts.append((inverse, rotation.T))
-    return starts
+    starts = (inverted(*start) for start in first_level_starts(f2, f1, metric, modulo, options))
+    return [start for start in starts if start is not None]
 
 
 # A pair of near-equal shapes (a distance below this fraction of the pair's parametrized

@@ -21,11 +21,10 @@ from .._errors import InputError
 from .._geometry.metric import SplitMetric
 from .._geometry.validation import check_pair
 from .._options import ShapeOptions, check_choice, options_with
-from .levels import levels_solve, noise_distance, refinement_gap, with_levels
+from .levels import levels_solve, noise_distance, refinement_gap, turned, with_levels
 from .one_grid import one_grid_solve
 from .phases import Reporter
 from .records import MODULI, ShapeGeodesicResult, warn_unless_converged
-from .starts import usable_inverse
 
 
 def shape_geodesic(
@@ -206,19 +205,12 @@ def _symmetric_solve(
     best = solve(f1, f2, start=start, progress=order("f1 -> f2"))
     other = solve(f2, f1, progress=order("f2 -> f1"))
     if float(other.distance) < float(best.distance):
-        inverse = usable_inverse(other.gamma)
-        if inverse is not None:
-            # A continuation: the coarse rounds would re-register on the L2
-            # mismatch and leave the inverted registration's basin.
-            grid = tuple(other.gamma.shape[-2:])
-            begin = time.perf_counter()
-            carry = (inverse, other.rotation.T, None)
-            level = resolved.on_level(grid)
-            third = order("f1 -> f2 from f2 -> f1")
-            reporter = None if third is None else Reporter(third)
-            again = one_grid_solve(
-                f1, f2, metric, modulo, level, None, carry=carry, reporter=reporter
-            )
+        grid = tuple(other.gamma.shape[-2:])
+        begin = time.perf_counter()
+        third = order("f1 -> f2 from f2 -> f1")
+        reporter = None if third is None else Reporter(third)
+        again = turned(f1, f2, metric, modulo, resolved.on_level(grid), other, reporter)
+        if again is not None:
             if other.levels is not None:
                 # The levels that found this basin (the other order's), the last
                 # distance and time this solve's.
