@@ -653,8 +653,10 @@ def test_a_matrix_carries_each_pairs_candidates_as_shape_geodesic_does():
     pair's distance, estimate, spread and status are shape_geodesic's with the same
     options, the spread the candidates' range (closed form of their recorded finals),
     and the distance the lowest candidate's. Option values are checked by name."""
-    with pytest.raises(ej.InputError, match="level_candidates"):
+    with pytest.raises(ej.InputError, match="level_candidates .* without search_smoothing"):
         ej.ShapeOptions(level_candidates=0)
+    with pytest.raises(ej.InputError, match="level_candidates"):
+        ej.ShapeOptions(level_candidates=-1, search_smoothing=(1.0,))
     with pytest.raises(ej.InputError, match="both_orders"):
         ej.ShapeOptions(both_orders=1)
     f1 = shapes.sample(shapes.bumpy, 9, 17)
@@ -770,7 +772,8 @@ def test_the_graduated_candidate_continues_its_solves_of_the_inputs_low_passed()
     solve of f1 and f2 averaged by the kernel of width c pi / (m - 1), then the solve on
     the data continuing it (continued_geodesic from its registration and path), to
     rounding; the default's candidate is the solve without the option; the result is
-    the lower, and the spread their range."""
+    the lower, and the spread their range. level_candidates=0 carries the graduated
+    candidate alone: the same final, a spread of 0."""
     f1 = shapes.sample(shapes.bumpy, 9, 17)
     f2 = shapes.sample(shapes.bumpy, 9, 17, rotation=shapes.random_rotation(5))
     f2 = jnp.einsum("i,imn->imn", jnp.asarray([1.2, 1.0, 0.9]), f2)
@@ -780,6 +783,9 @@ def test_the_graduated_candidate_continues_its_solves_of_the_inputs_low_passed()
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
         res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
         default = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=plain)
+        alone = ej.shape_geodesic(
+            f1, f2, METRIC, modulo="rigid", options=options.replace(level_candidates=0)
+        )
         level = plain.on_level((9, 17))
         width = np.pi / 8
         blurred = ej.shape_geodesic(
@@ -796,6 +802,8 @@ def test_the_graduated_candidate_continues_its_solves_of_the_inputs_low_passed()
     assert float(res.distance) == candidates.min()
     spread = (candidates.max() - candidates.min()) / candidates.min()
     np.testing.assert_allclose(res.spread, spread, rtol=1e-12)
+    np.testing.assert_allclose(alone.levels.candidates, [again.distance], rtol=1e-10)
+    assert float(alone.spread) == 0.0
     assert_area_bound(res.distance, f1, f2, METRIC)
     assert float(res.distance) <= float(res.parametrized_distance)
 

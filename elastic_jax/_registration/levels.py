@@ -239,7 +239,7 @@ def graduated_search(
     data is followed as the blur narrows, where a start search on the data lands in
     whichever basin rounding picks (:doc:`/guides/registration_notes`, "Graduated
     start searches")."""
-    plain = options.replace(search_smoothing=(), alternations=0)
+    plain = options.replace(search_smoothing=(), alternations=0, level_candidates=1)
     spacing = np.pi / (grid[0] - 1)
     saved = None if reporter is None else reporter.level
     below = None
@@ -274,7 +274,7 @@ def other_order_graduated(
     The sphere kernel blurs the parametrization, so the two orders blur different pairs
     of functions and their graduated searches follow different minima; carrying both
     makes the answer the lower of the two in either order."""
-    plain = options.replace(search_smoothing=(), alternations=0)
+    plain = options.replace(search_smoothing=(), alternations=0, level_candidates=1)
     saved = None if reporter is None else reporter.level
     if reporter is not None:
         reporter.level = {**saved, "order": "f2 -> f1"}
@@ -540,8 +540,9 @@ def candidate_starts(
     """The first-level starts of a resolved solve's candidates, one per candidate: None
     (a start search of its own), a (gamma ``(3, m, n)``, R ``(3, 3)``) pair,
     :data:`GRADUATED` or an :class:`OtherGraduated`. A given ``start``: that one alone.
-    Else ``[None]`` by default; ``options.level_candidates`` K > 1: the first level's K
-    best-ranked starts (:func:`first_level_starts`); ``options.both_orders``: then the
+    Else ``[None]`` by default (``[]`` with ``options.level_candidates`` 0);
+    ``level_candidates`` K > 1: the first level's K best-ranked starts
+    (:func:`first_level_starts`); ``options.both_orders``: then the
     other order's, inverted (:func:`other_order_starts`); ``options.search_smoothing``:
     then GRADUATED, and with ``both_orders`` an OtherGraduated where the other order's
     graduated first level inverts (:func:`other_order_graduated`, whose solves
@@ -549,7 +550,7 @@ def candidate_starts(
     collection's pairs carry."""
     if start is not None:
         return [start]
-    starts = [None]
+    starts = [None][: options.level_candidates]
     if options.level_candidates > 1:
         starts = first_level_starts(f1, f2, metric, modulo, options)
     if options.both_orders:

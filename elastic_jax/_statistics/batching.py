@@ -514,7 +514,7 @@ def levelled_chunk(
     # Every candidate of every pair is a track of the levels (owner: its pair). The
     # levels' solves share one static record whatever the candidates' options and
     # round trips (which run on the host).
-    plain = options.replace(search_smoothing=(), alternations=0)
+    plain = options.replace(search_smoothing=(), alternations=0, level_candidates=1)
     owner, rank, starts = [], [], []
     for i in range(count):
         own = candidate_starts(first[i], second[i], metric, modulo, options)

@@ -279,7 +279,8 @@ def rtol_option(parser: argparse.ArgumentParser, what: str) -> None:
         type=int,
         default=SHAPE_DEFAULTS.level_candidates,
         metavar="K",
-        help="the first level's K best-ranked starts, each through its own levels",
+        help="the first level's K best-ranked starts, each through its own levels (0: "
+        "none, only the graduated candidates of --search-smoothing)",
     )
     candidates.add_argument(
         "--both-orders",
