@@ -553,7 +553,7 @@ def candidate_starts(
     starts = [None][: options.level_candidates]
     if options.level_candidates > 1:
         starts = first_level_starts(f1, f2, metric, modulo, options)
-    if options.both_orders:
+    if options.both_orders and options.level_candidates:
         starts = starts + other_order_starts(f1, f2, metric, modulo, options)
     if options.search_smoothing:
         starts = starts + [GRADUATED]
