@@ -220,6 +220,12 @@ def graduates(start: object) -> bool:
     return start is GRADUATED or isinstance(start, OtherGraduated)
 
 
+def one_candidate(options: ShapeOptions) -> ShapeOptions:
+    """``options`` for one candidate's own solves: no more candidates of its own (one
+    start search's, no graduated one) and no round trips between the orders."""
+    return options.replace(search_smoothing=(), alternations=0, level_candidates=1)
+
+
 def graduated_search(
     f1: ArrayLike,
     f2: ArrayLike,
@@ -239,7 +245,7 @@ def graduated_search(
     data is followed as the blur narrows, where a start search on the data lands in
     whichever basin rounding picks (:doc:`/guides/registration_notes`, "Graduated
     start searches")."""
-    plain = options.replace(search_smoothing=(), alternations=0, level_candidates=1)
+    plain = one_candidate(options)
     spacing = np.pi / (grid[0] - 1)
     saved = None if reporter is None else reporter.level
     below = None
@@ -274,7 +280,7 @@ def other_order_graduated(
     The sphere kernel blurs the parametrization, so the two orders blur different pairs
     of functions and their graduated searches follow different minima; carrying both
     makes the answer the lower of the two in either order."""
-    plain = options.replace(search_smoothing=(), alternations=0, level_candidates=1)
+    plain = one_candidate(options)
     saved = None if reporter is None else reporter.level
     if reporter is not None:
         reporter.level = {**saved, "order": "f2 -> f1"}
@@ -550,7 +556,7 @@ def candidate_starts(
     collection's pairs carry."""
     if start is not None:
         return [start]
-    starts = [None][: options.level_candidates]
+    starts = [None] if options.level_candidates else []
     if options.level_candidates > 1:
         starts = first_level_starts(f1, f2, metric, modulo, options)
     if options.both_orders and options.level_candidates:

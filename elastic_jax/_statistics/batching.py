@@ -29,6 +29,7 @@ from .._registration.levels import (
     level_start,
     lowest,
     noise_distance,
+    one_candidate,
     run_levels,
     spread_of,
 )
@@ -514,7 +515,7 @@ def levelled_chunk(
     # Every candidate of every pair is a track of the levels (owner: its pair). The
     # levels' solves share one static record whatever the candidates' options and
     # round trips (which run on the host).
-    plain = options.replace(search_smoothing=(), alternations=0, level_candidates=1)
+    plain = one_candidate(options)
     owner, rank, starts = [], [], []
     for i in range(count):
         own = candidate_starts(first[i], second[i], metric, modulo, options)
