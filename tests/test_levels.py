@@ -700,10 +700,10 @@ def test_the_orders_in_turn_lower_a_level_and_a_matrix_carries_them():
 
     with pytest.raises(ej.InputError, match="alternations"):
         ej.ShapeOptions(alternations=-1)
-    f1 = shapes.sample(shapes.ellipsoid, 13, 25, axes=(1.2, 0.8, 0.6))
-    f2 = shapes.sample(shapes.bumpy, 13, 25, rotation=shapes.random_rotation(2))
-    options = OPTIONS.replace(rtol=0.03, levels=((13, 25),), alternations=3)
-    level = options.on_level((13, 25))
+    f1 = shapes.sample(shapes.ellipsoid, 9, 17, axes=(1.2, 0.8, 0.6))
+    f2 = shapes.sample(shapes.bumpy, 9, 17, rotation=shapes.random_rotation(2))
+    options = OPTIONS.replace(rtol=0.03, levels=((9, 17),), alternations=3)
+    level = options.on_level((9, 17))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
         res = ej.shape_geodesic(f1, f2, METRIC, modulo="rigid", options=options)
@@ -721,7 +721,7 @@ def test_the_orders_in_turn_lower_a_level_and_a_matrix_carries_them():
         job = ej.JobOptions(strategy="loop")
         matrix = ej.distance_matrix(jnp.stack([f1, f2]), METRIC, options=options, job=job)
     d, d0 = float(trip.distance), float(plain.distance)
-    # The other order's moves lower this pair's level (0.18 %), by less than the
+    # The other order's moves lower this pair's level (0.23 %), by less than the
     # rounds' stop: one round trip is kept and the next is not tried.
     assert d < d0 and (d0 - d) / d0 < options.level_rounds_tol
     assert float(res.distance) == pytest.approx(d, rel=1e-10)

@@ -119,16 +119,9 @@ def _small_pair():
 def test_levels_integrate_at_the_finer_nodes_by_default_and_one_grid_at_its_own():
     # quadrature=None and stretch_quadrature=None (the defaults) are 2 and 0.03 on a
     # resolved distance's levels, 1 and 0 on one working grid (and the rounds stop at
-    # rtol / 5 there). A first level searches its own start as a solve on its grid alone
-    # does: the same distance as those options asked for on that grid, to the last bit.
-    f1, f2 = _small_pair()
+    # rtol / 5 there).
     assert ej.ShapeOptions().quadrature is None
     assert ej.ShapeOptions().stretch_quadrature is None
-    levelled = _small_solve(f1, f2, levels=((13, 25),))[0]
-    alone = _small_solve(
-        f1, f2, grid=(13, 25), quadrature=2, stretch_quadrature=0.03, rounds_tol=0.006
-    )
-    assert levelled == alone[0]
     one_grid = ej.ShapeOptions(grid=(13, 25))
     assert (one_grid.quadrature_factor, one_grid.stretch_fraction) == (1, 0.0)
     level = ej.ShapeOptions().on_level((13, 25))
@@ -136,6 +129,18 @@ def test_levels_integrate_at_the_finer_nodes_by_default_and_one_grid_at_its_own(
     # The grid differential cannot read between the nodes: its levels keep them.
     on_level = ej.ShapeOptions(differential="grid").on_level((13, 25))
     assert (on_level.quadrature, on_level.stretch_quadrature) == (1, 0.0)
+
+
+@pytest.mark.slow  # about 60 s on 2 cores: two solves compile
+def test_a_first_level_solves_as_its_options_on_its_grid_alone():
+    # A first level searches its own start as a solve on its grid alone does: the same
+    # distance as its level's options ask for on that grid, to the last bit.
+    f1, f2 = _small_pair()
+    levelled = _small_solve(f1, f2, levels=((13, 25),))[0]
+    alone = _small_solve(
+        f1, f2, grid=(13, 25), quadrature=2, stretch_quadrature=0.03, rounds_tol=0.006
+    )
+    assert levelled == alone[0]
 
 
 @pytest.mark.slow  # about 70 s on 2 cores: three more programs compile

@@ -152,10 +152,14 @@ CASES = {
 }
 
 
-# The transport case (35 s: a configuration of its own) runs in the slow tier.
+# The transport and shooting cases (35 s and 45 s on 2 cores: configurations of their
+# own) run in the slow tier.
+SLOW_CASES = {"parallel_transport", "shoot"}
+
+
 @pytest.mark.parametrize(
     "case",
-    [pytest.param(c, marks=pytest.mark.slow) if c == "parallel_transport" else c for c in CASES],
+    [pytest.param(c, marks=pytest.mark.slow) if c in SLOW_CASES else c for c in CASES],
 )
 def test_every_result_record_follows_the_protocol(case):
     make, expected = CASES[case]
