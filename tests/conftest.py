@@ -84,6 +84,17 @@ def load_shape(name: str) -> np.ndarray:
     return datasets.load(name)
 
 
+def fsaverage5(name: str) -> str:
+    """A file of nilearn's fsaverage5 (``pial_left``, ``sphere_right``, ...; in its wheel);
+    skips the test without nilearn or nibabel."""
+    pytest.importorskip("nibabel")
+    pytest.importorskip("nilearn")
+    import importlib.util
+
+    folder = pathlib.Path(importlib.util.find_spec("nilearn").origin).parent
+    return str(folder / "datasets" / "data" / "fsaverage5" / f"{name}.gii.gz")
+
+
 @pytest.fixture
 def cats() -> tuple[np.ndarray, np.ndarray]:
     return load_shape("cat1"), load_shape("cat2")

@@ -14,6 +14,8 @@ import elastic_jax as ej
 from elastic_jax import io, resample, shapes
 from elastic_jax._geometry.grid import angles_np
 
+from .conftest import fsaverage5
+
 AXES = np.array([1.0, 0.7, 0.5])
 # Smallest radius of curvature of that ellipsoid: c^2 / a, at the ends of the long axis.
 R_MIN = AXES.min() ** 2 / AXES.max()
@@ -469,17 +471,6 @@ def test_surface_files_lists_what_load_surface_reads(tmp_path):
 
 
 # --- results out: GIfTI, the way back to the input mesh's vertices, scale (issue 52) ---
-
-
-def fsaverage5(name: str) -> str:
-    """A file of nilearn's fsaverage5 (in its wheel); skips the test without nilearn."""
-    pytest.importorskip("nibabel")
-    pytest.importorskip("nilearn")
-    import importlib.util
-    import pathlib
-
-    folder = pathlib.Path(importlib.util.find_spec("nilearn").origin).parent
-    return str(folder / "datasets" / "data" / "fsaverage5" / f"{name}.gii.gz")
 
 
 def vertex_errors(mesh: trimesh.Trimesh, m: int, n: int, **options) -> tuple[float, float]:

@@ -11,7 +11,7 @@ from elastic_jax._geometry.bases import make_bases, resolution_np
 from elastic_jax._geometry.composition import compose as _compose
 from elastic_jax._geometry.grid import interior_weights
 
-from .conftest import assert_area_bound, load_shape
+from .conftest import assert_area_bound, fsaverage5, load_shape
 
 M, N = 25, 49
 METRIC = ej.SplitMetric(1.0, 1.0, 0.1, 0.0)
@@ -812,15 +812,9 @@ def test_fsaverage_pial_hemispheres_stay_below_their_parametrized_distance():
     the L2-matched starts lead the rounds to 181.0 (167.1 on another machine) against the
     parametrized 142.7; the rounds from the pair as given, which that triggers, reach
     70.7."""
-    pytest.importorskip("nilearn")
-    import importlib.util
-    import pathlib
-
     from elastic_jax import io
 
-    folder = pathlib.Path(importlib.util.find_spec("nilearn").origin).parent
-    folder = folder / "datasets" / "data" / "fsaverage5"
-    left, right = (io.load_surface(folder / f"pial_{s}.gii.gz", 11, 19) for s in ("left", "right"))
+    left, right = (io.load_surface(fsaverage5(f"pial_{s}"), 11, 19) for s in ("left", "right"))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
         res = ej.shape_geodesic(left, right, METRIC, modulo="diff", rtol=None)
@@ -829,7 +823,7 @@ def test_fsaverage_pial_hemispheres_stay_below_their_parametrized_distance():
     assert_area_bound(res.distance, left, right, METRIC)
 
 
-@pytest.mark.slow  # about 30 min on 2 cores: each order carries six candidates
+@pytest.mark.slow  # about 30 min on 2 cores: each order carries four candidates
 def test_fsaverage_pial_pair_resolves_alike_in_both_orders():
     """FreeSurfer's fsaverage5 pial hemispheres (nilearn's wheel) on 50 x 99, area
     normalized, modulo rigid, at the default levels with both orders' candidates, the
@@ -838,17 +832,11 @@ def test_fsaverage_pial_pair_resolves_alike_in_both_orders():
     most its parametrized distance, above its area bound, and the two orders within 2 %.
     Measured 3.2771 and 3.2723 (0.15 %, spreads 1.3 %); the defaults' one candidate ends
     at 3.7974 and 3.7635, each resolved in its levels."""
-    pytest.importorskip("nilearn")
-    import importlib.util
-    import pathlib
-
     from elastic_jax import io
     from elastic_jax._registration.levels import spread_of
 
-    folder = pathlib.Path(importlib.util.find_spec("nilearn").origin).parent
-    folder = folder / "datasets" / "data" / "fsaverage5"
     left, right = (
-        io.load_surface(folder / f"pial_{s}.gii.gz", 50, 99, normalize="area")
+        io.load_surface(fsaverage5(f"pial_{s}"), 50, 99, normalize="area")
         for s in ("left", "right")
     )
     options = ej.ShapeOptions(both_orders=True, search_smoothing=(1.0, 0.5, 0.25), alternations=3)
