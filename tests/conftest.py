@@ -63,6 +63,22 @@ def _no_exported_programs_after_a_test():
     _cache._EXPORT_DIR = None
 
 
+@pytest.fixture(autouse=True)
+def _internals_trace_as_the_public_functions(request):
+    """Each test runs under the matmul precision that the public functions trace at
+    (elastic_jax/_runtime/precision.py), so that a test calling an internal solve shares
+    the compiled programs of the public calls beside it: the precision keys JAX's caches,
+    and a level's solve called outside it compiled afresh (30 s at 9 x 17). On CPU the
+    numbers are the same. A test marked ``caller_precision`` sees JAX's default."""
+    if request.node.get_closest_marker("caller_precision"):
+        yield
+        return
+    from elastic_jax._runtime.precision import full_products
+
+    with full_products():
+        yield
+
+
 DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
 # The authors' files beside the repository: elastic_jax.datasets reads them from here and
 # the tests never download (a test whose file is not here skips).

@@ -10,6 +10,7 @@ import warnings
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import elastic_jax as ej
 from elastic_jax import shapes
@@ -36,6 +37,7 @@ def _dot_precisions(fn, *args) -> list[str]:
     return found
 
 
+@pytest.mark.caller_precision  # the caller's own products keep JAX's default
 def test_public_functions_trace_float32_products_at_full_precision():
     f1 = shapes.sample(shapes.bumpy, 7, 13).astype(jnp.float32)
     f2 = shapes.sample(shapes.ellipsoid, 7, 13).astype(jnp.float32)
