@@ -21,7 +21,9 @@ normal draw (numpy's generator with that seed) to f1; ``--rotate SEED`` turns f2
 space by ``shapes.random_rotation(SEED)``; ``--moebius A`` replaces f1 by f1 read at
 99 x 197 (its spline) through the Moebius map with boost A (0.3, 0.4, ...) along
 (0.36, -0.48, 0.8) and turned by ``shapes.random_rotation(7)``: with ``first:first`` a
-surface against its own read. ``--degree`` and ``--vf-degree`` set the path's and the
+surface against its own read. ``--read 99x197`` replaces both inputs by their reads at
+that grid (their splines, no map; before ``--moebius``, which then reads the read).
+``--degree`` and ``--vf-degree`` set the path's and the
 Diff step's degrees (default: ``ShapeOptions()``'s); ``--level-vf-degrees 8,16`` gives
 each level its own Diff step degree (``ShapeOptions.level_vf_degrees``);
 ``--level-candidates K`` carries K of the first level's starts through the levels
@@ -54,8 +56,8 @@ their number as ``alternation``).
 
 Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
      [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193] [--times 13] [--calls 1]
-     [--perturb SEED] [--rotate SEED] [--moebius A] [--degree 7] [--vf-degree 8]
-     [--level-vf-degrees 8,16,32] [--level-candidates 1] [--both-orders]
+     [--perturb SEED] [--rotate SEED] [--moebius A] [--read 99x197] [--degree 7]
+     [--vf-degree 8] [--level-vf-degrees 8,16,32] [--level-candidates 1] [--both-orders]
      [--search-smoothing 1,0.5,0.25] [--smoothing-kernel sphere] [--alternations 0]
      [--matrix cat1,cat2,horse0 [--strategy loop]]
 """
@@ -128,6 +130,8 @@ MOEBIUS_DIRECTION = np.array([0.36, -0.48, 0.8])
 
 def varied(f1, f2, variant: dict):
     """(f1, f2) with the variant's perturbation, Moebius read and rotation applied."""
+    if variant.get("read"):
+        f1, f2 = (moebius_read(f, np.zeros(3), np.eye(3), variant["read"]) for f in (f1, f2))
     if variant.get("moebius"):
         boost = variant["moebius"] * MOEBIUS_DIRECTION / np.linalg.norm(MOEBIUS_DIRECTION)
         f1 = moebius_read(f1, boost, ej.shapes.random_rotation(7), (99, 197))
@@ -239,6 +243,7 @@ def main() -> None:
     parser.add_argument("--perturb", type=int, default=None)
     parser.add_argument("--rotate", type=int, default=None)
     parser.add_argument("--moebius", type=float, default=0.0)
+    parser.add_argument("--read", default="", help="both inputs read at this grid: 99x197")
     parser.add_argument("--degree", type=int, default=ej.ShapeOptions().degree)
     parser.add_argument("--vf-degree", type=int, default=ej.ShapeOptions().vf_degree)
     parser.add_argument(
@@ -304,6 +309,13 @@ def main() -> None:
             emit({**record, "settings": settings, "environment": environment()})
         return
     variant = {"perturb": args.perturb, "rotate": args.rotate, "moebius": args.moebius}
+    if args.read:
+        try:
+            variant["read"] = tuple(int(k) for k in args.read.split("x"))
+        except ValueError:
+            parser.error(f"--read must be a grid MxN: {args.read}")
+        if len(variant["read"]) != 2 or variant["read"][1] % 2 == 0:
+            parser.error(f"--read must be a grid MxN with n odd: {args.read}")
     for name in args.pairs.split(","):
         for call in range(1, args.calls + 1):
             record = run_pair(name, options, args.turn, call, variant)

@@ -627,7 +627,9 @@ def test_pca_and_shoot_equal_the_library_and_compose(tmp_path, capsys, monkeypat
     monkeypatch.setattr(_karcher, "karcher_mean", karcher_mean)
     files = [_save(tmp_path, f"s{i}.npz", shapes.sample(shapes.sphere, M, N)) for i in range(4)]
     out = tmp_path / "pca"
-    argv = ["pca", *files, *SHAPE, "--modes", "3", "--mode-times", "4", "--out", str(out)]
+    # Degree 3 and N = 5 for the mode paths and the shot: tests/test_shooting.py's loop.
+    shooting = ["--grid", str(M), str(N), "--degree", "3", "--quiet", *CACHE]
+    argv = ["pca", *files, *shooting, "--modes", "3", "--mode-times", "5", "--out", str(out)]
     assert cli.main(argv) == 0
     summary = json.loads(capsys.readouterr().out)
 
@@ -648,7 +650,7 @@ def test_pca_and_shoot_equal_the_library_and_compose(tmp_path, capsys, monkeypat
     norms2 = [float(ej.metric_inner(METRIC, mean, w, w)) for w in centred]
     assert summary["pca"]["total_variance"] == pytest.approx(np.mean(norms2), rel=1e-10)
 
-    options = {"n_times": 4, "degree": 4, "sigmas": 2.0}
+    options = {"n_times": 5, "degree": 3, "sigmas": 2.0}
     path = np.asarray(ej.mode_path(pca, 0, METRIC, **options))
     np.testing.assert_allclose(saved["mode_paths"][0], path, atol=1e-9)
     plus = trimesh.load(out / "mode1_plus.ply", process=False).vertices
@@ -656,7 +658,7 @@ def test_pca_and_shoot_equal_the_library_and_compose(tmp_path, capsys, monkeypat
 
     shot = tmp_path / "shoot"
     argv = ["shoot", str(out / "mean.npz"), str(out / "mode1_velocity.npz"), "--scale", "2"]
-    argv += ["--degree", "4", "--times", "4", "--quiet", *CACHE, "--out", str(shot)]
+    argv += ["--degree", "3", "--times", "5", "--quiet", *CACHE, "--out", str(shot)]
     assert cli.main(argv) == 0
     summary = json.loads(capsys.readouterr().out)
     endpoint = np.load(shot / "shoot.npz")["endpoint"]
@@ -665,7 +667,7 @@ def test_pca_and_shoot_equal_the_library_and_compose(tmp_path, capsys, monkeypat
     # The shot's length is the initial velocity's G-norm, 2 sigma_1, to first order in 1/N.
     sigma = float(np.sqrt(pca.variances[0]))
     assert summary["length"] == pytest.approx(2 * sigma, rel=0.05)
-    assert summary["converged"] is True and len(summary["speeds"]) == 3
+    assert summary["converged"] is True and len(summary["speeds"]) == 4
 
 
 def test_fit_metric_equals_the_library_and_scores_the_held_out_files(tmp_path, capsys):

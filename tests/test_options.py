@@ -94,9 +94,6 @@ def test_a_record_and_its_keywords_give_the_same_geodesic():
     assert int(capped.num_steps) == 1 and not bool(capped.converged)
 
 
-# About 50 s on 2 cores, compiling the shooting and transport loops: the rule is one
-# function for every solve, and the default tier checks it on geodesic and srnf_invert.
-@pytest.mark.slow
 def test_a_record_and_its_keywords_give_the_same_shot_path_and_transport():
     f1, f2 = _pair()
     v = 0.2 * (f2 - f1)
