@@ -314,8 +314,9 @@ def main() -> None:
             variant["read"] = tuple(int(k) for k in args.read.split("x"))
         except ValueError:
             parser.error(f"--read must be a grid MxN: {args.read}")
-        if len(variant["read"]) != 2 or variant["read"][1] % 2 == 0:
-            parser.error(f"--read must be a grid MxN with n odd: {args.read}")
+        grid = variant["read"]
+        if len(grid) != 2 or min(grid) < 5 or grid[1] % 2 == 0:
+            parser.error(f"--read must be a grid MxN, m, n >= 5, n odd: {args.read}")
     for name in args.pairs.split(","):
         for call in range(1, args.calls + 1):
             record = run_pair(name, options, args.turn, call, variant)

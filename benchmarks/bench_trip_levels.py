@@ -14,6 +14,7 @@ Run: python benchmarks/bench_trip_levels.py --trips first --pairs pial --both-or
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import io
 import json
@@ -28,14 +29,11 @@ HERE = pathlib.Path(__file__).resolve().parent
 
 
 def main() -> None:
-    args = sys.argv[1:]
-    trips = "all"
-    if "--trips" in args:
-        at = args.index("--trips")
-        trips = args[at + 1]
-        del args[at : at + 2]
-    if trips not in ("all", "first"):
-        raise SystemExit("--trips is 'all' or 'first'")
+    # --trips is this script's own; the rest goes to bench_levels.py, which checks it.
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], add_help=False)
+    parser.add_argument("--trips", choices=("all", "first"), default="all")
+    known, args = parser.parse_known_args()
+    trips = known.trips
     package_step, seen = levels.alternated, []
 
     def alternated(f1, f2, metric, modulo, options, grid, result, reporter=None):
