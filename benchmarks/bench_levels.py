@@ -52,7 +52,9 @@ progress reports them (start search, coarse registration or the registration car
 from the level below, registration rounds, geodesics, checks, and the result after
 them; levels solved again are marked ``again``, a level's solves of the low-passed
 inputs carry their kernel width as ``smoothing``, and its round trips between the orders
-their number as ``alternation``).
+their number as ``alternation``). Each candidate's level is printed on stderr as it ends
+(seconds since the call began, its grid, distance and whether it converged), so a run of
+an hour shows how far it got; the records stay on stdout.
 
 Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
      [--rtol 0.03] [--levels 13x25,25x49,49x97,97x193] [--times 13] [--calls 1]
@@ -65,6 +67,7 @@ Run: python benchmarks/bench_levels.py [--pairs pial,cat2:horse0] [--turn 0]
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 import warnings
 
@@ -143,6 +146,13 @@ def varied(f1, f2, variant: dict):
     return f1, f2
 
 
+def echo(event: dict, begin: float) -> None:
+    """A level's event on stderr as it happens, so a long run shows how far it got."""
+    if event.get("stage") == "level":
+        seconds = time.perf_counter() - begin
+        print(f"{seconds:8.0f} s  {event}", file=sys.stderr, flush=True)
+
+
 def run_pair(
     name: str,
     options: ej.ShapeOptions,
@@ -167,7 +177,7 @@ def run_pair(
             METRIC,
             modulo="rigid",
             options=options,
-            progress=events.append,
+            progress=lambda event: (events.append(event), echo(event, begin)),
         )
     levels = res.levels
     # What each level's rule under-read: its registration and path on the grid twice finer.
