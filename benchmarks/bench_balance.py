@@ -92,6 +92,12 @@ def main() -> None:
     args = parser.parse_args()
     if not 0.0 < args.moebius < 1.0:
         parser.error(f"--moebius must lie in (0, 1); got {args.moebius}")
+    unknown = sorted(set(args.shapes.split(",")) - set(ej.datasets.names()))
+    if unknown:
+        parser.error(
+            f"--shapes: unknown {', '.join(unknown)}; the names are "
+            f"{', '.join(ej.datasets.names())}"
+        )
     boost = args.moebius * MOEBIUS_DIRECTION / np.linalg.norm(MOEBIUS_DIRECTION)
     points = np.asarray(ej.sphere_points(*CHECK)).reshape(3, -1)
     for name in args.shapes.split(","):

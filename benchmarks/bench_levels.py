@@ -169,6 +169,11 @@ def run_pair(
     f1, f2 = varied(f1, f2, variant or {})
     events: list[dict] = []
     begin = time.perf_counter()
+
+    def heard(event: dict) -> None:
+        events.append(event)
+        echo(event, begin)
+
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ej.ConvergenceWarning)
         res = ej.shape_geodesic(
@@ -177,7 +182,7 @@ def run_pair(
             METRIC,
             modulo="rigid",
             options=options,
-            progress=lambda event: (events.append(event), echo(event, begin)),
+            progress=heard,
         )
     levels = res.levels
     # What each level's rule under-read: its registration and path on the grid twice finer.
